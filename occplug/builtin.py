@@ -1,0 +1,42 @@
+"""The core's own plugin: registers the generic components through the public hooks.
+
+It is registered exactly like a third-party plugin (``occplug.plugins``), just first.
+"""
+
+from __future__ import annotations
+
+from importlib.resources import files
+from typing import TYPE_CHECKING
+
+from .hookspecs import hookimpl
+
+if TYPE_CHECKING:
+    from importlib.resources.abc import Traversable
+
+    from .registry import Registry
+
+
+@hookimpl
+def occplug_register_components(registry: Registry) -> None:
+    """Register the core's encoders, view transforms, scene, head, supervision, data, metric and model."""
+    from . import components as c
+    from .data.synthetic import SyntheticDataModule
+    from .metrics import Occ3DMIoU
+    from .model import OccModel
+
+    registry.add("encoder", "small_cnn", c.SmallCNN)
+    registry.add("encoder", "timm", c.TimmEncoder)
+    registry.add("view_transform", "lss", c.LSSViewTransform)
+    registry.add("view_transform", "backward_projection", c.BackwardProjection)
+    registry.add("scene", "dense_voxels", c.DenseVoxels)
+    registry.add("head", "voxel_classifier", c.VoxelClassifier)
+    registry.add("supervision", "voxel_ce", c.VoxelCrossEntropy)
+    registry.add("data", "synthetic", SyntheticDataModule)
+    registry.add("metric", "occ3d_miou", Occ3DMIoU)
+    registry.add("model", "occ_model", OccModel)
+
+
+@hookimpl
+def occplug_config_dir() -> Traversable:
+    """The core's base configs (``occplug/trainer/default``, ``occplug/data/synthetic``, ...)."""
+    return files("occplug") / "configs"

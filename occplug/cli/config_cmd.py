@@ -1,0 +1,31 @@
+"""``occplug config show``."""
+
+from __future__ import annotations
+
+import argparse
+
+import yaml
+
+from occplug.config import compose, validate
+from occplug.plugins import get_registry
+
+from .errors import UsageError
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    if not args.config:
+        raise UsageError("config show needs at least one -c CONFIG")
+    composed = compose(args.config, args.overrides)
+    resolved = composed.resolved()
+    if not args.no_validate:
+        validate(resolved, get_registry())
+    if args.explain:
+        key = args.explain
+        hits = {k: v for k, v in composed.sources.items() if k == key or k.startswith(key + ".")}
+        if not hits:
+            raise UsageError(f"--explain {key}: no such key in the composed config")
+        for k, origin in sorted(hits.items()):
+            print(f"{k}: set by {origin}")
+        return 0
+    print(yaml.safe_dump(resolved, sort_keys=False, default_flow_style=None), end="")
+    return 0

@@ -1,0 +1,40 @@
+"""``occplug plugins``: what is installed, what it registers, what failed to load."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from occplug.plugins import get_registry, plugin_reports
+from occplug.registry import KINDS
+
+from .errors import UsageError
+
+
+def cmd_plugins(args: argparse.Namespace) -> int:
+    if args.kind is not None and args.kind not in KINDS:
+        raise UsageError(f"--kind {args.kind}: unknown kind; kinds are: {', '.join(KINDS)}")
+    registry = get_registry()
+    reports = plugin_reports()
+    if args.json:
+        out = []
+        for r in reports:
+            d = r.to_dict()
+            if args.kind:
+                d["components"] = {k: v for k, v in d["components"].items() if k == args.kind}
+            out.append(d)
+        print(json.dumps(out, indent=2))
+        return 0
+    for r in reports:
+        version = f" {r.version}" if r.version else ""
+        dist = f" [{r.distribution}{version}]" if r.distribution else ""
+        print(f"{r.name}{dist}")
+        if r.error:
+            print(f"  ERROR: {r.error}")
+        for kind in KINDS:
+            if args.kind and kind != args.kind:
+                continue
+            for name in r.components.get(kind, []):
+                entry = registry.get(kind, name)
+                print(f"  {kind:<15} {name:<22} {entry.summary}")
+    return 0

@@ -1,0 +1,9 @@
+"""Config errors: one line each, naming the file or key and what was expected."""
+
+from __future__ import annotations
+
+__all__ = ["ConfigError"]
+
+
+class ConfigError(ValueError):
+    """A user mistake in a config file or override. ``str(err)`` is the one-line message."""

@@ -1,0 +1,245 @@
+"""Validating a composed config against the registered components, before anything is built.
+
+Every component node is checked against its factory's constructor signature: an unknown key
+(with the closest valid key), a missing required key, or a value of the wrong type is one
+:class:`ConfigError` line naming the full key path.
+"""
+
+from __future__ import annotations
+
+import collections.abc as cabc
+import inspect
+import typing
+from typing import Any
+
+from occplug.geometry import GridSpec
+from occplug.registry import Registry, closest
+
+from .errors import ConfigError
+from .slots import TOP_LEVEL, Slot, component_params, slot_of
+
+__all__ = ["INJECTED", "OPTIMIZERS", "SCHEDULERS", "check_type", "validate"]
+
+#: Arguments the builder passes to a kind from elsewhere, so a config may leave them out.
+INJECTED: dict[str, set[str]] = {
+    "model": {"grid", "class_names", "free_label", "ignore_label", "optimizer", "scheduler", "metrics"},
+    "encoder": set(),
+    "view_transform": {"in_channels", "image_stride"},
+    "scene": {"in_channels"},
+    "head": {"in_channels", "num_classes"},
+    "supervision": {"free_label", "ignore_label"},
+    "data": set(),
+    "metric": {"num_classes", "class_names", "free_label", "ignore_label"},
+}
+
+#: Optimizer names a config may use (``optimizer.type``); never an import path.
+OPTIMIZERS = ("adamw", "adam", "sgd")
+#: Learning-rate schedules (``scheduler.type``).
+SCHEDULERS = ("none", "cosine", "step")
+
+
+def _describe(value: Any) -> str:
+    text = repr(value)
+    return f"{type(value).__name__} {text if len(text) < 40 else text[:37] + '...'}"
+
+
+def _type_name(annotation: Any) -> str:
+    if annotation is type(None):
+        return "null"
+    origin = typing.get_origin(annotation)
+    if origin is typing.Annotated:
+        return _type_name(typing.get_args(annotation)[0])
+    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+        return " or ".join(_type_name(a) for a in typing.get_args(annotation))
+    if origin is typing.Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(annotation))
+    if origin is not None:
+        args = typing.get_args(annotation)
+        base = getattr(origin, "__name__", str(origin))
+        base = {"Sequence": "list", "tuple": "list", "Mapping": "mapping", "dict": "mapping"}.get(base, base)
+        return f"{base}[{', '.join(_type_name(a) for a in args)}]" if args and base == "list" else base
+    if annotation is GridSpec:
+        return "grid mapping {range, voxel_size}"
+    return getattr(annotation, "__name__", str(annotation))
+
+
+def check_type(value: Any, annotation: Any) -> bool:
+    """Whether a config value fits a (resolved) annotation; unknown annotations accept anything."""
+    if annotation is inspect.Parameter.empty or annotation is Any or isinstance(annotation, str):
+        return True
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if origin is typing.Annotated:
+        return check_type(value, args[0])
+    if origin is typing.Union or (origin is not None and type(annotation).__name__ == "UnionType"):
+        return any(check_type(value, a) for a in args)
+    if annotation is type(None):
+        return value is None
+    if origin is typing.Literal:
+        return value in args
+    if annotation is bool:
+        return isinstance(value, bool)
+    if annotation is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if annotation is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if annotation is str:
+        return isinstance(value, str)
+    if annotation is GridSpec:
+        return isinstance(value, (dict, GridSpec))
+    if origin in (list, tuple, cabc.Sequence) or annotation in (list, tuple, cabc.Sequence):
+        if not isinstance(value, (list, tuple)):
+            return False
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            return len(args) == len(value) and all(check_type(v, a) for v, a in zip(value, args, strict=True))
+        return not args or all(check_type(v, args[0]) for v in value)
+    if origin in (dict, cabc.Mapping) or annotation in (dict, cabc.Mapping):
+        if not isinstance(value, dict):
+            return False
+        return len(args) != 2 or all(check_type(v, args[1]) for v in value.values())
+    if inspect.isclass(annotation):
+        return isinstance(value, annotation)
+    return True
+
+
+class _Validator:
+    def __init__(self, registry: Registry) -> None:
+        self.registry = registry
+
+    def node(self, node: Any, kind: str, path: str) -> None:
+        if isinstance(node, str) and kind == "metric":
+            node = {"type": node}
+        if not isinstance(node, dict):
+            raise ConfigError(f"{path}: expected a {kind} node (a mapping with 'type:'), got {_describe(node)}")
+        if "type" not in node:
+            names = ", ".join(self.registry.names(kind)) or "(none)"
+            raise ConfigError(f"{path}: missing 'type:' naming a registered {kind} (available: {names})")
+        name = node["type"]
+        try:
+            entry = self.registry.get(kind, str(name))
+        except LookupError as exc:
+            raise ConfigError(f"{path}.type: {exc}") from None
+        params = component_params(entry.factory)
+        label = f"{entry.name} ({kind}{', plugin ' + entry.plugin if entry.plugin != 'occplug' else ''})"
+        for key, value in node.items():
+            if key == "type":
+                continue
+            if key not in params:
+                hint = closest(str(key), list(params))
+                suggestion = f"; did you mean '{hint}'?" if hint else f"; valid keys: {', '.join(params) or '(none)'}"
+                raise ConfigError(f"{path}.{key}: {label} has no parameter '{key}'{suggestion}")
+            param, annotation = params[key]
+            slot = slot_of(annotation)
+            if slot is not None:
+                self.slot(value, slot, f"{path}.{key}")
+            elif not check_type(value, annotation):
+                raise ConfigError(f"{path}.{key}: expected {_type_name(annotation)}, got {_describe(value)}")
+        missing = [
+            k
+            for k, (p, _) in params.items()
+            if p.default is inspect.Parameter.empty and k not in node and k not in INJECTED.get(kind, set())
+        ]
+        if missing:
+            raise ConfigError(f"{path}: {label} is missing required argument(s): {', '.join(missing)}")
+
+    def slot(self, value: Any, slot: Slot, path: str) -> None:
+        if slot.mapping:
+            if value is None:
+                return
+            if not isinstance(value, dict):
+                raise ConfigError(f"{path}: expected a mapping of name -> {slot.kind} node, got {_describe(value)}")
+            for name, sub in value.items():
+                if sub is None:  # `name: null` switches an entry off
+                    continue
+                self.node(sub, slot.kind, f"{path}.{name}")
+        elif slot.sequence:
+            if value is None:
+                return
+            if not isinstance(value, list):
+                raise ConfigError(f"{path}: expected a list of {slot.kind} nodes, got {_describe(value)}")
+            for i, sub in enumerate(value):
+                self.node(sub, slot.kind, f"{path}.{i}")
+        else:
+            self.node(value, slot.kind, path)
+
+
+def _validate_grid(value: Any) -> None:
+    if not isinstance(value, dict):
+        raise ConfigError(f"grid: expected a mapping {{range, voxel_size}}, got {_describe(value)}")
+    for key in value:
+        if key not in ("range", "voxel_size"):
+            hint = closest(str(key), ["range", "voxel_size"])
+            raise ConfigError(f"grid.{key}: unknown key{f'; did you mean {hint!r}?' if hint else ''} (grid has range, voxel_size)")
+    for key in ("range", "voxel_size"):
+        if key not in value:
+            raise ConfigError(f"grid: missing '{key}'")
+    try:
+        GridSpec.from_config(value)
+    except (ValueError, TypeError) as exc:
+        raise ConfigError(f"grid: {exc}") from None
+
+
+def _validate_kwargs(value: Any, section: str, target: Any, skip: set[str]) -> None:
+    if not isinstance(value, dict):
+        raise ConfigError(f"{section}: expected a mapping, got {_describe(value)}")
+    params = {k: v for k, v in component_params(target).items() if k not in skip}
+    for key, val in value.items():
+        if key not in params:
+            hint = closest(str(key), list(params))
+            raise ConfigError(f"{section}.{key}: unknown {section} argument{f'; did you mean {hint!r}?' if hint else ''}")
+        if not check_type(val, params[key][1]):
+            raise ConfigError(f"{section}.{key}: expected {_type_name(params[key][1])}, got {_describe(val)}")
+
+
+def _validate_named_choice(value: Any, section: str, choices: tuple[str, ...]) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise ConfigError(f"{section}: expected a mapping with 'type:', got {_describe(value)}")
+    kind = value.get("type")
+    if kind not in choices:
+        hint = closest(str(kind), list(choices))
+        raise ConfigError(
+            f"{section}.type: unknown {section} {kind!r}{f'; did you mean {hint!r}?' if hint else ''}; available: {', '.join(choices)}"
+        )
+    return {k: v for k, v in value.items() if k != "type"}
+
+
+def validate(config: dict[str, Any], registry: Registry) -> None:
+    """Validate a resolved config; raise :class:`ConfigError` at the first problem.
+
+    Required top-level sections: ``data`` and ``model``.
+    """
+    import lightning as L
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from occplug.training import optimizer_class, scheduler_factory
+
+    if not isinstance(config, dict):
+        raise ConfigError("a config must be a mapping")
+    for key in config:
+        if key not in TOP_LEVEL:
+            hint = closest(str(key), list(TOP_LEVEL))
+            raise ConfigError(
+                f"{key}: unknown top-level section{f'; did you mean {hint!r}?' if hint else ''} "
+                f"(sections: {', '.join(TOP_LEVEL)})"
+            )
+    for required in ("data", "model"):
+        if required not in config:
+            raise ConfigError(f"{required}: missing section (every config needs 'data:' and 'model:')")
+    v = _Validator(registry)
+    if "seed" in config and not check_type(config["seed"], int):
+        raise ConfigError(f"seed: expected int, got {_describe(config['seed'])}")
+    if "grid" in config:
+        _validate_grid(config["grid"])
+    for section, slot in TOP_LEVEL.items():
+        if isinstance(slot, Slot) and section in config:
+            v.slot(config[section], slot, section)
+    if config.get("optimizer") is not None:
+        args = _validate_named_choice(config["optimizer"], "optimizer", OPTIMIZERS)
+        _validate_kwargs(args, "optimizer", optimizer_class(config["optimizer"]["type"]), {"params"})
+    if config.get("scheduler") is not None:
+        args = _validate_named_choice(config["scheduler"], "scheduler", SCHEDULERS)
+        _validate_kwargs(args, "scheduler", scheduler_factory(config["scheduler"]["type"]), {"optimizer", "total_steps"})
+    if config.get("trainer") is not None:
+        _validate_kwargs(config["trainer"], "trainer", L.Trainer, {"callbacks", "logger", "default_root_dir"})
+    if config.get("checkpoint") is not None:
+        _validate_kwargs(config["checkpoint"], "checkpoint", ModelCheckpoint, {"dirpath"})

@@ -1,0 +1,245 @@
+"""The data contract: one :class:`Frame` per sample, collated into a :class:`Batch`.
+
+Frames of reference (all metres, right-handed):
+
+* **ego**: the vehicle body frame at the frame's timestamp; x forward, y left, z up, origin on the
+  ground below the rear-axle centre (nuScenes). Occupancy labels, boxes and predictions live here.
+* **global**: a fixed world frame per scene; ``ego_to_global`` places the ego in it.
+* **camera**: OpenCV (x right, y down, z forward); ``cam_to_ego`` places each camera.
+* **lidar**: the LiDAR sensor frame (x forward, y left, z up); ``lidar_to_ego`` places it.
+
+Image augmentation is never baked into the calibration: ``img_aug`` records it as a 3x3 matrix so
+``img_aug @ intrinsics`` projects ego points exactly into the augmented image
+(see :mod:`occplug.geometry.cameras`).
+
+Every field that not every data set has is optional (``None``). A component that needs one states
+so in its docstring and fails with a clear error when it is missing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import torch
+from torch import Tensor
+
+__all__ = ["Batch", "Frame", "collate_frames"]
+
+
+@dataclass
+class Frame:
+    """One sample: a timestamped set of sensor readings with its labels.
+
+    Shapes use ``N`` cameras, images ``H x W``, ``P`` LiDAR points, ``M`` boxes, label grid
+    ``X x Y x Z``.
+
+    Attributes:
+        images: ``(N, 3, H, W)`` float32 RGB in [0, 1] (after any augmentation).
+        intrinsics: ``(N, 3, 3)`` float32, calibrated pinhole matrices of the original images.
+        cam_to_ego: ``(N, 4, 4)`` float32, camera -> ego.
+        img_aug: ``(N, 3, 3)`` float32, original pixel -> augmented pixel (identity if none).
+        ego_to_global: ``(4, 4)`` float64, ego -> global (float64: global coordinates are large).
+        timestamp: seconds since the scene start (float).
+        scene: scene / sequence name (str); frames of one scene share it.
+        frame_index: position of the frame in its scene, 0-based; frames are ``1 / fps`` apart.
+        token: unique sample id (str), used to name prediction files.
+        camera_names: the ``N`` camera names, in the order of the camera axis.
+        lidar_to_ego: ``(4, 4)`` float32, LiDAR -> ego, or None without a LiDAR.
+        points: ``(P, 4)`` float32 LiDAR points in the **lidar** frame: x, y, z, intensity in [0, 1].
+        point_labels: ``(P,)`` int64 semantic ids of the points (label taxonomy of the data set).
+        voxel_labels: ``(X, Y, Z)`` uint8 semantic ids in the **ego** frame (Occ3D: 17 = free;
+            SemanticKITTI: 0 = empty, 255 = ignore).
+        mask_camera: ``(X, Y, Z)`` bool, voxels observed by at least one camera ray (Occ3D).
+        mask_lidar: ``(X, Y, Z)`` bool, voxels observed by at least one LiDAR ray (Occ3D).
+        has_voxel_labels: False for a sample whose voxel labels must not be used for training
+            (label-efficient splits); evaluation still reads them when present.
+        boxes: ``(M, 9)`` float32 in the ego frame: centre x, y, z, size length (along heading),
+            width, height, yaw (rad, about +z from +x), velocity vx, vy (m/s, ego frame).
+        box_labels: ``(M,)`` int64 class ids (same taxonomy as the voxel labels).
+        box_track_ids: ``(M,)`` int64 track ids, stable across the frames of a scene.
+        depth: ``(N, H, W)`` float32 ground-truth camera-frame z per pixel (0 = no return); only
+            data sets that have it (the synthetic world).
+        semantics_2d: ``(N, H, W)`` int64 ground-truth class id per pixel, or None.
+        pseudo_depth: ``(N, H, W)`` float32 depth predicted by an external model (0 = none).
+        pseudo_semantics: ``(N, H, W)`` int64 2D semantics already mapped to the target classes
+            (255 = unknown).
+        pseudo_features: ``(N, F, h, w)`` float32 low-resolution per-camera feature maps.
+        adjacent: frames of the same scene at other times, keyed by frame offset
+            (``-1`` = previous, ``+1`` = next). Their poses give the relative ego motion.
+        extras: data-set-specific additions; keep tensors out of here where a field exists.
+    """
+
+    images: Tensor
+    intrinsics: Tensor
+    cam_to_ego: Tensor
+    img_aug: Tensor
+    ego_to_global: Tensor
+    timestamp: float
+    scene: str
+    frame_index: int
+    token: str
+    camera_names: tuple[str, ...] = ()
+    lidar_to_ego: Tensor | None = None
+    points: Tensor | None = None
+    point_labels: Tensor | None = None
+    voxel_labels: Tensor | None = None
+    mask_camera: Tensor | None = None
+    mask_lidar: Tensor | None = None
+    has_voxel_labels: bool = True
+    boxes: Tensor | None = None
+    box_labels: Tensor | None = None
+    box_track_ids: Tensor | None = None
+    depth: Tensor | None = None
+    semantics_2d: Tensor | None = None
+    pseudo_depth: Tensor | None = None
+    pseudo_semantics: Tensor | None = None
+    pseudo_features: Tensor | None = None
+    adjacent: dict[int, Frame] = field(default_factory=dict)
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def num_cameras(self) -> int:
+        """``N``."""
+        return int(self.images.shape[0])
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """``(H, W)`` of the images."""
+        return int(self.images.shape[-2]), int(self.images.shape[-1])
+
+    def points_in_ego(self) -> Tensor:
+        """``(P, 3)`` LiDAR points in the ego frame."""
+        if self.points is None or self.lidar_to_ego is None:
+            raise ValueError(f"frame {self.token} has no LiDAR points")
+        from occplug.geometry import transform_points
+
+        return transform_points(self.lidar_to_ego.to(self.points.dtype), self.points[:, :3])
+
+
+# Fields stacked along a new batch axis when present in every frame; the rest become lists.
+_STACKED = (
+    "images",
+    "intrinsics",
+    "cam_to_ego",
+    "img_aug",
+    "ego_to_global",
+    "lidar_to_ego",
+    "voxel_labels",
+    "mask_camera",
+    "mask_lidar",
+    "depth",
+    "semantics_2d",
+    "pseudo_depth",
+    "pseudo_semantics",
+    "pseudo_features",
+)
+_LISTED = ("points", "point_labels", "boxes", "box_labels", "box_track_ids")
+
+
+@dataclass
+class Batch:
+    """Frames collated for a network: the :class:`Frame` fields with a leading batch axis ``B``.
+
+    Dense fields are stacked (``images`` becomes ``(B, N, 3, H, W)``, ``voxel_labels``
+    ``(B, X, Y, Z)`` ...); fields whose length varies per sample (``points``, ``point_labels``,
+    ``boxes``, ``box_labels``, ``box_track_ids``) are lists of ``B`` tensors. ``timestamp`` is a
+    ``(B,)`` float64 tensor, ``frame_index`` a ``(B,)`` int64 tensor, ``has_voxel_labels`` a
+    ``(B,)`` bool tensor. ``is_sequence_start`` is ``(B,)`` bool: the frame opens its scene
+    (or follows a gap) so stream state must be reset. ``adjacent`` maps an offset to the
+    :class:`Batch` of those adjacent frames (every frame of a batch has the same offsets).
+    """
+
+    images: Tensor
+    intrinsics: Tensor
+    cam_to_ego: Tensor
+    img_aug: Tensor
+    ego_to_global: Tensor
+    timestamp: Tensor
+    frame_index: Tensor
+    has_voxel_labels: Tensor
+    is_sequence_start: Tensor
+    scene: list[str]
+    token: list[str]
+    camera_names: tuple[str, ...] = ()
+    lidar_to_ego: Tensor | None = None
+    points: list[Tensor] | None = None
+    point_labels: list[Tensor] | None = None
+    voxel_labels: Tensor | None = None
+    mask_camera: Tensor | None = None
+    mask_lidar: Tensor | None = None
+    boxes: list[Tensor] | None = None
+    box_labels: list[Tensor] | None = None
+    box_track_ids: list[Tensor] | None = None
+    depth: Tensor | None = None
+    semantics_2d: Tensor | None = None
+    pseudo_depth: Tensor | None = None
+    pseudo_semantics: Tensor | None = None
+    pseudo_features: Tensor | None = None
+    adjacent: dict[int, Batch] = field(default_factory=dict)
+    extras: dict[str, list[Any]] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def batch_size(self) -> int:
+        """``B``."""
+        return len(self)
+
+    def to(self, device: torch.device | str) -> Batch:
+        """A copy with every tensor moved to ``device``."""
+
+        def move(v: Any) -> Any:
+            if isinstance(v, Tensor):
+                return v.to(device)
+            if isinstance(v, list):
+                return [move(x) for x in v]
+            if isinstance(v, dict):
+                return {k: move(x) for k, x in v.items()}
+            if isinstance(v, Batch):
+                return v.to(device)
+            return v
+
+        return Batch(**{f.name: move(getattr(self, f.name)) for f in fields(self)})
+
+    def require(self, *names: str, by: str) -> None:
+        """Raise a clear error if any of the named fields is missing (``by`` names the component)."""
+        missing = [n for n in names if getattr(self, n) is None]
+        if missing:
+            raise ValueError(f"{by} needs batch field(s) {', '.join(missing)}, which the data set does not provide")
+
+
+def collate_frames(frames: list[Frame]) -> Batch:
+    """Collate frames into a :class:`Batch` (the ``collate_fn`` of every occplug data loader)."""
+    if not frames:
+        raise ValueError("cannot collate an empty list of frames")
+    first = frames[0]
+    out: dict[str, Any] = {}
+    for name in _STACKED:
+        values = [getattr(f, name) for f in frames]
+        if all(v is None for v in values):
+            out[name] = None
+        elif any(v is None for v in values):
+            raise ValueError(f"field '{name}' is present in some frames of a batch but not others")
+        else:
+            out[name] = torch.stack(values)
+    for name in _LISTED:
+        values = [getattr(f, name) for f in frames]
+        out[name] = None if all(v is None for v in values) else values
+    out["timestamp"] = torch.tensor([f.timestamp for f in frames], dtype=torch.float64)
+    out["frame_index"] = torch.tensor([f.frame_index for f in frames], dtype=torch.int64)
+    out["has_voxel_labels"] = torch.tensor([f.has_voxel_labels for f in frames], dtype=torch.bool)
+    out["is_sequence_start"] = torch.tensor(
+        [bool(f.extras.get("is_sequence_start", f.frame_index == 0)) for f in frames], dtype=torch.bool
+    )
+    out["scene"] = [f.scene for f in frames]
+    out["token"] = [f.token for f in frames]
+    out["camera_names"] = first.camera_names
+    offsets = set(first.adjacent)
+    if any(set(f.adjacent) != offsets for f in frames):
+        raise ValueError("every frame of a batch must carry the same adjacent-frame offsets")
+    out["adjacent"] = {k: collate_frames([f.adjacent[k] for f in frames]) for k in sorted(offsets)}
+    keys = set().union(*(f.extras for f in frames)) - {"is_sequence_start"}
+    out["extras"] = {k: [f.extras.get(k) for f in frames] for k in sorted(keys)}
+    return Batch(**out)

@@ -1,0 +1,29 @@
+"""Exact geometry: grids, rigid transforms, cameras, rays, volume warping, contraction."""
+
+from .cameras import effective_intrinsics, pixel_centers, project_to_image, unproject_from_image
+from .contraction import contract, uncontract
+from .grid import GridSpec
+from .rays import camera_rays, lidar_ray_directions
+from .transforms import invert_pose, make_pose, relative_pose, rotation_z, transform_points, wrap_angle, yaw_of
+from .volumes import sample_volume, warp_volume
+
+__all__ = [
+    "GridSpec",
+    "camera_rays",
+    "contract",
+    "effective_intrinsics",
+    "invert_pose",
+    "lidar_ray_directions",
+    "make_pose",
+    "pixel_centers",
+    "project_to_image",
+    "relative_pose",
+    "rotation_z",
+    "sample_volume",
+    "transform_points",
+    "uncontract",
+    "unproject_from_image",
+    "wrap_angle",
+    "warp_volume",
+    "yaw_of",
+]

@@ -1,0 +1,19 @@
+"""The component kinds: small abstract classes every registered component subclasses."""
+
+from .encoder import ImageEncoder
+from .head import Head, OccupancyHead
+from .scene import Scene, SceneRepresentation
+from .supervision import ModelOutputs, SupervisionSource
+from .view_transform import Lifted, ViewTransform
+
+__all__ = [
+    "Head",
+    "ImageEncoder",
+    "Lifted",
+    "ModelOutputs",
+    "OccupancyHead",
+    "Scene",
+    "SceneRepresentation",
+    "SupervisionSource",
+    "ViewTransform",
+]

@@ -1,0 +1,55 @@
+"""Kind ``scene``: the scene representation a head reads and a supervision source can query."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+from torch import Tensor, nn
+
+from occplug.data.frame import Batch
+from occplug.geometry import GridSpec
+
+from .view_transform import Lifted
+
+__all__ = ["Scene", "SceneRepresentation"]
+
+
+class Scene(ABC):
+    """A scene's features at one time step, queryable at continuous points.
+
+    Attributes:
+        features: the representation's main tensor (``(B, C, X, Y, Z)`` for dense voxels).
+        grid: the grid ``features`` is defined on.
+        channels: ``C``, feature size returned by :meth:`sample`.
+    """
+
+    features: Tensor
+    grid: GridSpec
+    channels: int
+
+    @abstractmethod
+    def sample(self, points: Tensor) -> Tensor:
+        """Features at continuous ego-frame points.
+
+        Args:
+            points: ``(B, P, 3)`` ego-frame points of this time step, metres.
+
+        Returns:
+            ``(B, P, C)`` features (zero or the representation's "outside" value beyond its range).
+        """
+
+
+class SceneRepresentation(nn.Module, ABC):
+    """Builds a :class:`Scene` from lifted features (and may hold state across a stream).
+
+    Constructors take ``in_channels`` (filled in from the view transform when left out).
+    A stateful representation resets its state where ``batch.is_sequence_start`` is True.
+
+    .. versionadded:: 0.1
+    """
+
+    out_channels: int
+
+    @abstractmethod
+    def forward(self, lifted: Lifted, batch: Batch) -> Scene:
+        """Build the scene for ``batch``."""

@@ -1,0 +1,51 @@
+"""Kind ``supervision``: turn a batch and the model's outputs into losses."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from torch import Tensor, nn
+
+from occplug.data.frame import Batch
+
+from .scene import Scene
+from .view_transform import Lifted
+
+__all__ = ["ModelOutputs", "SupervisionSource"]
+
+
+@dataclass
+class ModelOutputs:
+    """Everything a forward pass produced, for supervision sources to read.
+
+    Attributes:
+        image_features: ``(B, N, C, h, w)`` encoder output.
+        lifted: the view transform's output (volume, optional depth distributions).
+        scene: the scene representation.
+        heads: each head's named outputs, keyed by the head's config name.
+        query: ``query(head_name, points (B, P, 3)) -> (B, P, K)`` asks an occupancy head
+            for logits at continuous points (4D query supervision uses this).
+        extras: model-specific additions (e.g. a teacher's predictions).
+    """
+
+    image_features: Tensor
+    lifted: Lifted
+    scene: Scene
+    heads: dict[str, dict[str, Tensor]]
+    query: Callable[[str, Tensor], Tensor]
+    extras: dict[str, object] = field(default_factory=dict)
+
+
+class SupervisionSource(nn.Module, ABC):
+    """A loss term family. ``weight`` scales every loss it returns.
+
+    .. versionadded:: 0.1
+    """
+
+    weight: float
+
+    @abstractmethod
+    def forward(self, batch: Batch, outputs: ModelOutputs) -> dict[str, Tensor]:
+        """Named, unweighted scalar losses (the model multiplies by ``weight`` and sums)."""

@@ -1,0 +1,6 @@
+"""Metrics: torchmetrics classes over predicted occupancy, DDP-synced by torchmetrics."""
+
+from .base import EvalMask, OccMetric, evaluation_mask
+from .miou import Occ3DMIoU, confusion_matrix, iou_from_confusion
+
+__all__ = ["EvalMask", "Occ3DMIoU", "OccMetric", "confusion_matrix", "evaluation_mask", "iou_from_confusion"]

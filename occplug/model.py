@@ -1,0 +1,227 @@
+"""The model base class: a LightningModule composed from registered components."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+import lightning as L
+import torch
+from torch import Tensor, nn
+
+from occplug import interfaces as I
+from occplug.config.slots import Slot
+from occplug.data.frame import Batch
+from occplug.geometry import GridSpec
+from occplug.metrics.base import OccMetric
+from occplug.plugins import get_registry
+from occplug.training import build_optimizer, build_scheduler
+
+__all__ = ["KIND_INTERFACES", "OccModel", "build_component"]
+
+#: The base class every component of a kind must subclass.
+KIND_INTERFACES: dict[str, type] = {
+    "encoder": I.ImageEncoder,
+    "view_transform": I.ViewTransform,
+    "scene": I.SceneRepresentation,
+    "head": I.Head,
+    "supervision": I.SupervisionSource,
+    "metric": OccMetric,
+}
+
+
+def build_component(kind: str, spec: dict[str, Any] | str, **defaults: Any) -> Any:
+    """Build a registered component and check it implements its kind's interface."""
+    node = {"type": spec} if isinstance(spec, str) else spec
+    obj = get_registry().build(kind, node, **defaults)
+    base = KIND_INTERFACES.get(kind)
+    if base is not None and not isinstance(obj, base):
+        entry = get_registry().get(kind, node["type"])
+        raise TypeError(f"{kind} '{entry.name}' (plugin {entry.plugin}) built a {type(obj).__name__}, not a {base.__name__}")
+    return obj
+
+
+class OccModel(L.LightningModule):
+    """Encoder -> view transform -> scene -> heads, trained by the summed supervision losses.
+
+    Every method plugin either uses this class as is (with its own components) or subclasses it
+    (e.g. teacher-student training) and registers the subclass under kind ``model``.
+
+    Args:
+        encoder: the ``encoder`` node.
+        view_transform: the ``view_transform`` node (``in_channels``/``image_stride`` default to
+            the encoder's).
+        scene: the ``scene`` node (``in_channels`` defaults to the view transform's).
+        heads: named ``head`` nodes; a ``null`` entry is switched off.
+        supervision: named ``supervision`` nodes; each returns losses scaled by its ``weight``.
+        grid: the evaluation grid (filled from the config's top-level ``grid``).
+        class_names: names of the label ids (filled from the data module).
+        free_label: id of empty space (filled from the data module).
+        ignore_label: id ignored by losses and metrics (filled from the data module).
+        occupancy_head: which head answers :meth:`predict_occupancy`.
+        optimizer: the config's ``optimizer`` node.
+        scheduler: the config's ``scheduler`` node.
+        metrics: the config's ``metrics`` list (registered names or nodes).
+    """
+
+    def __init__(
+        self,
+        encoder: Annotated[dict, Slot("encoder")],
+        view_transform: Annotated[dict, Slot("view_transform")],
+        scene: Annotated[dict, Slot("scene")],
+        heads: Annotated[dict, Slot("head", mapping=True)],
+        supervision: Annotated[dict, Slot("supervision", mapping=True)],
+        grid: GridSpec | dict,
+        class_names: list[str] | None = None,
+        free_label: int = 17,
+        ignore_label: int | None = 255,
+        occupancy_head: str = "occupancy",
+        optimizer: dict | None = None,
+        scheduler: dict | None = None,
+        metrics: list | None = None,
+    ) -> None:
+        super().__init__()
+        grid = GridSpec.from_config(grid)
+        self.save_hyperparameters()
+        self.hparams["grid"] = grid.to_dict()  # plain data, so checkpoints load with weights_only=True
+        self.grid = grid
+        self.class_names = list(class_names) if class_names else []
+        self.num_classes = len(self.class_names) or 18
+        self.free_label = free_label
+        self.occupancy_head = occupancy_head
+        self.encoder = build_component("encoder", encoder)
+        self.view_transform = build_component(
+            "view_transform", view_transform, in_channels=self.encoder.out_channels, image_stride=self.encoder.stride
+        )
+        self.scene = build_component("scene", scene, in_channels=self.view_transform.out_channels)
+        self.heads = nn.ModuleDict(
+            {
+                name: build_component("head", spec, in_channels=self.scene.out_channels, num_classes=self.num_classes)
+                for name, spec in heads.items()
+                if spec is not None
+            }
+        )
+        if occupancy_head not in self.heads or not isinstance(self.heads[occupancy_head], I.OccupancyHead):
+            raise ValueError(
+                f"model.heads.{occupancy_head}: the model evaluates through an occupancy head named "
+                f"'{occupancy_head}'; heads are: {', '.join(self.heads) or '(none)'}"
+            )
+        self.supervision = nn.ModuleDict(
+            {
+                name: build_component("supervision", spec, free_label=free_label, ignore_label=ignore_label)
+                for name, spec in supervision.items()
+                if spec is not None
+            }
+        )
+        self.val_metrics = self._build_metrics(metrics, ignore_label)
+        self.test_metrics = self._build_metrics(metrics, ignore_label)
+        self.last_results: dict[str, dict[str, float]] = {}
+        self.last_tables: dict[str, str] = {}
+
+    def _build_metrics(self, specs: list | None, ignore_label: int | None) -> nn.ModuleDict:
+        out = nn.ModuleDict()
+        for spec in specs or []:
+            node = {"type": spec} if isinstance(spec, str) else dict(spec)
+            name = node["type"]
+            key = name if name not in out else f"{name}_{len(out)}"
+            out[key] = build_component(
+                "metric",
+                node,
+                num_classes=self.num_classes,
+                class_names=self.class_names or None,
+                free_label=self.free_label,
+                ignore_label=ignore_label,
+            )
+        return out
+
+    # ---------------------------------------------------------------- forward
+    def forward(self, batch: Batch) -> I.ModelOutputs:
+        """Run every component on ``batch``; see :class:`~occplug.interfaces.ModelOutputs`."""
+        features = self.encoder(batch.images)
+        lifted = self.view_transform(features, batch)
+        scene = self.scene(lifted, batch)
+        heads = {name: head(scene, batch) for name, head in self.heads.items()}
+
+        def query(head_name: str, points: Tensor) -> Tensor:
+            return self.heads[head_name].query(scene, points)
+
+        return I.ModelOutputs(image_features=features, lifted=lifted, scene=scene, heads=heads, query=query)
+
+    def occupancy_from(self, outputs: I.ModelOutputs) -> Tensor:
+        """``(B, X, Y, Z)`` int64 class ids on the evaluation grid from a forward pass's outputs."""
+        head = self.heads[self.occupancy_head]
+        return head.occupancy_logits(outputs.scene, self.grid).argmax(dim=1)
+
+    @torch.no_grad()
+    def predict_occupancy(self, batch: Batch) -> Tensor:
+        """``(B, X, Y, Z)`` int64 class ids on the evaluation grid; every metric uses this."""
+        return self.occupancy_from(self(batch))
+
+    def losses(self, batch: Batch, outputs: I.ModelOutputs) -> dict[str, Tensor]:
+        """Weighted losses named ``<supervision name>/<term>``."""
+        out: dict[str, Tensor] = {}
+        for name, source in self.supervision.items():
+            for term, value in source(batch, outputs).items():
+                out[f"{name}/{term}"] = value * source.weight
+        return out
+
+    # ---------------------------------------------------------------- steps
+    def training_step(self, batch: Batch, batch_idx: int) -> Tensor:
+        outputs = self(batch)
+        losses = self.losses(batch, outputs)
+        if not losses:
+            raise ValueError("model.supervision is empty: nothing to train on")
+        loss = torch.stack(list(losses.values())).sum()
+        bs = len(batch)
+        self.log("train/loss", loss, prog_bar=True, batch_size=bs)
+        for name, value in losses.items():
+            self.log(f"train/{name}", value, batch_size=bs)
+        return loss
+
+    def _eval_step(self, batch: Batch, stage: str, metrics: nn.ModuleDict) -> None:
+        outputs = self(batch)
+        losses = self.losses(batch, outputs) if self.supervision else {}
+        if losses:
+            self.log(f"{stage}/loss", torch.stack(list(losses.values())).sum(), batch_size=len(batch), sync_dist=True)
+        pred = self.occupancy_from(outputs)
+        for metric in metrics.values():
+            metric.update(pred, batch)
+
+    def _eval_epoch_end(self, stage: str, metrics: nn.ModuleDict) -> None:
+        results: dict[str, float] = {}
+        for name, metric in metrics.items():
+            values = metric.compute()  # torchmetrics syncs states across ranks here
+            for key, value in values.items():
+                self.log(f"{stage}/{key}", value, sync_dist=False, prog_bar=key in ("mIoU", "RayIoU"))
+                results[key] = float(value)
+            self.last_tables[name] = metric.table()
+            metric.reset()
+        self.last_results[stage] = results
+
+    def validation_step(self, batch: Batch, batch_idx: int) -> None:
+        self._eval_step(batch, "val", self.val_metrics)
+
+    def on_validation_epoch_end(self) -> None:
+        self._eval_epoch_end("val", self.val_metrics)
+
+    def test_step(self, batch: Batch, batch_idx: int) -> None:
+        self._eval_step(batch, "test", self.test_metrics)
+
+    def on_test_epoch_end(self) -> None:
+        self._eval_epoch_end("test", self.test_metrics)
+
+    def predict_step(self, batch: Batch, batch_idx: int) -> dict[str, Any]:
+        return {"token": list(batch.token), "pred": self.predict_occupancy(batch)}
+
+    # ---------------------------------------------------------------- optimisation
+    def configure_optimizers(self) -> Any:
+        optimizer = build_optimizer(self.parameters(), self.hparams.get("optimizer"))
+        total = int(self.trainer.estimated_stepping_batches) if self.trainer is not None else 1
+        scheduler = build_scheduler(optimizer, self.hparams.get("scheduler"), max(total, 1))
+        if scheduler is None:
+            return optimizer
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
+        if isinstance(batch, Batch):
+            return batch.to(device)
+        return super().transfer_batch_to_device(batch, device, dataloader_idx)

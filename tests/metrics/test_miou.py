@@ -1,0 +1,87 @@
+import math
+
+import pytest
+import torch
+
+from occplug.data.frame import Batch
+from occplug.metrics import Occ3DMIoU, confusion_matrix
+
+
+def make_batch(labels, mask_camera=None, mask_lidar=None):
+    b = labels.shape[0]
+    return Batch(
+        images=torch.zeros(b, 1, 3, 2, 2),
+        intrinsics=torch.eye(3).expand(b, 1, 3, 3),
+        cam_to_ego=torch.eye(4).expand(b, 1, 4, 4),
+        img_aug=torch.eye(3).expand(b, 1, 3, 3),
+        ego_to_global=torch.eye(4, dtype=torch.float64).expand(b, 4, 4),
+        timestamp=torch.zeros(b, dtype=torch.float64),
+        frame_index=torch.zeros(b, dtype=torch.int64),
+        has_voxel_labels=torch.ones(b, dtype=torch.bool),
+        is_sequence_start=torch.ones(b, dtype=torch.bool),
+        scene=["s"] * b,
+        token=[f"t{i}" for i in range(b)],
+        voxel_labels=labels,
+        mask_camera=mask_camera,
+        mask_lidar=mask_lidar,
+    )
+
+
+def test_confusion_matrix_ignores_255_and_invalid():
+    target = torch.tensor([0, 1, 1, 255, 2])
+    pred = torch.tensor([0, 1, 2, 0, 2])
+    cm = confusion_matrix(pred, target, 3, valid=torch.tensor([True, True, True, True, False]))
+    assert cm.tolist() == [[1, 0, 0], [0, 1, 1], [0, 0, 0]]
+
+
+def test_hand_computed_miou_and_geometric_iou():
+    # 4 classes, free = 3. Voxels: gt  [0, 0, 1, 1, 3, 3, 2, 3]
+    #                           pred [0, 1, 1, 1, 3, 0, 3, 3]
+    gt = torch.tensor([0, 0, 1, 1, 3, 3, 2, 3]).reshape(1, 2, 2, 2)
+    pred = torch.tensor([0, 1, 1, 1, 3, 0, 3, 3]).reshape(1, 2, 2, 2)
+    m = Occ3DMIoU(num_classes=4, class_names=["a", "b", "c", "free"], free_label=3, mask="none")
+    m.update(pred, make_batch(gt))
+    res = m.compute()
+    # class 0: tp 1, fp 1 (voxel 5), fn 1 (voxel 1) -> 1/3; class 1: tp 2, fp 1 -> 2/3; class 2: tp 0, fn 1 -> 0
+    assert math.isclose(res["IoU_a"].item(), 100 / 3, rel_tol=1e-5)
+    assert math.isclose(res["IoU_b"].item(), 200 / 3, rel_tol=1e-5)
+    assert res["IoU_c"].item() == 0
+    assert math.isclose(res["mIoU"].item(), 100 / 3, rel_tol=1e-5)
+    # geometry: occupied gt {0,1,2,3,6}, pred occupied {0,1,2,3,5}: tp 4, fp 1, fn 1 -> 4/6
+    assert math.isclose(res["IoU"].item(), 400 / 6, rel_tol=1e-5)
+
+
+def test_absent_class_is_skipped_and_perfect_prediction_scores_100():
+    gt = torch.tensor([0, 3, 3, 0]).reshape(1, 1, 2, 2)
+    m = Occ3DMIoU(num_classes=4, free_label=3, mask="none")
+    m.update(gt.clone(), make_batch(gt))
+    res = m.compute()
+    assert res["mIoU"].item() == 100 and res["IoU"].item() == 100
+    assert math.isnan(res["IoU_class_1"].item())
+
+
+def test_camera_mask_selects_voxels_and_accumulates_over_batches():
+    gt = torch.tensor([0, 0, 3, 3]).reshape(1, 1, 2, 2)
+    pred = torch.tensor([0, 3, 3, 0]).reshape(1, 1, 2, 2)
+    mask = torch.tensor([True, False, True, False]).reshape(1, 1, 2, 2)
+    m = Occ3DMIoU(num_classes=4, free_label=3, mask="camera")
+    m.update(pred, make_batch(gt, mask_camera=mask))
+    assert m.compute()["mIoU"].item() == 100  # the two wrong voxels are outside the mask
+    m.update(pred, make_batch(gt, mask_camera=~mask))
+    assert m.confmat.sum().item() == 4
+    both = Occ3DMIoU(num_classes=4, free_label=3, mask="camera_and_lidar")
+    both.update(pred, make_batch(gt, mask_camera=mask, mask_lidar=torch.zeros_like(mask)))
+    assert both.confmat.sum().item() == 0
+
+
+def test_missing_mask_is_a_clear_error():
+    gt = torch.zeros(1, 1, 2, 2, dtype=torch.long)
+    with pytest.raises(ValueError, match="evaluation mask 'camera' needs batch field.*mask_camera"):
+        Occ3DMIoU(num_classes=4, free_label=3).update(gt, make_batch(gt))
+
+
+def test_table_names_the_mask():
+    gt = torch.tensor([0, 3]).reshape(1, 1, 1, 2)
+    m = Occ3DMIoU(num_classes=4, free_label=3, mask="none")
+    m.update(gt, make_batch(gt))
+    assert m.table().startswith("Occ3D mIoU (evaluation mask: none)")
