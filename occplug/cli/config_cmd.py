@@ -9,7 +9,18 @@ import yaml
 from occplug.config import compose, validate
 from occplug.plugins import get_registry
 
+from . import add_config_args
 from .errors import UsageError
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    config = sub.add_parser("config", help="inspect configs")
+    actions = config.add_subparsers(dest="config_command", required=True, metavar="ACTION")
+    show = actions.add_parser("show", help="print the composed, resolved config")
+    add_config_args(show)
+    show.add_argument("--explain", metavar="KEY", help="say which file or override set KEY")
+    show.add_argument("--no-validate", action="store_true", help="print without validating")
+    show.set_defaults(func=cmd_show)
 
 
 def cmd_show(args: argparse.Namespace) -> int:

@@ -11,6 +11,13 @@ from occplug.registry import KINDS
 from .errors import UsageError
 
 
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    plugins = sub.add_parser("plugins", help="list installed plugins and their components")
+    plugins.add_argument("--json", action="store_true", help="print JSON")
+    plugins.add_argument("--kind", help="only components of this kind")
+    plugins.set_defaults(func=cmd_plugins)
+
+
 def cmd_plugins(args: argparse.Namespace) -> int:
     if args.kind is not None and args.kind not in KINDS:
         raise UsageError(f"--kind {args.kind}: unknown kind; kinds are: {', '.join(KINDS)}")

@@ -10,7 +10,27 @@ import yaml
 
 from occplug import runner
 
+from . import add_config_args
 from .errors import UsageError
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    fit = sub.add_parser("fit", help="train a model; writes a run directory")
+    add_config_args(fit)
+    fit.add_argument("--run-dir", metavar="DIR", help="where to write the run (default: runs/<time>-<config name>)")
+    fit.add_argument("--resume", metavar="DIR", help="continue the run in DIR from its last checkpoint")
+    fit.set_defaults(func=cmd_fit)
+    for name, helptext in (("validate", "evaluate on the validation split"), ("test", "evaluate on the test split")):
+        p = sub.add_parser(name, help=helptext)
+        add_config_args(p)
+        p.add_argument("--ckpt", required=True, metavar="FILE", help="checkpoint to evaluate")
+        p.add_argument("--json", metavar="FILE", help="also write the metrics to this JSON file")
+        p.set_defaults(func=cmd_evaluate, stage=name)
+    pred = sub.add_parser("predict", help="write one <token>.npz (key 'pred') per sample")
+    add_config_args(pred)
+    pred.add_argument("--ckpt", required=True, metavar="FILE")
+    pred.add_argument("--out", required=True, metavar="DIR", help="output folder for the .npz files")
+    pred.set_defaults(func=cmd_predict)
 
 
 def _print_metrics(results: dict[str, float]) -> None:
