@@ -80,10 +80,10 @@ class OccModel(L.LightningModule):
         metrics: list | None = None,
     ) -> None:
         super().__init__()
-        grid = GridSpec.from_config(grid)
+        self.grid = GridSpec.from_config(grid)
+        if isinstance(grid, GridSpec):  # hyper-parameters stay plain data (weights_only checkpoint loading)
+            grid = self.grid.to_dict()
         self.save_hyperparameters()
-        self.hparams["grid"] = grid.to_dict()  # plain data, so checkpoints load with weights_only=True
-        self.grid = grid
         self.class_names = list(class_names) if class_names else []
         self.num_classes = len(self.class_names) or 18
         self.free_label = free_label
@@ -220,8 +220,3 @@ class OccModel(L.LightningModule):
         if scheduler is None:
             return optimizer
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
-
-    def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
-        if isinstance(batch, Batch):
-            return batch.to(device)
-        return super().transfer_batch_to_device(batch, device, dataloader_idx)

@@ -168,7 +168,7 @@ def fill_registry(pm: pluggy.PluginManager, reports: dict[str, PluginReport] | N
     """Build a registry from every ``occplug_register_components`` implementation of ``pm``."""
     reports = reports if reports is not None else {}
     registry = Registry()
-    for impl in reversed(pm.hook.occplug_register_components.get_hookimpls()):  # registration order
+    for impl in pm.hook.occplug_register_components.get_hookimpls():  # registration order: built-ins first
         report = reports.get(impl.plugin_name)
         registry.current_plugin = impl.plugin_name
         registry.current_distribution = report.distribution if report else None

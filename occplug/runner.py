@@ -5,7 +5,7 @@ A run directory holds::
     config.yaml          the fully resolved config (re-usable with -c)
     plugins.json         installed plugins and their versions
     checkpoints/         last.ckpt (+ per-epoch checkpoints as configured)
-    logs/metrics.csv     Lightning's CSV log
+    logs/version_0/      Lightning's CSV log (metrics.csv); each --resume adds a version
     metrics.json         final validation metrics (flat: {"mIoU": ..., "IoU": ..., ...})
 """
 
@@ -145,7 +145,7 @@ def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, f
     dm, model = _build(cfg)
     info = _RunInfoCallback(cfg)
     checkpoint = ModelCheckpoint(dirpath=str(ckpt_dir), **{"save_last": True, **(cfg.get("checkpoint") or {})})
-    logger = CSVLogger(save_dir=str(run_dir), name="logs", version="")
+    logger = CSVLogger(save_dir=str(run_dir), name="logs")  # logs/version_<n>/: a resume never overwrites
     trainer = _trainer(cfg, run_dir, [checkpoint, info], logger)
     if trainer.is_global_zero:
         run_dir.mkdir(parents=True, exist_ok=True)

@@ -65,6 +65,8 @@ class Frame:
         pseudo_semantics: ``(N, H, W)`` int64 2D semantics already mapped to the target classes
             (255 = unknown).
         pseudo_features: ``(N, F, h, w)`` float32 low-resolution per-camera feature maps.
+        sequence_lidar_origins: ``(S, 3)`` float32 LiDAR sensor positions of every frame of this
+            frame's scene, in **this** frame's ego frame (RayIoU casts its query rays from them).
         adjacent: frames of the same scene at other times, keyed by frame offset
             (``-1`` = previous, ``+1`` = next). Their poses give the relative ego motion.
         extras: data-set-specific additions; keep tensors out of here where a field exists.
@@ -95,6 +97,7 @@ class Frame:
     pseudo_depth: Tensor | None = None
     pseudo_semantics: Tensor | None = None
     pseudo_features: Tensor | None = None
+    sequence_lidar_origins: Tensor | None = None
     adjacent: dict[int, Frame] = field(default_factory=dict)
     extras: dict[str, Any] = field(default_factory=dict)
 
@@ -134,7 +137,7 @@ _STACKED = (
     "pseudo_semantics",
     "pseudo_features",
 )
-_LISTED = ("points", "point_labels", "boxes", "box_labels", "box_track_ids")
+_LISTED = ("points", "point_labels", "boxes", "box_labels", "box_track_ids", "sequence_lidar_origins")
 
 
 @dataclass
@@ -143,7 +146,7 @@ class Batch:
 
     Dense fields are stacked (``images`` becomes ``(B, N, 3, H, W)``, ``voxel_labels``
     ``(B, X, Y, Z)`` ...); fields whose length varies per sample (``points``, ``point_labels``,
-    ``boxes``, ``box_labels``, ``box_track_ids``) are lists of ``B`` tensors. ``timestamp`` is a
+    ``boxes``, ``box_labels``, ``box_track_ids``, ``sequence_lidar_origins``) are lists of ``B`` tensors. ``timestamp`` is a
     ``(B,)`` float64 tensor, ``frame_index`` a ``(B,)`` int64 tensor, ``has_voxel_labels`` a
     ``(B,)`` bool tensor. ``is_sequence_start`` is ``(B,)`` bool: the frame opens its scene
     (or follows a gap) so stream state must be reset. ``adjacent`` maps an offset to the
@@ -176,6 +179,7 @@ class Batch:
     pseudo_depth: Tensor | None = None
     pseudo_semantics: Tensor | None = None
     pseudo_features: Tensor | None = None
+    sequence_lidar_origins: list[Tensor] | None = None
     adjacent: dict[int, Batch] = field(default_factory=dict)
     extras: dict[str, list[Any]] = field(default_factory=dict)
 

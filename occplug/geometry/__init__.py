@@ -4,6 +4,7 @@ from .cameras import effective_intrinsics, pixel_centers, project_to_image, unpr
 from .contraction import contract, uncontract
 from .grid import GridSpec
 from .rays import camera_rays, lidar_ray_directions
+from .raycast import first_hit, observed_mask, traversed_mask
 from .transforms import invert_pose, make_pose, relative_pose, rotation_z, transform_points, wrap_angle, yaw_of
 from .volumes import sample_volume, warp_volume
 
@@ -12,15 +13,18 @@ __all__ = [
     "camera_rays",
     "contract",
     "effective_intrinsics",
+    "first_hit",
     "invert_pose",
     "lidar_ray_directions",
     "make_pose",
+    "observed_mask",
     "pixel_centers",
     "project_to_image",
     "relative_pose",
     "rotation_z",
     "sample_volume",
     "transform_points",
+    "traversed_mask",
     "uncontract",
     "unproject_from_image",
     "wrap_angle",

@@ -50,4 +50,5 @@ def lidar_ray_directions(elevations_deg: Tensor, azimuth_steps: int) -> Tensor:
     """
     el = torch.deg2rad(elevations_deg.to(torch.float32))[:, None]
     az = torch.arange(azimuth_steps, dtype=torch.float32)[None, :] * (2 * torch.pi / azimuth_steps)
-    return torch.stack([torch.cos(el) * torch.cos(az), torch.cos(el) * torch.sin(az), torch.sin(el).expand_as(az)], -1)
+    el, az = torch.broadcast_tensors(el, az)
+    return torch.stack([torch.cos(el) * torch.cos(az), torch.cos(el) * torch.sin(az), torch.sin(el)], -1)

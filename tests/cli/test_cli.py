@@ -64,7 +64,7 @@ def test_fit_writes_run_dir_then_resume_validate_predict(tmp_path, capsys):
     metrics = json.loads((run / "metrics.json").read_text())
     assert "mIoU" in metrics and metrics["global_step"] == 5
     assert "occplug" in json.loads((run / "plugins.json").read_text())
-    assert (run / "logs" / "metrics.csv").is_file()
+    assert (run / "logs" / "version_0" / "metrics.csv").is_file()
     saved = yaml.safe_load((run / "config.yaml").read_text())
     assert saved["trainer"]["max_steps"] == 5 and saved["data"]["preset"] == "tiny"
 
@@ -73,6 +73,7 @@ def test_fit_writes_run_dir_then_resume_validate_predict(tmp_path, capsys):
     assert "already exists" in capsys.readouterr().err
     assert main(["fit", "--resume", str(run), "trainer.max_steps=7"]) == 0
     assert json.loads((run / "metrics.json").read_text())["global_step"] == 7
+    assert (run / "logs" / "version_0" / "metrics.csv").is_file() and (run / "logs" / "version_1").is_dir()
 
     # validate with the checkpoint alone (config stored inside) and with -c
     out_json = tmp_path / "val.json"

@@ -112,7 +112,7 @@ def test_validation_of_sections(reg):
     validate({**good, "optimizer": {"type": "adamw", "lr": 0.1}, "trainer": {"max_epochs": 2}}, reg)
     cases = [
         ({"modle": {}}, "modle: unknown top-level section; did you mean 'model'?"),
-        ({"optimizer": {"type": "adamx"}}, "optimizer.type: unknown optimizer 'adamx'; did you mean 'adamw'?"),
+        ({"optimizer": {"type": "adamww"}}, "optimizer.type: unknown optimizer 'adamww'; did you mean 'adamw'?"),
         ({"optimizer": {"type": "adamw", "lr": "fast"}}, "optimizer.lr: expected"),
         ({"trainer": {"max_epoch": 2}}, "trainer.max_epoch: unknown trainer argument; did you mean 'max_epochs'?"),
         ({"grid": {"range": [0, 0, 0, 1, 1, 1], "voxel_size": 0.3}}, "grid: grid extent on axis x"),

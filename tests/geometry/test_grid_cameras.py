@@ -6,6 +6,7 @@ import torch
 from occplug.geometry import (
     GridSpec,
     camera_rays,
+    lidar_ray_directions,
     contract,
     make_pose,
     project_to_image,
@@ -102,3 +103,12 @@ def test_contraction_round_trip_and_continuity(kappa):
     assert torch.allclose(uncontract(y, near=10.0, kappa=kappa), x, atol=1e-8)
     assert math.isclose(float(contract(torch.tensor(10.0), 10.0, kappa)), kappa, rel_tol=1e-6)
     assert math.isclose(float(contract(torch.tensor(20.0), 10.0, kappa)), 1 - (1 - kappa) / 2, rel_tol=1e-6)
+
+
+def test_lidar_ray_directions_known_values():
+    dirs = lidar_ray_directions(torch.tensor([-30.0, 0.0, 10.0]), 4)
+    assert dirs.shape == (3, 4, 3)
+    assert torch.allclose(dirs.norm(dim=-1), torch.ones(3, 4))
+    assert torch.allclose(dirs[1, 1], torch.tensor([0.0, 1.0, 0.0]), atol=1e-6)  # azimuth 90 deg: +y
+    el = math.radians(-30)
+    assert torch.allclose(dirs[0, 2], torch.tensor([-math.cos(el), 0.0, math.sin(el)]), atol=1e-6)

@@ -40,7 +40,7 @@ def test_clash_between_two_plugins_names_both():
 
 
 def test_clash_through_plugin_manager(isolated_registry):
-    with pytest.raises(ComponentClashError, match="'toy'.*'clash'"):
+    with pytest.raises(ComponentClashError, match="plugin 'toy' and plugin 'clash'"):
         isolated_registry(plugins=[("toy", ToyPlugin()), ("clash", ClashingPlugin())])
 
 

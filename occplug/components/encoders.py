@@ -1,0 +1,190 @@
+"""Image encoders: ``small_cnn`` (plain PyTorch, CPU-cheap) and ``timm`` (any timm backbone)."""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any, Literal
+
+import torch
+from torch import Tensor, nn
+
+from occplug.interfaces import ImageEncoder
+
+from .layers import BasicBlock2d, ConvNormAct2d
+
+__all__ = ["SmallCNN", "TimmEncoder", "load_state_dict_file"]
+
+# ImageNet statistics: images arrive in [0, 1] and are standardised inside the encoder.
+_MEAN = (0.485, 0.456, 0.406)
+_STD = (0.229, 0.224, 0.225)
+
+
+def _check_divisible(images: Tensor, stride: int, who: str) -> None:
+    h, w = images.shape[-2:]
+    if h % stride or w % stride:
+        raise ValueError(
+            f"{who}: image size {h}x{w} is not divisible by the encoder stride {stride}; "
+            f"resize or crop the images (img_aug records it) to a multiple of {stride}"
+        )
+
+
+class _Standardise(nn.Module):
+    """``(x - mean) / std`` with ImageNet statistics (buffers, not saved in checkpoints)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("mean", torch.tensor(_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(_STD).view(1, 3, 1, 1), persistent=False)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return (x - self.mean.to(x.dtype)) / self.std.to(x.dtype)
+
+
+class SmallCNN(ImageEncoder):
+    """A small ResNet-style CNN in plain PyTorch, cheap enough for CPU training.
+
+    Layout: a stride-2 3x3 stem (``width`` channels), then ``log2(stride) - 1`` stages, each a
+    stride-2 :class:`~occplug.components.layers.BasicBlock2d` followed by ``num_blocks - 1``
+    stride-1 blocks (stage ``i`` has ``width * 2**i`` channels), then a 1x1 conv to
+    ``out_channels``. Feature cell ``(r, c)`` covers input pixels ``[s*r, s*r + s) x [s*c, s*c + s)``
+    (``s`` = ``stride``); its centre is pixel ``u = s*c + (s-1)/2, v = s*r + (s-1)/2``.
+
+    Args:
+        out_channels: ``C`` of the output features.
+        width: channels of the stem (doubled at each further stage).
+        stride: input pixels per output cell, 4, 8 or 16. ``H`` and ``W`` must be divisible by it
+            (a ``ValueError`` says so otherwise).
+        num_blocks: residual blocks per stage (>= 1).
+        norm: ``"batch"`` (BatchNorm) or ``"group"`` (GroupNorm, batch-size independent).
+
+    Shapes:
+        input ``(B, N, 3, H, W)`` float RGB in [0, 1] (standardised inside with ImageNet
+        statistics); output ``(B, N, out_channels, H // stride, W // stride)``.
+    """
+
+    def __init__(
+        self,
+        out_channels: int = 64,
+        width: int = 32,
+        stride: Literal[4, 8, 16] = 8,
+        num_blocks: int = 1,
+        norm: Literal["batch", "group"] = "batch",
+    ) -> None:
+        super().__init__()
+        if stride not in (4, 8, 16):
+            raise ValueError(f"small_cnn stride must be 4, 8 or 16, got {stride}")
+        if num_blocks < 1:
+            raise ValueError(f"small_cnn num_blocks must be >= 1, got {num_blocks}")
+        self.out_channels = int(out_channels)
+        self.stride = int(stride)
+        self.standardise = _Standardise()
+        layers: list[nn.Module] = [ConvNormAct2d(3, width, 3, stride=2, norm=norm)]
+        channels = width
+        for i in range(int(math.log2(stride)) - 1):
+            out = width * 2**i
+            layers.append(BasicBlock2d(channels, out, stride=2, norm=norm))
+            layers.extend(BasicBlock2d(out, out, norm=norm) for _ in range(num_blocks - 1))
+            channels = out
+        self.body = nn.Sequential(*layers)
+        self.neck = nn.Conv2d(channels, self.out_channels, 1)
+
+    def forward(self, images: Tensor) -> Tensor:
+        """``(B, N, 3, H, W)`` in [0, 1] -> ``(B, N, C, H / stride, W / stride)``."""
+        _check_divisible(images, self.stride, "small_cnn")
+        b, n = images.shape[:2]
+        x = self.neck(self.body(self.standardise(images.flatten(0, 1))))
+        return x.view(b, n, *x.shape[1:])
+
+
+def load_state_dict_file(path: str) -> dict[str, Tensor]:
+    """Read a state dict from a local checkpoint file (never downloads).
+
+    Accepts a bare state dict or one wrapped under ``"state_dict"`` or ``"model"``; loaded with
+    ``torch.load(path, map_location="cpu", weights_only=True)``.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+    """
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"weights file not found: {path}")
+    state: Any = torch.load(path, map_location="cpu", weights_only=True)
+    for key in ("state_dict", "model"):
+        if isinstance(state, dict) and isinstance(state.get(key), dict):
+            state = state[key]
+    if not isinstance(state, dict):
+        raise ValueError(f"{path} does not hold a state dict (got {type(state).__name__})")
+    return state
+
+
+class TimmEncoder(ImageEncoder):
+    """Any timm backbone (``features_only``) with a 1x1 conv neck to ``out_channels``.
+
+    Needs the optional dependency timm (``pip install 'occplug[timm]'``). Nothing is ever
+    downloaded: the backbone is built with ``pretrained=False`` and, if ``weights`` is given,
+    loaded from that local file. Classifier-head keys in the file (absent from a
+    ``features_only`` backbone) are ignored; a backbone key missing from the file is an error.
+
+    Args:
+        model_name: a timm model name, e.g. ``"resnet18"``, ``"convnext_tiny"``.
+        out_channels: ``C`` of the output features (the neck's width).
+        feature_level: which of the backbone's feature levels to use (timm ``out_indices``
+            semantics; ``-1`` is the deepest). ``stride`` is that level's
+            ``feature_info.reduction()``.
+        weights: path to a local checkpoint holding the backbone's state dict, or None.
+        freeze: keep the backbone's parameters fixed and its norm layers in eval mode (the neck
+            still trains).
+
+    Shapes:
+        input ``(B, N, 3, H, W)`` float RGB in [0, 1] (standardised inside with ImageNet
+        statistics); output ``(B, N, out_channels, H // stride, W // stride)``; ``H`` and ``W``
+        must be divisible by ``stride``.
+    """
+
+    def __init__(
+        self,
+        model_name: str,
+        out_channels: int = 64,
+        feature_level: int = -1,
+        weights: str | None = None,
+        freeze: bool = False,
+    ) -> None:
+        super().__init__()
+        try:
+            import timm
+        except ImportError:
+            raise ImportError("the 'timm' encoder needs timm: pip install 'occplug[timm]'") from None
+        if weights is not None and not os.path.isfile(weights):
+            raise FileNotFoundError(f"timm encoder weights file not found: {weights}")
+        self.model_name = model_name
+        self.freeze = bool(freeze)
+        self.standardise = _Standardise()
+        self.backbone = timm.create_model(model_name, pretrained=False, features_only=True, out_indices=(feature_level,))
+        if weights is not None:
+            state = load_state_dict_file(weights)
+            result = self.backbone.load_state_dict(state, strict=False)
+            if result.missing_keys:
+                shown = ", ".join(result.missing_keys[:5]) + (" ..." if len(result.missing_keys) > 5 else "")
+                raise ValueError(
+                    f"{weights} does not fit timm model '{model_name}': {len(result.missing_keys)} missing key(s): {shown}"
+                )
+        self.stride = int(self.backbone.feature_info.reduction()[-1])
+        self.out_channels = int(out_channels)
+        self.neck = nn.Conv2d(int(self.backbone.feature_info.channels()[-1]), self.out_channels, 1)
+        if self.freeze:
+            self.backbone.requires_grad_(False)
+            self.backbone.eval()
+
+    def train(self, mode: bool = True) -> TimmEncoder:
+        """Like :meth:`nn.Module.train`, but a frozen backbone stays in eval mode."""
+        super().train(mode)
+        if self.freeze:
+            self.backbone.eval()
+        return self
+
+    def forward(self, images: Tensor) -> Tensor:
+        """``(B, N, 3, H, W)`` in [0, 1] -> ``(B, N, C, H / stride, W / stride)``."""
+        _check_divisible(images, self.stride, f"timm encoder '{self.model_name}'")
+        b, n = images.shape[:2]
+        x = self.neck(self.backbone(self.standardise(images.flatten(0, 1)))[-1])
+        return x.view(b, n, *x.shape[1:])

@@ -1,0 +1,74 @@
+"""Scene representation ``dense_voxels``: a 3D residual conv net over the lifted volume."""
+
+from __future__ import annotations
+
+from torch import Tensor, nn
+
+from occplug.data.frame import Batch
+from occplug.geometry import GridSpec, sample_volume
+from occplug.interfaces import Lifted, Scene, SceneRepresentation
+
+from .layers import BasicBlock3d
+
+__all__ = ["DenseVoxelScene", "DenseVoxels"]
+
+
+class DenseVoxelScene(Scene):
+    """A dense feature volume, read trilinearly at continuous points.
+
+    Attributes:
+        features: ``(B, C, X, Y, Z)`` features on ``grid`` (voxel ``[i, j, k]``'s value at its centre).
+        grid: the grid of ``features``, ego frame.
+        channels: ``C``.
+    """
+
+    def __init__(self, features: Tensor, grid: GridSpec) -> None:
+        if features.dim() != 5 or tuple(features.shape[2:]) != grid.shape:
+            raise ValueError(f"DenseVoxelScene: features {tuple(features.shape)} do not match grid shape {grid.shape}")
+        self.features = features
+        self.grid = grid
+        self.channels = int(features.shape[1])
+
+    def sample(self, points: Tensor) -> Tensor:
+        """``(B, P, C)`` trilinear reads at ``(B, P, 3)`` ego-frame points; zero outside the grid.
+
+        Exactly the voxel's feature at a voxel centre (:func:`occplug.geometry.sample_volume`).
+        """
+        return sample_volume(self.features, self.grid, points)
+
+
+class DenseVoxels(SceneRepresentation):
+    """Dense voxel scene: ``1x1x1 conv -> BatchNorm -> ReLU`` to ``out_channels``, then residual 3D blocks.
+
+    Args:
+        in_channels: ``C_in`` of the lifted volume (the view transform's ``out_channels``).
+        out_channels: ``C`` of the scene features.
+        num_blocks: number of 3D :class:`~occplug.components.layers.BasicBlock3d` (>= 0).
+
+    Forward:
+        a :class:`Lifted` with a 3D ``volume`` ``(B, C_in, X, Y, Z)`` -> :class:`DenseVoxelScene`
+        with ``features`` ``(B, C, X, Y, Z)`` on the lifted grid. A BEV volume ``(B, C, X, Y)``
+        is not supported (``ValueError``).
+    """
+
+    def __init__(self, in_channels: int, out_channels: int = 64, num_blocks: int = 2) -> None:
+        super().__init__()
+        if num_blocks < 0:
+            raise ValueError(f"dense_voxels num_blocks must be >= 0, got {num_blocks}")
+        self.out_channels = int(out_channels)
+        self.stem = nn.Sequential(
+            nn.Conv3d(in_channels, self.out_channels, 1, bias=False), nn.BatchNorm3d(self.out_channels), nn.ReLU(inplace=True)
+        )
+        self.blocks = nn.Sequential(*(BasicBlock3d(self.out_channels, self.out_channels) for _ in range(num_blocks)))
+
+    def forward(self, lifted: Lifted, batch: Batch) -> DenseVoxelScene:
+        """Build the scene (stateless: ``batch`` is unused)."""
+        volume = lifted.volume
+        if volume.dim() == 4:
+            raise ValueError(
+                f"dense_voxels needs a 3D volume (B, C, X, Y, Z) but the view transform produced a BEV volume "
+                f"{tuple(volume.shape)}; use a BEV scene representation or a 3D view transform"
+            )
+        if volume.dim() != 5 or tuple(volume.shape[2:]) != lifted.grid.shape:
+            raise ValueError(f"dense_voxels: volume {tuple(volume.shape)} does not match its grid shape {lifted.grid.shape}")
+        return DenseVoxelScene(self.blocks(self.stem(volume)), lifted.grid)

@@ -1,0 +1,321 @@
+"""View transforms: ``lss`` (forward splat of a per-cell depth distribution) and ``backward_projection``.
+
+Feature cells and pixels
+------------------------
+An encoder of stride ``s`` turns an ``H x W`` (augmented) image into an ``h x w`` feature map
+whose cell ``(r, c)`` covers pixels ``[s*r, s*r + s) x [s*c, s*c + s)``. With the pixel-centre
+convention of :mod:`occplug.geometry.cameras` (centre of pixel ``[row, col]`` at ``u = col``,
+``v = row``) the cell's centre is at::
+
+    u = s*c + (s - 1) / 2,    v = s*r + (s - 1) / 2
+
+and conversely a pixel position ``(u, v)`` lies at fractional cell ``c = (u - (s-1)/2) / s``.
+Both transforms use exactly this map (:func:`feature_cell_centers`), through the effective
+intrinsics ``img_aug @ intrinsics`` of the augmented image, so they agree with each other and
+with any depth or semantic supervision that reads pixels.
+
+Both transforms take the same arguments, so a config swaps ``lss`` <-> ``backward_projection``
+by changing only ``type``.
+"""
+
+from __future__ import annotations
+
+from contextlib import AbstractContextManager
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from occplug.data.frame import Batch
+from occplug.geometry import GridSpec, pixel_centers, project_to_image, unproject_from_image
+from occplug.interfaces import Lifted, ViewTransform
+
+from .layers import PixelNet
+
+__all__ = [
+    "BackwardProjection",
+    "LSSViewTransform",
+    "depth_bin_centers",
+    "feature_cell_centers",
+    "frustum_points",
+    "splat",
+    "voxel_flat_index",
+]
+
+
+# ----------------------------------------------------------------------------- shared geometry
+def depth_bin_centers(depth_bins: list[float] | tuple[float, ...]) -> Tensor:
+    """Centres of the depth bins ``[start, stop, step]`` (metres of camera-frame z).
+
+    The ``D = (stop - start) / step`` bins (an integer, else ``ValueError``) are
+    ``[start + d*step, start + (d+1)*step)``; bin ``d``'s centre is ``start + (d + 0.5) * step``.
+    E.g. ``[1.0, 45.0, 1.0]`` gives 44 bins with centres 1.5, 2.5, ..., 44.5.
+
+    Returns:
+        ``(D,)`` float32 bin centres.
+    """
+    if len(depth_bins) != 3:
+        raise ValueError(f"depth_bins must be [start, stop, step] in metres, got {list(depth_bins)}")
+    start, stop, step = (float(v) for v in depth_bins)
+    if step <= 0 or stop <= start or start < 0:
+        raise ValueError(f"depth_bins [start, stop, step] needs 0 <= start < stop and step > 0, got {list(depth_bins)}")
+    count = (stop - start) / step
+    d = round(count)
+    if abs(count - d) > 1e-6 * max(1.0, count):
+        raise ValueError(f"depth_bins: (stop - start) / step must be a whole number of bins, got {count:g}")
+    return start + (torch.arange(d, dtype=torch.float64) + 0.5).mul(step).to(torch.float32)
+
+
+def feature_cell_centers(h: int, w: int, stride: int, device: torch.device | str | None = None) -> Tensor:
+    """``(h, w, 2)`` float32 pixel ``(u, v)`` of each feature cell's centre: ``s*c + (s-1)/2``, ``s*r + (s-1)/2``."""
+    return pixel_centers(h, w, device=device) * stride + (stride - 1) / 2.0
+
+
+def frustum_points(batch: Batch, h: int, w: int, stride: int, depths: Tensor) -> Tensor:
+    """Ego-frame points of every feature cell centre at every depth.
+
+    Args:
+        batch: supplies ``intrinsics`` ``(B, N, 3, 3)``, ``cam_to_ego`` ``(B, N, 4, 4)`` and
+            ``img_aug`` ``(B, N, 3, 3)``.
+        h, w: feature map size; stride: pixels per feature cell.
+        depths: ``(D,)`` camera-frame z values, metres.
+
+    Returns:
+        ``(B, N, D, h, w, 3)`` float32 ego-frame points: cell ``(r, c)``'s centre
+        (:func:`feature_cell_centers`) unprojected through ``img_aug @ intrinsics`` at depth ``depths[d]``.
+    """
+    b, n = batch.cam_to_ego.shape[:2]
+    d = depths.shape[0]
+    uv = feature_cell_centers(h, w, stride, device=depths.device).expand(d, h, w, 2).reshape(1, 1, -1, 2)
+    z = depths.view(d, 1, 1).expand(d, h, w).reshape(1, 1, -1)
+    pts = unproject_from_image(
+        uv.expand(b, n, -1, 2),
+        z.expand(b, n, -1),
+        batch.intrinsics.float(),
+        batch.cam_to_ego.float(),
+        batch.img_aug.float(),
+    )
+    return pts.view(b, n, d, h, w, 3)
+
+
+def voxel_flat_index(points: Tensor, grid: GridSpec) -> Tensor:
+    """Flat index of the voxel holding each point, over a batch of volumes; ``-1`` outside the grid.
+
+    Args:
+        points: ``(B, ..., 3)`` ego-frame points, metres (sample ``b``'s points in ``points[b]``).
+        grid: the volume's grid ``(X, Y, Z)``.
+
+    Returns:
+        ``(B, ...)`` int64: ``((b*X + i)*Y + j)*Z + k`` for voxel ``(i, j, k)`` of sample ``b``
+        (the row of a ``(B*X*Y*Z, C)`` view of a channels-last volume), or ``-1``.
+    """
+    x, y, z = grid.shape
+    idx = grid.coord_to_index(points)
+    inside = grid.index_in_bounds(idx)
+    b = torch.arange(points.shape[0], device=points.device).view(-1, *([1] * (points.dim() - 2)))
+    flat = ((b * x + idx[..., 0]) * y + idx[..., 1]) * z + idx[..., 2]
+    return torch.where(inside, flat, torch.full_like(flat, -1))
+
+
+def splat(features: Tensor, index: Tensor, num_voxels: int) -> Tensor:
+    """Sum-pool point features into voxels (the naive, reference splat).
+
+    Args:
+        features: ``(M, C)`` features of ``M`` points.
+        index: ``(M,)`` int64 voxel of each point in ``[0, num_voxels)``, or ``-1`` to drop it.
+        num_voxels: number of output voxels.
+
+    Returns:
+        ``(num_voxels, C)``: for every voxel, the sum of the features of the points in it
+        (zero for an empty voxel); differentiable with respect to ``features``.
+    """
+    out = features.new_zeros(num_voxels + 1, features.shape[1])
+    dump = torch.where(index < 0, torch.full_like(index, num_voxels), index)  # dropped points go to a spare row
+    return out.index_add_(0, dump, features)[:num_voxels]
+
+
+def _no_autocast(device: torch.device) -> AbstractContextManager:
+    """Geometry runs in float32 even under mixed precision (bf16 would move points by centimetres)."""
+    return torch.autocast(device_type=device.type, enabled=False)
+
+
+def _check_feature_size(features: Tensor, batch: Batch, stride: int, who: str) -> None:
+    if features.dim() != 5:
+        raise ValueError(f"{who}: expected features (B, N, C, h, w), got shape {tuple(features.shape)}")
+    h, w = features.shape[-2:]
+    big_h, big_w = batch.images.shape[-2:]
+    if abs(h * stride - big_h) >= stride or abs(w * stride - big_w) >= stride:
+        raise ValueError(
+            f"{who}: a {h}x{w} feature map at image_stride {stride} does not match the {big_h}x{big_w} images; "
+            f"image_stride must be the encoder's stride"
+        )
+
+
+# ----------------------------------------------------------------------------- LSS
+class LSSViewTransform(ViewTransform):
+    """Lift-Splat-Shoot: a categorical depth distribution per feature cell, splatted into voxels.
+
+    A per-cell net (:class:`~occplug.components.layers.PixelNet`) predicts ``D`` depth logits and
+    ``C`` context features for every feature cell; the softmax over depth times the context gives
+    ``D`` weighted copies of the context, placed at the cell centre (see the module docstring)
+    unprojected to each depth bin's centre through ``img_aug @ intrinsics`` and ``cam_to_ego``.
+    Copies outside the grid are dropped; the rest are summed into the voxel that contains them
+    (:func:`splat`, the reference implementation a faster kernel must match).
+
+    Args:
+        in_channels: ``C_in`` of the image features (the encoder's ``out_channels``).
+        image_stride: pixels per feature cell (the encoder's ``stride``).
+        grid: the output grid, a :class:`GridSpec` or ``{range, voxel_size}`` mapping.
+        out_channels: ``C`` of the lifted volume.
+        depth_bins: ``[start, stop, step]`` metres of camera-frame z; see :func:`depth_bin_centers`.
+        hidden: width of the per-cell net's 3x3 conv (0: a single 1x1 conv).
+
+    Forward:
+        ``features`` ``(B, N, C_in, h, w)`` and a batch with ``intrinsics``, ``cam_to_ego``,
+        ``img_aug`` -> :class:`Lifted` with ``volume`` ``(B, C, X, Y, Z)`` (ego frame, on ``grid``),
+        ``depth_probs`` ``(B, N, D, h, w)`` (softmax over ``D``) and ``depth_bins`` ``(D,)`` centres.
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        image_stride: int,
+        grid: GridSpec | dict,
+        out_channels: int = 64,
+        depth_bins: list[float] = [1.0, 45.0, 1.0],  # noqa: B006 - read only, never mutated
+        hidden: int = 64,
+    ) -> None:
+        super().__init__()
+        self.grid = GridSpec.from_config(grid)
+        self.image_stride = int(image_stride)
+        self.out_channels = int(out_channels)
+        self.register_buffer("depth_centers", depth_bin_centers(depth_bins), persistent=False)
+        self.num_depth_bins = int(self.depth_centers.shape[0])
+        self.depth_net = PixelNet(in_channels, hidden, self.num_depth_bins + self.out_channels)
+
+    def voxel_index(self, batch: Batch, h: int, w: int) -> Tensor:
+        """``(B, N, D, h, w)`` int64 flat voxel index (:func:`voxel_flat_index`) of every frustum point, -1 outside."""
+        with _no_autocast(self.depth_centers.device):
+            points = frustum_points(batch, h, w, self.image_stride, self.depth_centers)
+            return voxel_flat_index(points, self.grid)
+
+    def forward(self, features: Tensor, batch: Batch) -> Lifted:
+        """Lift ``(B, N, C_in, h, w)`` features into a ``(B, C, X, Y, Z)`` volume; see the class docstring."""
+        _check_feature_size(features, batch, self.image_stride, "lss")
+        b, n, _, h, w = features.shape
+        d, c = self.num_depth_bins, self.out_channels
+        out = self.depth_net(features.flatten(0, 1))
+        probs = out[:, :d].softmax(dim=1)  # (B*N, D, h, w)
+        context = out[:, d:]  # (B*N, C, h, w)
+        # Outer product, channels last: (B, N, D, h, w, C), row order matching voxel_index.
+        frustum = probs.view(b, n, d, 1, h, w) * context.view(b, n, 1, c, h, w)
+        frustum = frustum.permute(0, 1, 2, 4, 5, 3).reshape(-1, c)
+        index = self.voxel_index(batch, h, w).reshape(-1)
+        x, y, z = self.grid.shape
+        volume = splat(frustum, index, b * x * y * z).view(b, x, y, z, c).permute(0, 4, 1, 2, 3)
+        return Lifted(
+            volume=volume.contiguous(),
+            grid=self.grid,
+            depth_probs=probs.view(b, n, d, h, w),
+            depth_bins=self.depth_centers,
+        )
+
+
+# ----------------------------------------------------------------------------- backward projection
+class BackwardProjection(ViewTransform):
+    """Backward projection: each voxel reads the image features where it projects.
+
+    Every voxel holds ``points_per_voxel`` sample points, spread evenly along z inside it
+    (at ``z_centre + ((m + 0.5) / points_per_voxel - 0.5) * dz``; one point = the voxel centre).
+    Each point is projected through ``img_aug @ intrinsics`` into every camera and reads the
+    projected image features there by bilinear interpolation on the feature map, using the
+    cell <-> pixel map of the module docstring (a point projecting onto cell ``(r, c)``'s centre
+    reads exactly that cell). A projection counts where its camera-frame depth lies in
+    ``[start, stop)`` of ``depth_bins`` (the depth range LSS lifts to) and it falls inside the
+    image (``-0.5 <= u < W - 0.5``, ``-0.5 <= v < H - 0.5``). A voxel's feature is the mean over
+    its counted (camera, point) pairs; zero where none counts.
+
+    Args:
+        in_channels: ``C_in`` of the image features (the encoder's ``out_channels``).
+        image_stride: pixels per feature cell (the encoder's ``stride``).
+        grid: the output grid, a :class:`GridSpec` or ``{range, voxel_size}`` mapping.
+        out_channels: ``C`` of the lifted volume.
+        depth_bins: ``[start, stop, step]``, as for ``lss``; only the range ``[start, stop)`` is used.
+        hidden: width of the per-cell net's 3x3 conv before the 1x1 projection to ``C``
+            (0: the 1x1 projection alone).
+        points_per_voxel: sample points per voxel along z (>= 1).
+
+    Forward:
+        ``features`` ``(B, N, C_in, h, w)`` and a batch with ``images`` (for ``H, W``),
+        ``intrinsics``, ``cam_to_ego``, ``img_aug`` -> :class:`Lifted` with ``volume``
+        ``(B, C, X, Y, Z)`` in the ego frame on ``grid``.
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        image_stride: int,
+        grid: GridSpec | dict,
+        out_channels: int = 64,
+        depth_bins: list[float] = [1.0, 45.0, 1.0],  # noqa: B006 - read only, never mutated
+        hidden: int = 64,
+        points_per_voxel: int = 1,
+    ) -> None:
+        super().__init__()
+        if points_per_voxel < 1:
+            raise ValueError(f"backward_projection points_per_voxel must be >= 1, got {points_per_voxel}")
+        depth_bin_centers(depth_bins)  # validates
+        self.grid = GridSpec.from_config(grid)
+        self.image_stride = int(image_stride)
+        self.out_channels = int(out_channels)
+        self.depth_range = (float(depth_bins[0]), float(depth_bins[1]))
+        self.points_per_voxel = int(points_per_voxel)
+        self.image_net = PixelNet(in_channels, hidden, self.out_channels)
+        self.register_buffer("points", self._sample_points(), persistent=False)
+
+    def _sample_points(self) -> Tensor:
+        """``(X*Y*Z*p, 3)`` float32 ego-frame sample points, voxel-major then point."""
+        p = self.points_per_voxel
+        offsets = torch.zeros(p, 3)
+        offsets[:, 2] = ((torch.arange(p, dtype=torch.float32) + 0.5) / p - 0.5) * self.grid.voxel_size[2]
+        return (self.grid.centers()[..., None, :] + offsets).reshape(-1, 3)
+
+    def forward(self, features: Tensor, batch: Batch) -> Lifted:
+        """Lift ``(B, N, C_in, h, w)`` features into a ``(B, C, X, Y, Z)`` volume; see the class docstring."""
+        _check_feature_size(features, batch, self.image_stride, "backward_projection")
+        b, n, _, h, w = features.shape
+        s, c = self.image_stride, self.out_channels
+        big_h, big_w = batch.images.shape[-2:]
+        feats = self.image_net(features.flatten(0, 1))  # (B*N, C, h, w)
+        with _no_autocast(feats.device):
+            q = self.points.shape[0]
+            uv, depth = project_to_image(
+                self.points.view(1, 1, q, 3).expand(b, n, q, 3),
+                batch.intrinsics.float(),
+                batch.cam_to_ego.float(),
+                batch.img_aug.float(),
+            )  # (B, N, Q, 2), (B, N, Q)
+            u, v = uv.unbind(-1)
+            valid = (
+                (depth >= self.depth_range[0])
+                & (depth < self.depth_range[1])
+                & (u >= -0.5)
+                & (u < big_w - 0.5)
+                & (v >= -0.5)
+                & (v < big_h - 0.5)
+            )
+            # Pixel (u, v) -> grid_sample coordinates of the h x w feature map (align_corners=False):
+            # fractional cell c = (u - (s-1)/2) / s sits at (2c + 1) / w - 1 = (2u + 1) / (s*w) - 1.
+            norm = torch.stack([(2 * u + 1) / (s * w) - 1, (2 * v + 1) / (s * h) - 1], dim=-1)
+            norm = torch.where(valid[..., None], norm, torch.zeros_like(norm))
+        # Sampled in float32: bf16 sampling coordinates would be off by a fraction of a cell.
+        sampled = F.grid_sample(
+            feats.float(), norm.view(b * n, q, 1, 2), mode="bilinear", padding_mode="border", align_corners=False
+        )  # (B*N, C, Q, 1)
+        p = self.points_per_voxel
+        sampled = sampled.view(b, n, c, q // p, p)
+        weight = valid.view(b, n, 1, q // p, p).to(sampled.dtype)
+        total = (sampled * weight).sum(dim=(1, 4))  # (B, C, X*Y*Z)
+        count = weight.sum(dim=(1, 4)).clamp_min(1.0)
+        volume = (total / count).view(b, c, *self.grid.shape)
+        return Lifted(volume=volume, grid=self.grid)

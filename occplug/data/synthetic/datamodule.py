@@ -1,0 +1,103 @@
+"""``SyntheticDataModule``: the synthetic world as an :class:`~occplug.data.OccDataModule`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from torch.utils.data import Dataset
+
+from occplug.data.classes import OCC3D_CLASSES, OCC3D_FREE
+from occplug.data.datamodule import OccDataModule
+from occplug.data.frame import Frame
+
+from .config import SPLITS, SyntheticWorldConfig, preset as get_preset
+from .dataset import SyntheticDataset, default_cache_dir
+
+__all__ = ["SyntheticDataModule"]
+
+
+class SyntheticDataModule(OccDataModule):
+    """The procedural driving world (no downloads), registered as data ``synthetic``.
+
+    Every size knob defaults to ``None``, meaning the preset's value. The ``predict`` split reads
+    the ``val`` scenes. Frames are generated on first use and cached on disk (see
+    :class:`~occplug.data.synthetic.SyntheticDataset`); :meth:`prepare_data` generates them all up
+    front with a progress bar.
+
+    Args:
+        preset: ``tiny`` (tests), ``default`` (a CPU run of minutes) or ``occ3d`` (Occ3D size).
+        grid: ``{range, voxel_size}`` of the label grid, replacing the preset's.
+        seed: world seed.
+        train_scenes, val_scenes, test_scenes: scenes per split.
+        frames_per_scene: frames of every scene (train and evaluation splits alike).
+        image_size: ``[H, W]`` of every camera.
+        num_cameras: 1..6 (front, front-right, front-left, back, back-left, back-right).
+        lidar_beams: LiDAR rings.
+        fps: frame rate, Hz.
+        adjacent_offsets: frame offsets to load as ``Frame.adjacent`` (e.g. ``[-1, 1]``).
+        cache: store generated frames on disk.
+        cache_dir: cache root; default ``$OCCPLUG_CACHE/synthetic`` or ``~/.cache/occplug/synthetic``.
+        batch_size: samples per batch on each device.
+        num_workers: data-loader worker processes.
+
+    Attributes:
+        world_config: the resolved :class:`~occplug.data.synthetic.SyntheticWorldConfig`.
+    """
+
+    def __init__(
+        self,
+        preset: str = "default",
+        grid: dict | None = None,
+        seed: int | None = None,
+        train_scenes: int | None = None,
+        val_scenes: int | None = None,
+        test_scenes: int | None = None,
+        frames_per_scene: int | None = None,
+        image_size: list[int] | None = None,
+        num_cameras: int | None = None,
+        lidar_beams: int | None = None,
+        fps: float | None = None,
+        adjacent_offsets: list[int] | None = None,
+        cache: bool = True,
+        cache_dir: str | None = None,
+        batch_size: int = 1,
+        num_workers: int = 0,
+    ) -> None:
+        knobs = {
+            "grid": grid,
+            "seed": seed,
+            "train_scenes": train_scenes,
+            "val_scenes": val_scenes,
+            "test_scenes": test_scenes,
+            "frames_per_scene": frames_per_scene,
+            "eval_frames_per_scene": frames_per_scene,
+            "image_size": image_size,
+            "num_cameras": num_cameras,
+            "lidar_beams": lidar_beams,
+            "fps": fps,
+            "adjacent_offsets": adjacent_offsets,
+        }
+        config = get_preset(preset).replace(**{k: v for k, v in knobs.items() if v is not None})
+        super().__init__(
+            grid=config.grid,
+            batch_size=batch_size,
+            num_workers=num_workers,
+            class_names=OCC3D_CLASSES,
+            free_label=OCC3D_FREE,
+        )
+        self.preset = preset
+        self.world_config: SyntheticWorldConfig = config
+        self.cache_dir: Path | None = (Path(cache_dir) if cache_dir else default_cache_dir()) if cache else None
+
+    def build_dataset(self, split: str) -> Dataset[Frame]:
+        """The :class:`~occplug.data.synthetic.SyntheticDataset` of ``split`` (``predict`` = ``val``)."""
+        return SyntheticDataset(self.world_config, split, cache_dir=self.cache_dir)
+
+    def prepare_data(self) -> None:
+        """Generate and cache every frame of every split that is not cached yet (no-op without cache)."""
+        if self.cache_dir is None:
+            return
+        for split in SPLITS:
+            dataset = self.dataset(split)
+            assert isinstance(dataset, SyntheticDataset)
+            dataset.pregenerate(progress=True)

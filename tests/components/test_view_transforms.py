@@ -1,0 +1,248 @@
+"""View transforms: LSS frustum geometry and splat, backward projection sampling, swapability.
+
+The rig: cameras at ego (0, 0, 1.5) looking along +x (OpenCV camera: x right = ego -y,
+y down = ego -z, z forward = ego +x), focal 40 px, on 32 x 64 images at stride 8 (4 x 8 cells).
+The principal point sits on the centre of cell (r, c) = (2, 4): u = 8*4 + 3.5, v = 8*2 + 3.5,
+so an ego point (X, Y, Z) projects to u = 35.5 - 40 Y / X, v = 19.5 - 40 (Z - 1.5) / X.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import Tensor, nn
+
+from occplug.components import BackwardProjection, LSSViewTransform, splat
+from occplug.components.view_transforms import depth_bin_centers, frustum_points, voxel_flat_index
+from occplug.data.frame import Batch
+from occplug.geometry import GridSpec, make_pose, project_to_image, unproject_from_image
+
+H, W, S, F = 32, 64, 8, 40.0
+CAM_TO_EGO_R = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def make_batch(b: int = 1, n: int = 1, height: int = H, width: int = W, img_aug: Tensor | None = None) -> Batch:
+    k = torch.tensor([[F, 0.0, 35.5], [0.0, F, 19.5], [0.0, 0.0, 1.0]])
+    pose = make_pose(CAM_TO_EGO_R, torch.tensor([0.0, 0.0, 1.5]))
+    aug = torch.eye(3) if img_aug is None else img_aug
+    return Batch(
+        images=torch.rand(b, n, 3, height, width),
+        intrinsics=k.expand(b, n, 3, 3).clone(),
+        cam_to_ego=pose.expand(b, n, 4, 4).clone(),
+        img_aug=aug.expand(b, n, 3, 3).clone(),
+        ego_to_global=torch.eye(4, dtype=torch.float64).expand(b, 4, 4).clone(),
+        timestamp=torch.zeros(b, dtype=torch.float64),
+        frame_index=torch.zeros(b, dtype=torch.int64),
+        has_voxel_labels=torch.ones(b, dtype=torch.bool),
+        is_sequence_start=torch.ones(b, dtype=torch.bool),
+        scene=["s"] * b,
+        token=[f"t{i}" for i in range(b)],
+    )
+
+
+# Offset so that no frustum point of the rig sits exactly on a voxel face (float round-off could flip it).
+GRID = GridSpec(range=(0.13, -8.07, -1.03, 16.13, 7.93, 5.37), voxel_size=0.8)
+
+
+class FixedOutput(nn.Module):
+    """Stands in for a per-cell net: returns a fixed (learnable) ``(B*N, D + C, h, w)`` tensor."""
+
+    def __init__(self, value: Tensor) -> None:
+        super().__init__()
+        self.value = nn.Parameter(value)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.value + 0.0 * x.sum()
+
+
+# ----------------------------------------------------------------------------- LSS geometry
+def test_depth_bin_centers() -> None:
+    centers = depth_bin_centers([1.0, 45.0, 1.0])
+    assert centers.shape == (44,)
+    torch.testing.assert_close(centers, torch.arange(44, dtype=torch.float32) + 1.5)
+    torch.testing.assert_close(depth_bin_centers([2.0, 4.0, 0.5]), torch.tensor([2.25, 2.75, 3.25, 3.75]))
+    with pytest.raises(ValueError, match="whole number of bins"):
+        depth_bin_centers([1.0, 4.5, 1.0])
+    with pytest.raises(ValueError, match="start, stop, step"):
+        depth_bin_centers([1.0, 4.0])
+
+
+def test_frustum_known_values_and_round_trip() -> None:
+    batch = make_batch()
+    depths = torch.tensor([2.0, 10.0])
+    pts = frustum_points(batch, 4, 8, S, depths)  # (1, 1, 2, 4, 8, 3)
+    # cell (2, 4) is on the optical axis: straight ahead at camera height
+    torch.testing.assert_close(pts[0, 0, :, 2, 4], torch.tensor([[2.0, 0.0, 1.5], [10.0, 0.0, 1.5]]))
+    # cell (0, 0): centre pixel (3.5, 3.5) -> Y = (35.5 - 3.5) X / 40, Z = 1.5 + (19.5 - 3.5) X / 40
+    torch.testing.assert_close(pts[0, 0, 1, 0, 0], torch.tensor([10.0, 8.0, 5.5]))
+    uv, z = project_to_image(pts.view(1, 1, -1, 3), batch.intrinsics, batch.cam_to_ego, batch.img_aug)
+    cells_u = (torch.arange(8.0) * S + (S - 1) / 2).expand(2, 4, 8)
+    cells_v = (torch.arange(4.0) * S + (S - 1) / 2).view(4, 1).expand(2, 4, 8)
+    torch.testing.assert_close(uv.view(2, 4, 8, 2)[..., 0], cells_u)
+    torch.testing.assert_close(uv.view(2, 4, 8, 2)[..., 1], cells_v)
+    torch.testing.assert_close(z.view(2, 4, 8), depths.view(2, 1, 1).expand(2, 4, 8))
+
+
+def test_splat_sums_features_per_voxel_and_drops_outside() -> None:
+    torch.manual_seed(0)
+    feats = torch.randn(50, 3)
+    index = torch.randint(-1, 7, (50,))
+    out = splat(feats, index, 7)
+    expected = torch.zeros(7, 3)
+    for m in range(50):
+        if index[m] >= 0:
+            expected[index[m]] += feats[m]
+    torch.testing.assert_close(out, expected)
+    torch.testing.assert_close(out.sum(0), feats[index >= 0].sum(0))
+
+
+def test_voxel_flat_index_matches_grid_indexing() -> None:
+    grid = GridSpec(range=(0, 0, 0, 3, 2, 2), voxel_size=1.0)
+    pts = torch.tensor([[[0.5, 0.5, 0.5], [2.5, 1.5, 1.5], [3.5, 0.5, 0.5]], [[0.5, 0.5, 0.5], [-0.1, 0.5, 0.5], [1.2, 0.2, 1.7]]])
+    idx = voxel_flat_index(pts, grid)
+    # ((b*X + i)*Y + j)*Z + k with (X, Y, Z) = (3, 2, 2)
+    assert idx.tolist() == [[0, 11, -1], [12, -1, 12 + 4 + 1]]
+
+
+def _one_hot_lss(batch: Batch, depth_bins: list[float], channels: int) -> tuple[LSSViewTransform, Tensor, Tensor]:
+    """An LSS whose per-cell net outputs a one-hot depth (bin (r*w + c) % D) and context = cell id * (1, 2, ...)."""
+    lss = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, out_channels=channels, depth_bins=depth_bins)
+    d, h, w = lss.num_depth_bins, 4, 8
+    cell = torch.arange(h * w).view(h, w)
+    chosen = cell % d
+    logits = torch.full((d, h, w), -1e4).scatter_(0, chosen[None], 1e4)
+    context = (cell[None].float() + 1) * torch.arange(1.0, channels + 1).view(-1, 1, 1)
+    lss.depth_net = FixedOutput(torch.cat([logits, context])[None].expand(len(batch), d + channels, h, w).clone())
+    return lss, chosen, context
+
+
+def test_lss_one_hot_depth_lands_in_the_unprojected_voxel() -> None:
+    batch = make_batch()
+    bins = [1.0, 21.0, 2.0]  # centres 2, 4, ..., 20: beyond 16 m falls outside the grid
+    lss, chosen, context = _one_hot_lss(batch, bins, channels=2)
+    lifted = lss(torch.zeros(1, 1, 4, 4, 8), batch)
+    assert lifted.volume.shape == (1, 2, *GRID.shape)
+    assert lifted.depth_probs.shape == (1, 1, 10, 4, 8)
+    torch.testing.assert_close(lifted.depth_bins, depth_bin_centers(bins))
+
+    # Independent expectation: unproject each cell centre at its chosen bin centre, find the voxel.
+    centers = depth_bin_centers(bins)
+    expected = torch.zeros(2, *GRID.shape)
+    landed = 0
+    for r in range(4):
+        for c in range(8):
+            uv = torch.tensor([[[S * c + (S - 1) / 2, S * r + (S - 1) / 2]]])
+            depth = centers[chosen[r, c]].view(1, 1)
+            point = unproject_from_image(uv, depth, batch.intrinsics[0], batch.cam_to_ego[0], batch.img_aug[0])[0, 0]
+            if GRID.contains(point):
+                i, j, k = GRID.coord_to_index(point).tolist()
+                expected[:, i, j, k] += context[:, r, c]
+                landed += 1
+    assert 0 < landed < 32  # some cells land inside, some beyond the grid
+    torch.testing.assert_close(lifted.volume[0], expected)
+
+
+def test_lss_conserves_features_inside_the_grid_and_backpropagates() -> None:
+    torch.manual_seed(0)
+    batch = make_batch(b=2, n=2)
+    lss = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8)
+    d = lss.num_depth_bins
+    net_out = torch.randn(4, d + 3, 4, 8)
+    lss.depth_net = FixedOutput(net_out)
+    lifted = lss(torch.zeros(2, 2, 4, 4, 8), batch)
+    probs = net_out[:, :d].softmax(1).view(2, 2, d, 4, 8)
+    torch.testing.assert_close(lifted.depth_probs, probs)
+    torch.testing.assert_close(lifted.depth_probs.sum(2), torch.ones(2, 2, 4, 8))
+    inside = (lss.voxel_index(batch, 4, 8) >= 0).float()  # (B, N, D, h, w)
+    context = net_out[:, d:].view(2, 2, 3, 4, 8)
+    kept = torch.einsum("bndhw,bnchw->bc", probs * inside, context)
+    torch.testing.assert_close(lifted.volume.sum(dim=(2, 3, 4)), kept)
+    assert 0 < inside.mean() < 1
+
+    lifted.volume.square().sum().backward()
+    grad = lss.depth_net.value.grad
+    assert grad[:, :d].abs().sum() > 0, "no gradient reaches the depth logits"
+    assert grad[:, d:].abs().sum() > 0, "no gradient reaches the context features"
+
+
+def test_lss_gradient_reaches_image_features() -> None:
+    torch.manual_seed(0)
+    batch = make_batch()
+    lss = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8)
+    feats = torch.randn(1, 1, 4, 4, 8, requires_grad=True)
+    lss(feats, batch).volume.square().sum().backward()
+    assert feats.grad is not None and feats.grad.abs().sum() > 0
+
+
+def test_lss_half_size_images_with_resize_img_aug_give_the_same_voxels() -> None:
+    """Halving the images (img_aug records the resize) at half the stride keeps every frustum point."""
+    full = make_batch()
+    # Resizing by 0.5 maps pixel centre u to 0.5 u - 0.25 (pixel-centre convention, align_corners=False).
+    resize = torch.tensor([[0.5, 0.0, -0.25], [0.0, 0.5, -0.25], [0.0, 0.0, 1.0]])
+    half = make_batch(height=H // 2, width=W // 2, img_aug=resize)
+    a = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, depth_bins=[1.0, 25.0, 1.0])
+    b = LSSViewTransform(in_channels=4, image_stride=S // 2, grid=GRID, depth_bins=[1.0, 25.0, 1.0])
+    torch.testing.assert_close(frustum_points(half, 4, 8, S // 2, b.depth_centers), frustum_points(full, 4, 8, S, a.depth_centers))
+    index = a.voxel_index(full, 4, 8)
+    assert torch.equal(b.voxel_index(half, 4, 8), index)
+    assert (index >= 0).any()
+
+
+def test_view_transforms_reject_a_wrong_image_stride() -> None:
+    batch = make_batch()
+    for cls in (LSSViewTransform, BackwardProjection):
+        vt = cls(in_channels=4, image_stride=4, grid=GRID)
+        with pytest.raises(ValueError, match="image_stride must be the encoder's stride"):
+            vt(torch.zeros(1, 1, 4, 4, 8), batch)
+
+
+# ----------------------------------------------------------------------------- backward projection
+# Voxels 2 m wide whose centres at X = 10 project exactly onto cell centres: 40 * 2 / 10 = 8 px = 1 cell.
+BP_GRID = GridSpec(range=(-11.0, -9.0, -3.5, 11.0, 11.0, 8.5), voxel_size=2.0)  # centres X, Y: -10..10, Z: -2.5..7.5
+
+
+def test_backward_projection_reads_exactly_the_cell_each_voxel_projects_onto() -> None:
+    torch.manual_seed(0)
+    batch = make_batch()
+    bp = BackwardProjection(in_channels=4, image_stride=S, grid=BP_GRID, out_channels=3, hidden=0)
+    feats = torch.randn(1, 1, 4, 4, 8)
+    volume = bp(feats, batch).volume[0]  # (C, 11, 10, 6)
+    projected = bp.image_net(feats[0])[0]  # (C, 4, 8)
+    i10 = 10  # X = 10
+    for j, y in enumerate(torch.arange(-8.0, 11.0, 2.0).tolist()):
+        for k, z in enumerate(torch.arange(-2.5, 8.0, 2.0).tolist()):
+            c, r = round(4 - y / 2), round(2 - (z - 1.5) / 2)
+            if 0 <= c < 8 and 0 <= r < 4:
+                torch.testing.assert_close(volume[:, i10, j, k], projected[:, r, c], atol=1e-5, rtol=1e-5)
+            else:  # projects outside the image
+                assert torch.all(volume[:, i10, j, k] == 0)
+    assert torch.all(volume[:, :6] == 0), "voxels behind the camera (X <= 0) must stay empty"
+
+
+def test_backward_projection_averages_over_cameras_and_points() -> None:
+    batch = make_batch(n=2)
+    bp = BackwardProjection(in_channels=1, image_stride=S, grid=BP_GRID, out_channels=1, hidden=0, points_per_voxel=3)
+    with torch.no_grad():
+        bp.image_net[0].weight.fill_(1.0)
+        bp.image_net[0].bias.zero_()
+    feats = torch.stack([torch.full((1, 4, 8), 2.0), torch.full((1, 4, 8), 6.0)])[None]  # camera 0: 2, camera 1: 6
+    volume = bp(feats, batch).volume[0, 0]
+    seen = volume != 0
+    assert seen.any() and not seen[:6].any()
+    torch.testing.assert_close(volume[seen], torch.full_like(volume[seen], 4.0))
+
+
+def test_both_view_transforms_take_the_same_arguments_and_output_the_same_shape() -> None:
+    torch.manual_seed(0)
+    batch = make_batch(b=2, n=2)
+    args = dict(in_channels=4, image_stride=S, grid=GRID.to_dict(), out_channels=5, depth_bins=[1.0, 20.0, 1.0], hidden=8)
+    feats = torch.randn(2, 2, 4, 4, 8, requires_grad=True)
+    shapes = []
+    for cls in (LSSViewTransform, BackwardProjection):
+        lifted = cls(**args)(feats, batch)
+        shapes.append(lifted.volume.shape)
+        assert lifted.grid == GRID
+        feats.grad = None
+        lifted.volume.square().sum().backward()
+        assert feats.grad.abs().sum() > 0
+    assert shapes[0] == shapes[1] == (2, 5, *GRID.shape)

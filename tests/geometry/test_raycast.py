@@ -1,0 +1,257 @@
+"""Exact voxel traversal: the vectorised walk equals a slow per-ray reference, plus hand cases."""
+
+import math
+
+import pytest
+import torch
+
+from occplug.geometry import GridSpec, first_hit, observed_mask, traversed_mask
+
+# ----------------------------------------------------------------------------------------------
+# The reference: per ray, in Python floats. Independent of the DDA: it collects every t at which
+# the ray crosses a voxel plane, sorts them, and names the voxel of each interval by the floor of
+# its midpoint, so a voxel touched for zero length (an edge or corner) never appears.
+
+
+def reference_walk(grid, origin, direction, t_max):
+    """[(voxel (i, j, k), entry distance)] in traversal order along ``[0, t_max)``."""
+    g = [(origin[a] - grid.lower[a]) / grid.voxel_size[a] for a in range(3)]
+    dg = [direction[a] / grid.voxel_size[a] for a in range(3)]
+    n = grid.shape
+    t_lo, t_hi = 0.0, t_max
+    for a in range(3):
+        if dg[a] == 0:
+            if not 0 <= g[a] < n[a]:
+                return []
+        else:
+            ta, tb = (0 - g[a]) / dg[a], (n[a] - g[a]) / dg[a]
+            t_lo, t_hi = max(t_lo, min(ta, tb)), min(t_hi, max(ta, tb))
+    if not t_lo < t_hi:
+        return []
+    ts = {t_lo, t_hi}
+    for a in range(3):
+        if dg[a] != 0:
+            for k in range(n[a] + 1):
+                t = (k - g[a]) / dg[a]
+                if t_lo < t < t_hi:
+                    ts.add(t)
+    ts = sorted(ts)
+    out = []
+    for a, b in zip(ts, ts[1:]):
+        mid = 0.5 * (a + b)
+        voxel = tuple(math.floor(g[ax] + mid * dg[ax]) for ax in range(3))
+        if not out or out[-1][0] != voxel:
+            out.append((voxel, a))
+    return out
+
+
+def reference_first_hit(occ, grid, origin, direction, t_max):
+    for voxel, t in reference_walk(grid, origin, direction, t_max):
+        if occ[voxel]:
+            return voxel, t
+    return (-1, -1, -1), math.inf
+
+
+def reference_traversed(grid, origin, endpoint):
+    delta = [endpoint[a] - origin[a] for a in range(3)]
+    length = math.sqrt(sum(d * d for d in delta))
+    voxels = set()
+    if length > 0:
+        direction = [d / length for d in delta]
+        voxels = {v for v, _ in reference_walk(grid, origin, direction, length)}
+    end = tuple(math.floor((endpoint[a] - grid.lower[a]) / grid.voxel_size[a]) for a in range(3))
+    if all(0 <= end[a] < grid.shape[a] for a in range(3)):
+        voxels.add(end)
+    return voxels
+
+
+def reference_observed(occ, grid, origin, direction, t_max):
+    voxels = set()
+    for voxel, _ in reference_walk(grid, origin, direction, t_max):
+        voxels.add(voxel)
+        if occ[voxel]:
+            break
+    return voxels
+
+
+def to_mask(voxels, shape):
+    mask = torch.zeros(shape, dtype=torch.bool)
+    for v in voxels:
+        mask[v] = True
+    return mask
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+def random_case(seed, rays=400):
+    """A random anisotropic grid, occupancy and rays (many starting outside, many axis-parallel)."""
+    gen = torch.Generator().manual_seed(seed)
+    shape = torch.randint(3, 9, (3,), generator=gen).tolist()
+    size = (0.3 + torch.rand(3, generator=gen, dtype=torch.float64)).tolist()
+    lower = (torch.rand(3, generator=gen, dtype=torch.float64) * 4 - 2).tolist()
+    grid = GridSpec(range=[*lower, *(lower[a] + shape[a] * size[a] for a in range(3))], voxel_size=size)
+    occ = torch.rand(grid.shape, generator=gen) < 0.2
+    extent = torch.tensor([shape[a] * size[a] for a in range(3)], dtype=torch.float64)
+    spread = torch.rand(rays, 3, generator=gen, dtype=torch.float64) * 2 - 0.5  # half the origins outside
+    origins = torch.tensor(lower, dtype=torch.float64) + spread * extent
+    directions = torch.randn(rays, 3, generator=gen, dtype=torch.float64)
+    kind = torch.randint(0, 5, (rays,), generator=gen)
+    targets = torch.tensor(lower, dtype=torch.float64) + torch.rand(rays, 3, generator=gen, dtype=torch.float64) * extent
+    aimed = kind == 4  # aimed at a point inside the grid
+    directions[aimed] = targets[aimed] - origins[aimed]
+    axis = torch.randint(0, 3, (rays,), generator=gen)
+    rows = torch.arange(rays)
+    planar = kind == 1  # one zero component
+    directions[rows[planar], axis[planar]] = 0.0
+    parallel = kind == 2  # exactly along an axis, either sign
+    directions[parallel] = 0.0
+    sign = torch.where(torch.rand(int(parallel.sum()), generator=gen) < 0.5, -1.0, 1.0).double()
+    directions[rows[parallel], axis[parallel]] = sign
+    directions = directions / directions.norm(dim=-1, keepdim=True)
+    t_max = torch.rand(rays, generator=gen, dtype=torch.float64) * 2 * float(extent.norm())
+    t_max[kind == 3] = math.inf
+    return grid, occ, origins, directions, t_max
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_first_hit_matches_reference_on_random_rays(seed):
+    grid, occ, origins, directions, t_max = random_case(seed)
+    index, distance = first_hit(occ, grid, origins, directions, t_max)
+    assert index.dtype == torch.int64 and distance.dtype == torch.float64
+    hits = 0
+    for r in range(origins.shape[0]):
+        ref_voxel, ref_t = reference_first_hit(occ, grid, origins[r].tolist(), directions[r].tolist(), float(t_max[r]))
+        assert tuple(index[r].tolist()) == ref_voxel, f"ray {r}"
+        if ref_t == math.inf:
+            assert distance[r] == math.inf
+        else:
+            hits += 1
+            assert abs(float(distance[r]) - ref_t) < 1e-9
+    assert hits > origins.shape[0] // 10  # the case is not vacuous
+
+
+@pytest.mark.parametrize("seed", range(4, 8))
+def test_traversed_and_observed_masks_match_reference(seed):
+    grid, occ, origins, directions, t_max = random_case(seed)
+    # segments: finite lengths only; some endpoints far outside the grid
+    length = torch.where(torch.isinf(t_max), torch.full_like(t_max, 3.0), t_max)
+    endpoints = origins + directions * length[:, None]
+    expected = set()
+    observed = set()
+    for r in range(origins.shape[0]):
+        expected |= reference_traversed(grid, origins[r].tolist(), endpoints[r].tolist())
+        observed |= reference_observed(occ, grid, origins[r].tolist(), directions[r].tolist(), float(t_max[r]))
+    assert torch.equal(traversed_mask(grid, origins, endpoints), to_mask(expected, grid.shape))
+    assert torch.equal(observed_mask(occ, grid, origins, directions, t_max), to_mask(observed, grid.shape))
+    # per ray, too (a union could hide a missing voxel that another ray covers)
+    for r in range(0, origins.shape[0], 7):
+        one = traversed_mask(grid, origins[r : r + 1], endpoints[r : r + 1])
+        assert torch.equal(one, to_mask(reference_traversed(grid, origins[r].tolist(), endpoints[r].tolist()), grid.shape))
+
+
+def test_float32_inputs_give_float32_distances_and_same_voxels():
+    grid, occ, origins, directions, t_max = random_case(11)
+    i64, d64 = first_hit(occ, grid, origins, directions, t_max)
+    i32, d32 = first_hit(occ, grid, origins.float(), directions.float(), t_max.float())
+    assert d32.dtype == torch.float32
+    assert (i32 == i64).all(-1).float().mean() > 0.99  # float32 inputs are rounded, rarely a boundary moves
+    same = (i32 == i64).all(-1) & torch.isfinite(d64)
+    assert torch.allclose(d32[same].double(), d64[same], atol=1e-4)
+
+
+# ----------------------------------------------------------------------------------------------
+# Hand cases on a unit grid [0, 4)^3.
+
+UNIT = GridSpec(range=(0, 0, 0, 4, 4, 4), voxel_size=1.0)
+
+
+def rays(*pairs):
+    o = torch.tensor([p[0] for p in pairs], dtype=torch.float64)
+    d = torch.tensor([p[1] for p in pairs], dtype=torch.float64)
+    return o, d / d.norm(dim=-1, keepdim=True)
+
+
+def test_hit_from_outside_along_an_axis():
+    occ = torch.zeros(UNIT.shape, dtype=torch.bool)
+    occ[2, 0, 0] = True
+    o, d = rays(((-1.0, 0.5, 0.5), (1, 0, 0)), ((5.0, 0.5, 0.5), (-1, 0, 0)), ((-1.0, 1.5, 0.5), (1, 0, 0)))
+    index, distance = first_hit(occ, UNIT, o, d, 100.0)
+    assert index.tolist() == [[2, 0, 0], [2, 0, 0], [-1, -1, -1]]
+    assert distance[:2].tolist() == [3.0, 2.0] and distance[2] == math.inf
+
+
+def test_origin_inside_an_occupied_voxel_hits_at_zero():
+    occ = torch.zeros(UNIT.shape, dtype=torch.bool)
+    occ[1, 1, 1] = True
+    index, distance = first_hit(occ, UNIT, *rays(((1.5, 1.2, 1.7), (0.3, -1, 2))), 10.0)
+    assert index.tolist() == [[1, 1, 1]] and distance.tolist() == [0.0]
+
+
+def test_max_distance_is_half_open():
+    occ = torch.zeros(UNIT.shape, dtype=torch.bool)
+    occ[3, 0, 0] = True
+    o, d = rays(((0.5, 0.5, 0.5), (1, 0, 0)))
+    assert first_hit(occ, UNIT, o, d, 2.5)[0].tolist() == [[-1, -1, -1]]  # entered at exactly 2.5
+    assert first_hit(occ, UNIT, o, d, 2.5001)[0].tolist() == [[3, 0, 0]]
+
+
+def test_diagonal_through_corners_steps_diagonally():
+    o, d = rays(((0.5, 0.5, 0.5), (1, 1, 0)))
+    mask = traversed_mask(UNIT, o, o + d * 10)
+    assert sorted(map(tuple, mask.nonzero().tolist())) == [(0, 0, 0), (1, 1, 0), (2, 2, 0), (3, 3, 0)]
+    o, d = rays(((0.0, 0.0, 0.0), (1, 1, 1)))  # the main diagonal, from the grid corner
+    mask = traversed_mask(UNIT, o, o + d * 10)
+    assert sorted(map(tuple, mask.nonzero().tolist())) == [(i, i, i) for i in range(4)]
+
+
+def test_boundary_starts_and_endpoints():
+    # starting on a boundary and moving down: the voxel behind is not traversed
+    o, d = rays(((2.0, 0.5, 0.5), (-1, 0, 0)))
+    assert sorted(map(tuple, traversed_mask(UNIT, o, o + d * 1.5).nonzero().tolist())) == [(0, 0, 0), (1, 0, 0)]
+    # an endpoint exactly on a boundary: its voxel (floor convention) is included
+    o = torch.tensor([[0.5, 0.5, 0.5]], dtype=torch.float64)
+    e = torch.tensor([[2.0, 0.5, 0.5]], dtype=torch.float64)
+    assert sorted(map(tuple, traversed_mask(UNIT, o, e).nonzero().tolist())) == [(0, 0, 0), (1, 0, 0), (2, 0, 0)]
+    # a zero-length segment marks only its own voxel; a segment entirely outside marks nothing
+    assert traversed_mask(UNIT, o, o).nonzero().tolist() == [[0, 0, 0]]
+    far = torch.tensor([[10.0, 10.0, 10.0]], dtype=torch.float64)
+    assert not traversed_mask(UNIT, far, far + 1).any()
+
+
+def test_ray_in_a_face_plane_and_grazing_rays():
+    # a ray lying in the plane y = 1 traverses the voxels with j = 1 (floor convention)
+    o, d = rays(((-1.0, 1.0, 0.5), (1, 0, 0)))
+    assert sorted(map(tuple, traversed_mask(UNIT, o, o + d * 10).nonzero().tolist())) == [(i, 1, 0) for i in range(4)]
+    # touching the grid only along an outer edge is no traversal
+    o, d = rays(((-1.0, 4.0, 0.5), (1, 0, 0)), ((-1.0, -1.0, 0.5), (1, 1, 0)))
+    occ = torch.ones(UNIT.shape, dtype=torch.bool)
+    index, distance = first_hit(occ, UNIT, o, d, 100.0)
+    assert index[0].tolist() == [-1, -1, -1]
+    assert index[1].tolist() == [0, 0, 0] and abs(float(distance[1]) - math.sqrt(2)) < 1e-12
+
+
+def test_observed_mask_stops_at_first_occupied_voxel():
+    occ = torch.zeros(UNIT.shape, dtype=torch.bool)
+    occ[2, 0, 0] = True
+    mask = observed_mask(occ, UNIT, *rays(((-3.0, 0.5, 0.5), (1, 0, 0))), 100.0)
+    assert sorted(map(tuple, mask.nonzero().tolist())) == [(0, 0, 0), (1, 0, 0), (2, 0, 0)]
+
+
+def test_empty_inputs():
+    o = torch.zeros(0, 3)
+    index, distance = first_hit(torch.zeros(UNIT.shape, dtype=torch.bool), UNIT, o, o, 1.0)
+    assert index.shape == (0, 3) and distance.shape == (0,)
+    assert not traversed_mask(UNIT, o, o).any()
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_gpu_equals_cpu():
+    grid, occ, origins, directions, t_max = random_case(3, rays=2000)
+    cpu = first_hit(occ, grid, origins, directions, t_max)
+    gpu = first_hit(occ.cuda(), grid, origins.cuda(), directions.cuda(), t_max.cuda())
+    assert torch.equal(cpu[0], gpu[0].cpu()) and torch.equal(cpu[1], gpu[1].cpu())
+    endpoints = origins + directions * 3
+    on_gpu = traversed_mask(grid, origins.cuda(), endpoints.cuda()).cpu()
+    assert torch.equal(traversed_mask(grid, origins, endpoints), on_gpu)
