@@ -21,6 +21,7 @@ KINDS: dict[str, str] = {
     "model": "the LightningModule composing the components",
     "data": "a LightningDataModule yielding occplug Frames",
     "metric": "a torchmetrics Metric over predicted and true occupancy",
+    "callback": "a Lightning Callback added to the Trainer (config section 'callbacks')",
 }
 
 

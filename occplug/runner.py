@@ -114,8 +114,25 @@ class _NpzPredictionWriter(BasePredictionWriter):
             os.replace(tmp, self.out / f"{token}.npz")
 
 
+def build_callbacks(cfg: dict[str, Any]) -> list[Callback]:
+    """The Lightning callbacks named in the config's ``callbacks:`` mapping (``null`` entries are off)."""
+    out = []
+    for name, node in (cfg.get("callbacks") or {}).items():
+        if node is None:
+            continue
+        callback = get_registry().build("callback", node)
+        if not isinstance(callback, Callback):
+            raise TypeError(f"callbacks.{name}: '{node['type']}' built a {type(callback).__name__}, not a lightning Callback")
+        out.append(callback)
+    return out
+
+
 def _trainer(cfg: dict[str, Any], root: Path | None, callbacks: list[Callback], logger: Any = False) -> L.Trainer:
     kwargs = dict(cfg.get("trainer") or {})
+    try:
+        callbacks = [*callbacks, *build_callbacks(cfg)]
+    except (ValueError, TypeError) as exc:
+        raise RunError(str(exc).splitlines()[0]) from None
     kwargs.setdefault("enable_model_summary", False)
     if root is not None:
         kwargs["default_root_dir"] = str(root)

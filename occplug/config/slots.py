@@ -37,6 +37,7 @@ TOP_LEVEL: dict[str, Slot | str] = {
     "trainer": "mapping of lightning.Trainer arguments",
     "metrics": Slot("metric", sequence=True),
     "checkpoint": "mapping of lightning ModelCheckpoint arguments",
+    "callbacks": Slot("callback", mapping=True),
 }
 
 

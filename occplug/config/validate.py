@@ -30,6 +30,7 @@ INJECTED: dict[str, set[str]] = {
     "supervision": {"free_label", "ignore_label"},
     "data": set(),
     "metric": {"num_classes", "class_names", "free_label", "ignore_label"},
+    "callback": set(),
 }
 
 #: Optimizer names a config may use (``optimizer.type``); never an import path.

@@ -52,6 +52,7 @@ class Frame:
             SemanticKITTI: 0 = empty, 255 = ignore).
         mask_camera: ``(X, Y, Z)`` bool, voxels observed by at least one camera ray (Occ3D).
         mask_lidar: ``(X, Y, Z)`` bool, voxels observed by at least one LiDAR ray (Occ3D).
+        voxel_invalid: ``(X, Y, Z)`` bool, voxels the benchmark ignores (SemanticKITTI ``.invalid``).
         has_voxel_labels: False for a sample whose voxel labels must not be used for training
             (label-efficient splits); evaluation still reads them when present.
         boxes: ``(M, 9)`` float32 in the ego frame: centre x, y, z, size length (along heading),
@@ -88,6 +89,7 @@ class Frame:
     voxel_labels: Tensor | None = None
     mask_camera: Tensor | None = None
     mask_lidar: Tensor | None = None
+    voxel_invalid: Tensor | None = None
     has_voxel_labels: bool = True
     boxes: Tensor | None = None
     box_labels: Tensor | None = None
@@ -131,6 +133,7 @@ _STACKED = (
     "voxel_labels",
     "mask_camera",
     "mask_lidar",
+    "voxel_invalid",
     "depth",
     "semantics_2d",
     "pseudo_depth",
@@ -171,6 +174,7 @@ class Batch:
     voxel_labels: Tensor | None = None
     mask_camera: Tensor | None = None
     mask_lidar: Tensor | None = None
+    voxel_invalid: Tensor | None = None
     boxes: list[Tensor] | None = None
     box_labels: list[Tensor] | None = None
     box_track_ids: list[Tensor] | None = None
