@@ -20,9 +20,12 @@ if TYPE_CHECKING:
 def occplug_register_components(registry: Registry) -> None:
     """Register the core's encoders, view transforms, scene, head, supervision, data, metric and model."""
     from . import components as c
+    from .data.occ3d_nuscenes import Occ3DNuScenesDataModule
+    from .data.semantickitti import SemanticKITTIDataModule
     from .data.synthetic import SyntheticDataModule
-    from .metrics import Occ3DMIoU
+    from .metrics import Occ3DMIoU, RayIoU, SSCMetrics
     from .model import OccModel
+    from .viz.callback import BevPanelLogger
 
     registry.add("encoder", "small_cnn", c.SmallCNN)
     registry.add("encoder", "timm", c.TimmEncoder)
@@ -32,8 +35,13 @@ def occplug_register_components(registry: Registry) -> None:
     registry.add("head", "voxel_classifier", c.VoxelClassifier)
     registry.add("supervision", "voxel_ce", c.VoxelCrossEntropy)
     registry.add("data", "synthetic", SyntheticDataModule)
+    registry.add("data", "occ3d_nuscenes", Occ3DNuScenesDataModule)
+    registry.add("data", "semantickitti", SemanticKITTIDataModule)
     registry.add("metric", "occ3d_miou", Occ3DMIoU)
+    registry.add("metric", "rayiou", RayIoU)
+    registry.add("metric", "ssc", SSCMetrics)
     registry.add("model", "occ_model", OccModel)
+    registry.add("callback", "bev_panel_logger", BevPanelLogger)
 
 
 @hookimpl

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from typing import Annotated, Any
 
 import lightning as L
@@ -191,7 +192,9 @@ class OccModel(L.LightningModule):
         for name, metric in metrics.items():
             values = metric.compute()  # torchmetrics syncs states across ranks here
             for key, value in values.items():
-                self.log(f"{stage}/{key}", value, sync_dist=False, prog_bar=key in ("mIoU", "RayIoU"))
+                with warnings.catch_warnings():  # Lightning's "use sync_dist=True" hint: the value is already synced
+                    warnings.filterwarnings("ignore", message=".*sync_dist=True.*")
+                    self.log(f"{stage}/{key}", value, sync_dist=False, prog_bar=key in ("mIoU", "RayIoU"))
                 results[key] = float(value)
             self.last_tables[name] = metric.table()
             metric.reset()

@@ -12,6 +12,7 @@ A run directory holds::
 from __future__ import annotations
 
 import datetime as _dt
+import inspect
 import json
 import os
 from collections.abc import Sequence
@@ -35,6 +36,7 @@ __all__ = [
     "build_model",
     "evaluate",
     "fit",
+    "is_rank_zero",
     "load_checkpoint",
     "load_config",
     "plugin_versions",
@@ -81,10 +83,25 @@ def build_model(cfg: dict[str, Any], dm: OccDataModule) -> L.LightningModule:
         ignore_label=dm.ignore_label,
         optimizer=cfg.get("optimizer"),
         scheduler=cfg.get("scheduler"),
-        metrics=cfg.get("metrics"),
+        metrics=metric_nodes(cfg.get("metrics"), grid),
     )
     model.run_config = cfg  # stored in every checkpoint (self-contained checkpoints)
     return model
+
+
+def metric_nodes(specs: list | None, grid: dict[str, Any]) -> list | None:
+    """The config's ``metrics`` as nodes, with the run's ``grid`` filled into metrics that take one
+    (e.g. ``rayiou``) and do not set it."""
+    if specs is None:
+        return None
+    out = []
+    for spec in specs:
+        node = {"type": spec} if isinstance(spec, str) else dict(spec)
+        factory = get_registry().get("metric", node["type"]).factory
+        if "grid" not in node and "grid" in inspect.signature(factory).parameters:
+            node["grid"] = grid
+        out.append(node)
+    return out
 
 
 class _RunInfoCallback(Callback):
@@ -139,8 +156,30 @@ def _trainer(cfg: dict[str, Any], root: Path | None, callbacks: list[Callback], 
     return L.Trainer(callbacks=callbacks, logger=logger, **kwargs)
 
 
+#: Rank 0's run directory, for the processes a DDP launcher re-runs with the same command line
+#: (their clock would name another default directory).
+RUN_DIR_ENV = "OCCPLUG_RANK_ZERO_RUN_DIR"
+
+
+def is_rank_zero() -> bool:
+    """Whether this process is global rank 0 as far as a launcher has announced ranks.
+
+    Reads what launchers set before any process group exists: ``RANK`` (torchrun), then
+    ``LOCAL_RANK`` with ``NODE_RANK``/``GROUP_RANK`` (Lightning's DDP re-launch sets these in the
+    processes it starts), then ``SLURM_PROCID``; a process no launcher started is rank 0.
+    """
+    env = os.environ
+    if "RANK" in env:
+        return int(env["RANK"]) == 0
+    if "LOCAL_RANK" in env:
+        return int(env["LOCAL_RANK"]) == 0 and int(env.get("NODE_RANK", env.get("GROUP_RANK", 0))) == 0
+    return int(env.get("SLURM_PROCID", 0)) == 0
+
+
 def default_run_dir(refs: Sequence[str]) -> Path:
-    """``runs/<YYYYmmdd-HHMMSS>-<first config name>``."""
+    """``runs/<YYYYmmdd-HHMMSS>-<first config name>`` (in a DDP worker process: rank 0's directory)."""
+    if not is_rank_zero() and os.environ.get(RUN_DIR_ENV):
+        return Path(os.environ[RUN_DIR_ENV])
     stem = Path(refs[0]).stem if refs else "run"
     return Path("runs") / f"{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{stem}"
 
@@ -149,15 +188,18 @@ def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, f
     """Train per ``cfg`` into ``run_dir``; return the final validation metrics.
 
     Everything is built before anything is written, so a configuration mistake leaves no
-    half-made run directory.
+    half-made run directory. Under a multi-process strategy (e.g. ``trainer.strategy=ddp``) every
+    rank runs this function; only global rank 0 checks and writes ``run_dir``.
     """
     run_dir = Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
     last = ckpt_dir / "last.ckpt"
     if resume and not last.is_file():
         raise RunError(f"--resume {run_dir}: no checkpoint at {last}")
-    if not resume and run_dir.exists() and any(run_dir.iterdir()):
-        raise RunError(f"run directory {run_dir} already exists and is not empty; choose another --run-dir or --resume it")
+    if is_rank_zero():
+        if not resume and run_dir.exists() and any(run_dir.iterdir()):
+            raise RunError(f"run directory {run_dir} already exists and is not empty; choose another --run-dir or --resume it")
+        os.environ[RUN_DIR_ENV] = str(run_dir.absolute())  # inherited by the ranks a DDP launcher starts
     L.seed_everything(int(cfg.get("seed", 0)), workers=True, verbose=False)
     dm, model = _build(cfg)
     info = _RunInfoCallback(cfg)

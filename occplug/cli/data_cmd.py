@@ -1,4 +1,4 @@
-"""``occplug data synth``: write the synthetic world to disk."""
+"""``occplug data synth`` (write the synthetic world to disk) and ``occplug data prepare`` (index a real data set)."""
 
 from __future__ import annotations
 
@@ -13,6 +13,9 @@ from occplug.plugins import get_registry
 
 from .errors import UsageError
 
+#: ``--format`` choices of ``data synth``: occplug's own frame files, or a real data set's layout.
+SYNTH_FORMATS = ("frames", "occ3d", "semantickitti")
+
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     data = sub.add_parser("data", help="data sets")
@@ -21,8 +24,31 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     synth.add_argument("--out", required=True, metavar="DIR")
     synth.add_argument("--preset", default="default", help="world preset (tiny, default, occ3d)")
     synth.add_argument("--splits", nargs="+", default=["train", "val", "test"], help="splits to write")
+    synth.add_argument(
+        "--format",
+        default="frames",
+        choices=SYNTH_FORMATS,
+        help="frames: occplug .pt frames (default); occ3d: a nuScenes-shaped tree with Occ3D gts/; "
+        "semantickitti: a SemanticKITTI-shaped tree (a grid=... knob is then in the LiDAR frame; default the SSC grid)",
+    )
+    synth.add_argument("--pseudo", default=None, metavar="REALISM",
+                       help="also write pseudo labels (occ3d / semantickitti formats): perfect, default or noisy")
+    synth.add_argument("--version", default="v1.0-trainval", help="table folder name of the occ3d format (v1.0-trainval, v1.0-mini)")
     synth.add_argument("knobs", nargs="*", metavar="key=value", help="synthetic data-module arguments, e.g. seed=3")
     synth.set_defaults(func=cmd_synth)
+
+    prepare = actions.add_parser("prepare", help="index a real data set once, so training never walks its tables")
+    datasets = prepare.add_subparsers(dest="dataset", required=True, metavar="DATASET")
+    ns = datasets.add_parser("nuscenes", help="nuScenes (+ Occ3D-nuScenes labels) -> <out>/nuscenes_index.npz")
+    ns.add_argument("--root", required=True, metavar="DIR", help="nuScenes data root (samples/, sweeps/, <version>/)")
+    ns.add_argument("--version", required=True, help="v1.0-trainval, v1.0-mini or v1.0-test (the folder of JSON tables)")
+    ns.add_argument("--occ", metavar="DIR", help="Occ3D-nuScenes folder holding gts/<scene>/<token>/labels.npz")
+    ns.add_argument("--out", required=True, metavar="DIR", help="folder to write nuscenes_index.npz into")
+    ns.add_argument("--splits", default="official", metavar="official|FILE",
+                    help="scene split: the official lists, or a JSON file {split: [scene names]}")
+    ns.add_argument("--sweeps", type=int, default=10, help="earlier LiDAR sweeps to record per sample (default 10)")
+    ns.add_argument("--no-check-files", action="store_true", help="do not check that every referenced file exists")
+    ns.set_defaults(func=cmd_prepare_nuscenes)
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
@@ -36,13 +62,60 @@ def cmd_synth(args: argparse.Namespace) -> int:
         node[key] = yaml.safe_load(raw) if raw.strip() else None
     registry = get_registry()
     _Validator(registry).node(node, "data", "data")
+    if args.pseudo is not None and args.format == "frames":
+        raise UsageError("--pseudo needs --format occ3d or semantickitti (the frames format has no pseudo-label files)")
     out = Path(args.out)
     if out.exists() and any(out.iterdir()):
         raise UsageError(f"--out {out}: the folder exists and is not empty")
+    lidar_grid = node.pop("grid", None) if args.format == "semantickitti" else None
     try:
         dm = registry.build("data", node)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-    count = write_dataset(dm.world_config, out, splits=tuple(args.splits), progress=True)
-    print(f"wrote {count} frames to {out}")
+        pseudo = None
+        if args.pseudo is not None:
+            from occplug.data.synthetic.pseudo import pseudo_realism
+
+            pseudo = pseudo_realism(args.pseudo)
+        if args.format == "frames":
+            count = write_dataset(dm.world_config, out, splits=tuple(args.splits), progress=True)
+            print(f"wrote {count} frames to {out}")
+        elif args.format == "occ3d":
+            from occplug.data.synthetic.export_occ3d import write_occ3d_nuscenes
+
+            count = write_occ3d_nuscenes(dm.world_config, out, version=args.version, splits=tuple(args.splits),
+                                         pseudo=pseudo, cache_dir=dm.cache_dir, progress=True)
+            grid = dm.world_config.grid
+            print(f"wrote {count} samples as a nuScenes-shaped tree with Occ3D labels to {out}")
+            print(f"index it with: occplug data prepare nuscenes --root {out} --version {args.version} --occ {out} "
+                  f"--out {out}/index --splits {out}/splits.json")
+            print(f"its label grid: {{range: {list(grid.range)}, voxel_size: {list(grid.voxel_size)}}}")
+        else:
+            from occplug.data.synthetic.export_semantickitti import lidar_grid as grid_of
+            from occplug.data.synthetic.export_semantickitti import semantickitti_world, write_semantickitti
+
+            world = semantickitti_world(dm.world_config, lidar_grid)
+            names = write_semantickitti(world, out, splits=tuple(args.splits), pseudo=pseudo, cache_dir=dm.cache_dir,
+                                        progress=True)
+            grid = grid_of(world)
+            print(f"wrote {sum(len(v) for v in names.values())} sequences as a SemanticKITTI-shaped tree to {out}")
+            print(f"read it with data: {{type: semantickitti, root: {out}, splits: {names}, "
+                  f"grid: {{range: {list(grid.range)}, voxel_size: {list(grid.voxel_size)}}}}}")
+    except (ValueError, FileNotFoundError) as exc:
+        raise UsageError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
+    return 0
+
+
+def cmd_prepare_nuscenes(args: argparse.Namespace) -> int:
+    from occplug.data.nuscenes_index import build_index, read_index
+
+    if args.sweeps < 0:
+        raise UsageError(f"--sweeps must be >= 0, got {args.sweeps}")
+    try:
+        path = build_index(args.root, args.version, args.out, occ_root=args.occ, splits=args.splits, sweeps=args.sweeps,
+                           check_files=not args.no_check_files, progress=True)
+        index = read_index(path)
+    except (ValueError, FileNotFoundError) as exc:
+        raise UsageError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
+    counts = {s: len(index.split_indices(s)) for s in ("train", "val", "test")}
+    summary = ", ".join(f"{k} {v}" for k, v in counts.items() if v)
+    print(f"wrote the index of {len(index.samples)} samples ({summary}) to {path}")
     return 0

@@ -55,8 +55,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
         results = runner.fit(cfg, run_dir, resume=bool(args.resume))
     except runner.RunError as exc:
         raise UsageError(str(exc)) from None
-    _print_metrics(results)
-    print(f"run directory: {run_dir}")
+    if runner.is_rank_zero():  # DDP: every rank runs this command; one reports
+        _print_metrics(results)
+        print(f"run directory: {run_dir}")
     return 0
 
 

@@ -21,6 +21,7 @@ by changing only ``type``.
 from __future__ import annotations
 
 from contextlib import AbstractContextManager
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -29,6 +30,7 @@ from torch import Tensor
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, pixel_centers, project_to_image, unproject_from_image
 from occplug.interfaces import Lifted, ViewTransform
+from occplug.ops.splat import SplatPlan, SplatPlanCache, build_splat_plan, geometry_key, splat_outer
 
 from .layers import PixelNet
 
@@ -134,6 +136,11 @@ def splat(features: Tensor, index: Tensor, num_voxels: int) -> Tensor:
     return out.index_add_(0, dump, features)[:num_voxels]
 
 
+def _num_voxels(grid: GridSpec) -> int:
+    x, y, z = grid.shape
+    return x * y * z
+
+
 def _no_autocast(device: torch.device) -> AbstractContextManager:
     """Geometry runs in float32 even under mixed precision (bf16 would move points by centimetres)."""
     return torch.autocast(device_type=device.type, enabled=False)
@@ -159,8 +166,14 @@ class LSSViewTransform(ViewTransform):
     ``C`` context features for every feature cell; the softmax over depth times the context gives
     ``D`` weighted copies of the context, placed at the cell centre (see the module docstring)
     unprojected to each depth bin's centre through ``img_aug @ intrinsics`` and ``cam_to_ego``.
-    Copies outside the grid are dropped; the rest are summed into the voxel that contains them
-    (:func:`splat`, the reference implementation a faster kernel must match).
+    Copies outside the grid are dropped; the rest are summed into the voxel that contains them.
+
+    The sum runs through :func:`occplug.ops.splat_outer`, which never builds the ``D x C``
+    products: the (camera, depth bin, cell) -> voxel structure is prepared once per sample
+    geometry (``intrinsics``, ``cam_to_ego``, ``img_aug`` of that sample, the feature-map size,
+    stride, depth bins and grid; see :meth:`splat_plans`) and kept in :attr:`plan_cache`, so a
+    fixed camera rig computes its frustum geometry once. ``splat="reference"`` runs the naive
+    :func:`splat` (``index_add_`` over all frustum points) instead; both give the same volume.
 
     Args:
         in_channels: ``C_in`` of the image features (the encoder's ``out_channels``).
@@ -169,11 +182,14 @@ class LSSViewTransform(ViewTransform):
         out_channels: ``C`` of the lifted volume.
         depth_bins: ``[start, stop, step]`` metres of camera-frame z; see :func:`depth_bin_centers`.
         hidden: width of the per-cell net's 3x3 conv (0: a single 1x1 conv).
+        splat: ``fast`` (cached plans, :func:`occplug.ops.splat_outer`) or ``reference``
+            (the naive :func:`splat`; for checking and benchmarking).
 
     Forward:
         ``features`` ``(B, N, C_in, h, w)`` and a batch with ``intrinsics``, ``cam_to_ego``,
-        ``img_aug`` -> :class:`Lifted` with ``volume`` ``(B, C, X, Y, Z)`` (ego frame, on ``grid``),
-        ``depth_probs`` ``(B, N, D, h, w)`` (softmax over ``D``) and ``depth_bins`` ``(D,)`` centres.
+        ``img_aug`` -> :class:`Lifted` with ``volume`` ``(B, C, X, Y, Z)`` (ego frame, on ``grid``;
+        float32 under mixed precision too), ``depth_probs`` ``(B, N, D, h, w)`` (softmax over ``D``)
+        and ``depth_bins`` ``(D,)`` centres.
     """
 
     def __init__(
@@ -184,14 +200,20 @@ class LSSViewTransform(ViewTransform):
         out_channels: int = 64,
         depth_bins: list[float] = [1.0, 45.0, 1.0],  # noqa: B006 - read only, never mutated
         hidden: int = 64,
+        splat: Literal["fast", "reference"] = "fast",
     ) -> None:
         super().__init__()
+        if splat not in ("fast", "reference"):
+            raise ValueError(f"lss splat must be 'fast' or 'reference', got {splat!r}")
         self.grid = GridSpec.from_config(grid)
         self.image_stride = int(image_stride)
         self.out_channels = int(out_channels)
+        self.splat_mode = splat
         self.register_buffer("depth_centers", depth_bin_centers(depth_bins), persistent=False)
         self.num_depth_bins = int(self.depth_centers.shape[0])
         self.depth_net = PixelNet(in_channels, hidden, self.num_depth_bins + self.out_channels)
+        #: geometry key -> :class:`~occplug.ops.SplatPlan` of one sample (not part of the state dict).
+        self.plan_cache = SplatPlanCache()
 
     def voxel_index(self, batch: Batch, h: int, w: int) -> Tensor:
         """``(B, N, D, h, w)`` int64 flat voxel index (:func:`voxel_flat_index`) of every frustum point, -1 outside."""
@@ -199,20 +221,65 @@ class LSSViewTransform(ViewTransform):
             points = frustum_points(batch, h, w, self.image_stride, self.depth_centers)
             return voxel_flat_index(points, self.grid)
 
+    def geometry_keys(self, batch: Batch, h: int, w: int) -> list[str]:
+        """One exact fingerprint (:func:`~occplug.ops.geometry_key`) per batch item of everything its frustum depends on.
+
+        That is the item's ``intrinsics``, ``cam_to_ego`` and ``img_aug`` (as the float32 they are
+        used in), the feature-map size ``h, w``, the stride, the depth bin centres, the grid and the device.
+        """
+        b = batch.cam_to_ego.shape[0]
+        geometry = torch.cat(
+            [t.detach().float().reshape(b, -1) for t in (batch.intrinsics, batch.cam_to_ego, batch.img_aug)], dim=1
+        ).cpu()
+        shapes = tuple(tuple(t.shape[1:]) for t in (batch.intrinsics, batch.cam_to_ego, batch.img_aug))
+        static = dict(
+            h=int(h), w=int(w), stride=self.image_stride, grid=self.grid, shapes=shapes,
+            depths=geometry_key(self.depth_centers), device=str(self.depth_centers.device),
+        )
+        return [geometry_key(geometry[i], **static) for i in range(b)]
+
+    def splat_plans(self, batch: Batch, h: int, w: int) -> list[SplatPlan]:
+        """The :class:`~occplug.ops.SplatPlan` of every batch item, from :attr:`plan_cache` or built.
+
+        On a miss the frustum index of the whole batch is computed once (:meth:`voxel_index`, the
+        same code the reference path runs) and a plan is built for each missing item.
+        """
+        keys = self.geometry_keys(batch, h, w)
+        plans: list[SplatPlan | None] = [self.plan_cache.get(k) for k in keys]
+        if any(p is None for p in plans):
+            index = self.voxel_index(batch, h, w)  # (B, N, D, h, w), sample b's voxels offset by b*V
+            v = _num_voxels(self.grid)
+            built: dict[str, SplatPlan] = {}
+            for i, key in enumerate(keys):
+                if plans[i] is not None:
+                    continue
+                if key not in built:
+                    local = torch.where(index[i] >= 0, index[i] - i * v, index[i])
+                    built[key] = build_splat_plan(local, v)
+                    self.plan_cache.put(key, built[key])
+                plans[i] = built[key]
+        return plans  # type: ignore[return-value]
+
     def forward(self, features: Tensor, batch: Batch) -> Lifted:
         """Lift ``(B, N, C_in, h, w)`` features into a ``(B, C, X, Y, Z)`` volume; see the class docstring."""
         _check_feature_size(features, batch, self.image_stride, "lss")
         b, n, _, h, w = features.shape
         d, c = self.num_depth_bins, self.out_channels
+        x, y, z = self.grid.shape
         out = self.depth_net(features.flatten(0, 1))
         probs = out[:, :d].softmax(dim=1)  # (B*N, D, h, w)
         context = out[:, d:]  # (B*N, C, h, w)
-        # Outer product, channels last: (B, N, D, h, w, C), row order matching voxel_index.
-        frustum = probs.view(b, n, d, 1, h, w) * context.view(b, n, 1, c, h, w)
-        frustum = frustum.permute(0, 1, 2, 4, 5, 3).reshape(-1, c)
-        index = self.voxel_index(batch, h, w).reshape(-1)
-        x, y, z = self.grid.shape
-        volume = splat(frustum, index, b * x * y * z).view(b, x, y, z, c).permute(0, 4, 1, 2, 3)
+        if self.splat_mode == "reference":
+            # Outer product, channels last: (B, N, D, h, w, C), row order matching voxel_index.
+            frustum = probs.view(b, n, d, 1, h, w) * context.view(b, n, 1, c, h, w)
+            frustum = frustum.permute(0, 1, 2, 4, 5, 3).reshape(-1, c)
+            index = self.voxel_index(batch, h, w).reshape(-1)
+            volume = splat(frustum, index, b * x * y * z).view(b, x, y, z, c).permute(0, 4, 1, 2, 3)
+        else:
+            plans = self.splat_plans(batch, h, w)
+            with _no_autocast(features.device):  # pooled in float32: sums of many bf16 terms drift
+                volume = splat_outer(probs.view(b, n, d, h, w).float(), context.view(b, n, c, h, w).float(), plans)
+            volume = volume.view(b, c, x, y, z)
         return Lifted(
             volume=volume.contiguous(),
             grid=self.grid,

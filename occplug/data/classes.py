@@ -2,7 +2,15 @@
 
 from __future__ import annotations
 
-__all__ = ["OCC3D_CLASSES", "OCC3D_FREE", "OCC3D_NUM_CLASSES", "SEMANTIC_KITTI_CLASSES"]
+__all__ = [
+    "OCC3D_CLASSES",
+    "OCC3D_COLORS",
+    "OCC3D_FREE",
+    "OCC3D_NUM_CLASSES",
+    "SEMANTIC_KITTI_CLASSES",
+    "SEMANTIC_KITTI_COLORS",
+    "class_colors",
+]
 
 #: Occ3D-nuScenes class names indexed by id; id 17 is ``free`` (empty space).
 OCC3D_CLASSES: tuple[str, ...] = (
@@ -52,3 +60,79 @@ SEMANTIC_KITTI_CLASSES: tuple[str, ...] = (
     "pole",
     "traffic-sign",
 )
+
+
+# ---------------------------------------------------------------- colours
+# One ``(r, g, b)`` uint8 triple per class id, so ``numpy.asarray(COLORS, numpy.uint8)`` is the
+# ``(K, 3)`` lookup table of a taxonomy. Every picture occplug draws takes its colours from here.
+
+#: Occ3D-nuScenes colours indexed by id, the palette of the Occ3D / CVPR 2023 occupancy-challenge
+#: visualisers (barrier orange, car blue, driveable surface magenta, vegetation green, ...);
+#: ``free`` (17) is white and is drawn as background.
+OCC3D_COLORS: tuple[tuple[int, int, int], ...] = (
+    (0, 0, 0),  # others
+    (255, 120, 50),  # barrier
+    (255, 192, 203),  # bicycle
+    (255, 255, 0),  # bus
+    (0, 150, 245),  # car
+    (0, 255, 255),  # construction_vehicle
+    (200, 180, 0),  # motorcycle
+    (255, 0, 0),  # pedestrian
+    (255, 240, 150),  # traffic_cone
+    (135, 60, 0),  # trailer
+    (160, 32, 240),  # truck
+    (255, 0, 255),  # driveable_surface
+    (139, 137, 137),  # other_flat
+    (75, 0, 75),  # sidewalk
+    (150, 240, 80),  # terrain
+    (230, 230, 250),  # manmade
+    (0, 175, 0),  # vegetation
+    (255, 255, 255),  # free
+)
+
+#: SemanticKITTI SSC colours indexed by id: the official ``color_map`` of the semantic-kitti-api
+#: (``config/semantic-kitti.yaml``, stored there as BGR) converted to RGB through its
+#: ``learning_map_inv``; ``empty`` (0) is black and is drawn as background.
+SEMANTIC_KITTI_COLORS: tuple[tuple[int, int, int], ...] = (
+    (0, 0, 0),  # empty
+    (100, 150, 245),  # car
+    (100, 230, 245),  # bicycle
+    (30, 60, 150),  # motorcycle
+    (80, 30, 180),  # truck
+    (0, 0, 255),  # other-vehicle
+    (255, 30, 30),  # person
+    (255, 40, 200),  # bicyclist
+    (150, 30, 90),  # motorcyclist
+    (255, 0, 255),  # road
+    (255, 150, 255),  # parking
+    (75, 0, 75),  # sidewalk
+    (175, 0, 75),  # other-ground
+    (255, 200, 0),  # building
+    (255, 120, 50),  # fence
+    (0, 175, 0),  # vegetation
+    (135, 60, 0),  # trunk
+    (150, 240, 80),  # terrain
+    (255, 240, 150),  # pole
+    (255, 0, 0),  # traffic-sign
+)
+
+
+def class_colors(class_names: tuple[str, ...] | list[str]) -> tuple[tuple[int, int, int], ...]:
+    """The colour of each class of a taxonomy, index = id.
+
+    The Occ3D-nuScenes and SemanticKITTI taxonomies get their official palettes; any other list
+    of names gets distinct, deterministic colours (evenly spaced hues), so a new data set is
+    drawable without registering anything.
+    """
+    names = tuple(class_names)
+    if names == OCC3D_CLASSES:
+        return OCC3D_COLORS
+    if names == SEMANTIC_KITTI_CLASSES:
+        return SEMANTIC_KITTI_COLORS
+    import colorsys
+
+    out = []
+    for i in range(len(names)):
+        r, g, b = colorsys.hsv_to_rgb((i * 0.618033988749895) % 1.0, 0.75, 0.95)
+        out.append((round(r * 255), round(g * 255), round(b * 255)))
+    return tuple(out)

@@ -5,13 +5,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import lightning as L
-from torch.utils.data import DataLoader, Dataset
+import torch.distributed as dist
+from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 
 from occplug.geometry import GridSpec
 
 from .frame import Batch, Frame, collate_frames
 
-__all__ = ["OccDataModule"]
+__all__ = ["EvalShardSampler", "OccDataModule"]
 
 
 class OccDataModule(L.LightningDataModule):
@@ -57,14 +58,32 @@ class OccDataModule(L.LightningDataModule):
             self._datasets[split] = self.build_dataset(split)
         return self._datasets[split]
 
+    #: Copy batches into pinned (page-locked) memory in the loader, for faster host-to-GPU copies.
+    pin_memory: bool = False
+
+    def sampler(self, split: str, dataset: Dataset[Frame]) -> Sampler | None:
+        """A sampler replacing the default one of ``split`` (e.g. a sequential sampler), or None.
+
+        A returned sampler that is a ``DistributedSampler`` is left in place by Lightning under DDP.
+        """
+        return None
+
     def _loader(self, split: str, shuffle: bool) -> DataLoader[Batch]:
+        dataset = self.dataset(split)
+        sampler = self.sampler(split, dataset)
+        if sampler is not None:
+            shuffle = False
+        elif split in ("val", "test"):
+            sampler = EvalShardSampler.for_current_process(dataset)
         return DataLoader(
-            self.dataset(split),
+            dataset,
             batch_size=self.batch_size,
             shuffle=shuffle,
+            sampler=sampler,
             num_workers=self.num_workers,
             collate_fn=collate_frames,
             persistent_workers=self.num_workers > 0,
+            pin_memory=self.pin_memory,
         )
 
     def train_dataloader(self) -> DataLoader[Batch]:
@@ -78,3 +97,34 @@ class OccDataModule(L.LightningDataModule):
 
     def predict_dataloader(self) -> DataLoader[Batch]:
         return self._loader("predict", shuffle=False)
+
+
+class EvalShardSampler(DistributedSampler):
+    """Rank ``r`` of ``W`` reads samples ``r, r + W, r + 2W, ...``: every sample exactly once.
+
+    Lightning's default evaluation sampler (a ``DistributedSampler``) repeats samples to give every
+    rank the same count, which would count them twice in the metrics; with this one the summed
+    metric states over the ranks equal a single process's. Ranks may then run one batch more or
+    less; occplug's evaluation steps run no collective operation per batch (metrics and logged
+    values sync once, at the epoch end), so uneven counts are safe.
+    """
+
+    def __init__(self, dataset: Dataset, num_replicas: int, rank: int) -> None:
+        super().__init__(dataset, num_replicas=num_replicas, rank=rank, shuffle=False, drop_last=False)
+        self.num_samples = len(range(rank, len(dataset), num_replicas))  # type: ignore[arg-type]
+        self.total_size = len(dataset)  # type: ignore[arg-type]
+
+    def __iter__(self):  # type: ignore[override]
+        return iter(range(self.rank, self.total_size, self.num_replicas))
+
+    @classmethod
+    def for_current_process(cls, dataset: Dataset) -> EvalShardSampler | None:
+        """The sampler of this rank inside an initialised process group of 2+ ranks, else ``None``
+        (also when there are fewer samples than ranks: then Lightning's padding sampler keeps every
+        rank busy)."""
+        if not (dist.is_available() and dist.is_initialized()):
+            return None
+        world = dist.get_world_size()
+        if world < 2 or len(dataset) < world:  # type: ignore[arg-type]
+            return None
+        return cls(dataset, world, dist.get_rank())

@@ -211,6 +211,22 @@ class Batch:
 
         return Batch(**{f.name: move(getattr(self, f.name)) for f in fields(self)})
 
+    def pin_memory(self) -> Batch:
+        """A copy with every tensor in pinned memory (called by ``DataLoader(pin_memory=True)``)."""
+
+        def pin(v: Any) -> Any:
+            if isinstance(v, Tensor):
+                return v.pin_memory()
+            if isinstance(v, list):
+                return [pin(x) for x in v]
+            if isinstance(v, dict):
+                return {k: pin(x) for k, x in v.items()}
+            if isinstance(v, Batch):
+                return v.pin_memory()
+            return v
+
+        return Batch(**{f.name: pin(getattr(self, f.name)) for f in fields(self)})
+
     def require(self, *names: str, by: str) -> None:
         """Raise a clear error if any of the named fields is missing (``by`` names the component)."""
         missing = [n for n in names if getattr(self, n) is None]

@@ -15,8 +15,6 @@ Conventions
 from __future__ import annotations
 
 import torch
-from kornia.geometry.camera import project_points as _kornia_project
-from kornia.geometry.camera import unproject_points as _kornia_unproject
 from torch import Tensor
 
 from .transforms import invert_pose, transform_points
@@ -57,8 +55,11 @@ def project_to_image(
     cam = transform_points(ego_to_cam, pts)
     depth = cam[..., 2]
     safe = torch.where(depth.abs() < eps, torch.full_like(depth, eps), depth)
-    k = effective_intrinsics(intrinsics, img_aug).reshape(lead, 1, 3, 3).expand(-1, cam.shape[1], 3, 3)
-    uv = _kornia_project(torch.cat([cam[..., :2], safe[..., None]], -1), k)
+    # the full matrix, not kornia's project_points: that reads only fx, fy, cx, cy, and an img_aug with
+    # a rotation puts off-diagonal terms into A @ K
+    k = effective_intrinsics(intrinsics, img_aug).reshape(lead, 3, 3).to(cam.dtype)
+    xy1 = torch.cat([cam[..., :2] / safe[..., None], torch.ones_like(safe[..., None])], -1)
+    uv = (xy1 @ k.transpose(-1, -2))[..., :2]
     out_shape = points_ego.shape[:-1]
     return uv.reshape(*out_shape, 2), depth.reshape(out_shape)
 
@@ -79,8 +80,10 @@ def unproject_from_image(
     batch = cam_to_ego.shape[:-2]
     lead = int(torch.tensor(batch).prod()) if len(batch) else 1
     p = uv.shape[-2]
-    k = effective_intrinsics(intrinsics, img_aug).reshape(lead, 1, 3, 3).expand(-1, p, 3, 3)
-    cam = _kornia_unproject(uv.reshape(lead, p, 2), depth.reshape(lead, p, 1), k)
+    k = effective_intrinsics(intrinsics, img_aug).reshape(lead, 3, 3)
+    uv1 = torch.cat([uv.reshape(lead, p, 2), torch.ones_like(uv.reshape(lead, p, 2)[..., :1])], -1)
+    rays = uv1 @ torch.linalg.inv(k.to(uv1.dtype)).transpose(-1, -2)  # (x/z, y/z, 1): full inverse (see above)
+    cam = rays / rays[..., 2:3] * depth.reshape(lead, p, 1)
     ego = transform_points(cam_to_ego.reshape(lead, 4, 4), cam)
     return ego.reshape(*uv.shape[:-1], 3)
 

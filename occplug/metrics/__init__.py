@@ -2,5 +2,16 @@
 
 from .base import EvalMask, OccMetric, evaluation_mask
 from .miou import Occ3DMIoU, confusion_matrix, iou_from_confusion
+from .rayiou import RayIoU
+from .ssc import SSCMetrics
 
-__all__ = ["EvalMask", "Occ3DMIoU", "OccMetric", "confusion_matrix", "evaluation_mask", "iou_from_confusion"]
+__all__ = [
+    "EvalMask",
+    "Occ3DMIoU",
+    "OccMetric",
+    "RayIoU",
+    "SSCMetrics",
+    "confusion_matrix",
+    "evaluation_mask",
+    "iou_from_confusion",
+]

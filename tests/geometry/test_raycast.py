@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from occplug.geometry import GridSpec, first_hit, observed_mask, traversed_mask
+from occplug.geometry.raycast import clearance, first_hits
 
 # ----------------------------------------------------------------------------------------------
 # The reference: per ray, in Python floats. Independent of the DDA: it collects every t at which
@@ -236,6 +237,96 @@ def test_observed_mask_stops_at_first_occupied_voxel():
     occ[2, 0, 0] = True
     mask = observed_mask(occ, UNIT, *rays(((-3.0, 0.5, 0.5), (1, 0, 0))), 100.0)
     assert sorted(map(tuple, mask.nonzero().tolist())) == [(0, 0, 0), (1, 0, 0), (2, 0, 0)]
+
+
+# ----------------------------------------------------------------------------------------------
+# first_hits: several grids at once, exit distances, and exact empty-space skipping.
+
+
+def reference_exit(grid, origin, direction, voxel):
+    """Where the ray leaves ``voxel``: the nearest far boundary over the moving axes."""
+    out = math.inf
+    for a in range(3):
+        if direction[a] != 0:
+            g = (origin[a] - grid.lower[a]) / grid.voxel_size[a]
+            dg = direction[a] / grid.voxel_size[a]
+            out = min(out, (voxel[a] + (dg > 0) - g) / dg)
+    return out
+
+
+def sparse_case(seed, rays=1200):
+    """A larger random grid with long free runs (so skipping jumps far), plus a denser second grid."""
+    gen = torch.Generator().manual_seed(100 + seed)
+    shape = torch.randint(12, 40, (3,), generator=gen).tolist()
+    size = (0.3 + torch.rand(3, generator=gen, dtype=torch.float64)).tolist()
+    lower = (torch.rand(3, generator=gen, dtype=torch.float64) * 4 - 2).tolist()
+    grid = GridSpec(range=[*lower, *(lower[a] + shape[a] * size[a] for a in range(3))], voxel_size=size)
+    occ = torch.stack([torch.rand(grid.shape, generator=gen) < p for p in (0.01, 0.08)])
+    extent = torch.tensor([shape[a] * size[a] for a in range(3)], dtype=torch.float64)
+    origins = torch.tensor(lower, dtype=torch.float64) + (torch.rand(rays, 3, generator=gen, dtype=torch.float64) * 1.6 - 0.3) * extent
+    directions = torch.randn(rays, 3, generator=gen, dtype=torch.float64)
+    rows = torch.arange(rays)
+    axis = torch.randint(0, 3, (rays,), generator=gen)
+    directions[rows[rows % 5 == 1], axis[rows % 5 == 1]] = 0.0  # in a plane
+    parallel = rows[rows % 5 == 2]
+    directions[parallel] = 0.0
+    directions[parallel, axis[parallel]] = 1.0 - 2.0 * (parallel % 2).double()  # along an axis, either sign
+    directions = directions / directions.norm(dim=-1, keepdim=True)
+    t_max = torch.where(rows % 3 == 0, torch.inf, torch.rand(rays, generator=gen, dtype=torch.float64) * extent.norm())
+    return grid, occ, origins, directions, t_max
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_first_hits_match_reference_in_several_grids(seed):
+    grid, occ, origins, directions, t_max = sparse_case(seed)
+    hits = first_hits(occ, grid, origins, directions, t_max)
+    assert hits.index.shape == (2, origins.shape[0], 3) and hits.exit.dtype == torch.float64
+    found = 0
+    for g in range(2):
+        for r in range(origins.shape[0]):
+            o, d = origins[r].tolist(), directions[r].tolist()
+            voxel, t = reference_first_hit(occ[g], grid, o, d, float(t_max[r]))
+            assert tuple(hits.index[g, r].tolist()) == voxel, f"grid {g} ray {r}"
+            if voxel[0] < 0:
+                assert hits.entry[g, r] == math.inf and hits.exit[g, r] == math.inf
+                continue
+            found += 1
+            assert abs(float(hits.entry[g, r]) - t) < 1e-9
+            assert abs(float(hits.exit[g, r]) - reference_exit(grid, o, d, voxel)) < 1e-9
+    assert found > origins.shape[0] // 8  # not vacuous
+    plain = first_hits(occ, grid, origins, directions, t_max, skip=False)
+    assert all(torch.equal(a, b) for a, b in zip(hits, plain, strict=True))  # skipping changes nothing
+    assert torch.equal(hits.index[1], first_hit(occ[1], grid, origins, directions, t_max)[0])
+
+
+def test_skipping_lands_exactly_on_ties():
+    # unit voxels, origins on voxel centres and lattice points, directions through voxel edges and
+    # corners: ties everywhere, and the jumps must reproduce the single steps' diagonal moves
+    grid = GridSpec((0, 0, 0, 48, 48, 12), 1.0)
+    occ = torch.rand(grid.shape, generator=torch.Generator().manual_seed(0)) < 0.01
+    occ[[0, -1]] = True  # walls at both x ends: most rays end on one after long jumps
+    steps = [(a, b, c) for a in (-2, -1, 0, 1, 2) for b in (-1, 0, 1, 3) for c in (-1, 0, 1) if (a, b, c) != (0, 0, 0)]
+    starts = [(24.5, 24.5, 6.5), (24.0, 24.0, 6.0), (3.5, 40.0, 2.5), (47.5, 0.5, 11.5)]
+    origins = torch.tensor([s for s in starts for _ in steps], dtype=torch.float64)
+    directions = torch.tensor(steps * len(starts), dtype=torch.float64)
+    directions = directions / directions.norm(dim=-1, keepdim=True)
+    skipped = first_hits(occ[None], grid, origins, directions, math.inf)
+    plain = first_hits(occ[None], grid, origins, directions, math.inf, skip=False)
+    assert all(torch.equal(a, b) for a, b in zip(skipped, plain, strict=True))
+    single = first_hit(occ, grid, origins, directions, math.inf)
+    assert torch.equal(skipped.index[0], single[0]) and torch.equal(skipped.entry[0], single[1])
+    assert (skipped.index[0, :, 0] >= 0).sum() > 2 * len(steps)
+
+
+def test_clearance_is_the_capped_chebyshev_distance():
+    occ = torch.zeros(9, 8, 5, dtype=torch.bool)
+    occ[2, 3, 1] = occ[7, 7, 4] = True
+    idx = torch.stack(torch.meshgrid(*(torch.arange(n) for n in occ.shape), indexing="ij"), -1)
+    points = occ.nonzero()
+    brute = (idx[:, :, :, None, :] - points).abs().amax(-1).amin(-1)
+    assert torch.equal(clearance(occ, cap=16), brute)
+    assert torch.equal(clearance(occ, cap=3), brute.clamp(max=3))
+    assert (clearance(torch.zeros(3, 3, 3, dtype=torch.bool), cap=5) == 5).all()
 
 
 def test_empty_inputs():

@@ -6,9 +6,12 @@ from pathlib import Path
 
 from torch.utils.data import Dataset
 
+from torch.utils.data import Sampler
+
 from occplug.data.classes import OCC3D_CLASSES, OCC3D_FREE
-from occplug.data.datamodule import OccDataModule
 from occplug.data.frame import Frame
+from occplug.data.pipeline import PipelineDataset, ReaderDataModule
+from occplug.data.sequences import SceneIndex
 
 from .config import SPLITS, SyntheticWorldConfig, preset as get_preset
 from .dataset import SyntheticDataset, default_cache_dir
@@ -16,7 +19,7 @@ from .dataset import SyntheticDataset, default_cache_dir
 __all__ = ["SyntheticDataModule"]
 
 
-class SyntheticDataModule(OccDataModule):
+class SyntheticDataModule(ReaderDataModule):
     """The procedural driving world (no downloads), registered as data ``synthetic``.
 
     Every size knob defaults to ``None``, meaning the preset's value. The ``predict`` split reads
@@ -39,6 +42,13 @@ class SyntheticDataModule(OccDataModule):
         cache_dir: cache root; default ``$OCCPLUG_CACHE/synthetic`` or ``~/.cache/occplug/synthetic``.
         batch_size: samples per batch on each device.
         num_workers: data-loader worker processes.
+        pin_memory: pin batches in memory (for GPU training).
+        sequential: read scenes in temporal order (:class:`~occplug.data.sequences.SceneSequenceSampler`).
+        augment: training augmentation (:mod:`occplug.data.augment`).
+        pseudo_labels: ``{synthetic: <realism>}`` makes the world's own imperfect pseudo labels on the
+            fly (:mod:`occplug.data.synthetic.pseudo`; realism = ``perfect``, ``default``, ``noisy`` or a
+            knob mapping; optional ``kinds: [depth, semantics, features]``), or file sources as for any
+            reader (:mod:`occplug.data.pseudo_labels`).
 
     Attributes:
         world_config: the resolved :class:`~occplug.data.synthetic.SyntheticWorldConfig`.
@@ -62,6 +72,10 @@ class SyntheticDataModule(OccDataModule):
         cache_dir: str | None = None,
         batch_size: int = 1,
         num_workers: int = 0,
+        pin_memory: bool = False,
+        sequential: bool = False,
+        augment: str | dict | None = None,
+        pseudo_labels: dict | None = None,
     ) -> None:
         knobs = {
             "grid": grid,
@@ -78,20 +92,45 @@ class SyntheticDataModule(OccDataModule):
             "adjacent_offsets": adjacent_offsets,
         }
         config = get_preset(preset).replace(**{k: v for k, v in knobs.items() if v is not None})
+        generated = None
+        if pseudo_labels and "synthetic" in pseudo_labels:
+            from .pseudo import SyntheticPseudoLabels
+
+            extra = sorted(set(pseudo_labels) - {"synthetic", "kinds"})
+            if extra:
+                raise ValueError(f"data.pseudo_labels.{extra[0]}: with 'synthetic' only 'kinds' may be given")
+            kinds = tuple(pseudo_labels.get("kinds") or ("depth", "semantics", "features"))
+            generated = SyntheticPseudoLabels(pseudo_labels["synthetic"], kinds=kinds)
+            pseudo_labels = None
         super().__init__(
             grid=config.grid,
             batch_size=batch_size,
             num_workers=num_workers,
             class_names=OCC3D_CLASSES,
             free_label=OCC3D_FREE,
+            ignore_label=255,
+            pin_memory=pin_memory,
+            sequential=sequential,
+            augment=augment,
+            pseudo_labels=pseudo_labels,
+            pseudo=generated,
         )
         self.preset = preset
         self.world_config: SyntheticWorldConfig = config
         self.cache_dir: Path | None = (Path(cache_dir) if cache_dir else default_cache_dir()) if cache else None
 
     def build_dataset(self, split: str) -> Dataset[Frame]:
-        """The :class:`~occplug.data.synthetic.SyntheticDataset` of ``split`` (``predict`` = ``val``)."""
-        return SyntheticDataset(self.world_config, split, cache_dir=self.cache_dir)
+        """The :class:`~occplug.data.synthetic.SyntheticDataset` of ``split`` (``predict`` = ``val``), run
+        through a :class:`~occplug.data.pipeline.PipelineDataset` when pseudo labels or augmentation are on."""
+        dataset = SyntheticDataset(self.world_config, split, cache_dir=self.cache_dir)
+        pipeline = self.pipeline(split)
+        return PipelineDataset(dataset, _scenes(dataset), pipeline) if pipeline.active else dataset
+
+    def sampler(self, split: str, dataset: Dataset[Frame]) -> Sampler | None:
+        """The sequential sampler when ``sequential`` is on."""
+        if self.sequential and isinstance(dataset, SyntheticDataset):
+            dataset = PipelineDataset(dataset, _scenes(dataset), self.pipeline(split))
+        return super().sampler(split, dataset)
 
     def prepare_data(self) -> None:
         """Generate and cache every frame of every split that is not cached yet (no-op without cache)."""
@@ -99,5 +138,12 @@ class SyntheticDataModule(OccDataModule):
             return
         for split in SPLITS:
             dataset = self.dataset(split)
+            if isinstance(dataset, PipelineDataset):
+                dataset = dataset.base
             assert isinstance(dataset, SyntheticDataset)
             dataset.pregenerate(progress=True)
+
+
+def _scenes(dataset: SyntheticDataset) -> SceneIndex:
+    names = [f"synth-{dataset.split}-{i:04d}" for i in range(dataset.num_scenes)]
+    return SceneIndex.regular(names, dataset.frames_per_scene)

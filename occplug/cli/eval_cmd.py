@@ -1,0 +1,300 @@
+"""``occplug eval``: score saved predictions against ground truth on disk, without a model.
+
+Predictions: ``--pred DIR`` holds one ``<token>.npz`` per sample with key ``pred``, the
+``(X, Y, Z)`` class-id grid (what ``occplug predict`` writes; any integer dtype).
+
+Ground truth (``--gt DIR``, layout detected):
+
+* **Occ3D**: ``labels.npz`` (``semantics``, ``mask_lidar``, ``mask_camera``) under
+  ``DIR/gts/<scene>/<token>/``, ``DIR/<scene>/<token>/`` or ``DIR/<token>/``
+  (:func:`occplug.data.formats.occ3d.find_label_files`); classes 0-17, 17 = free.
+* **SemanticKITTI**: ``DIR/sequences/<XX>/voxels/<NNNNNN>.label`` with ``.invalid`` beside it;
+  token ``<XX>_<NNNNNN>``; raw ids remapped to the 20 SSC classes (0 = empty, 255 ignored).
+
+RayIoU casts from per-sample LiDAR origins: ``--origins FILE.npz`` maps each token (an array name)
+to an ``(S, 3)`` float array of the sequence's LiDAR positions in that sample's ego frame, metres
+(``np.savez(FILE, **{token: origins})``); without it every sample uses the one origin ``--origin``
+(default: the nuScenes LiDAR position for Occ3D, the sensor origin for SemanticKITTI).
+
+Every sample is checked before anything is written: a missing or mismatched file is one error line
+naming the first offending token and how many samples are affected (exit code 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from occplug.data.classes import OCC3D_CLASSES, OCC3D_FREE, SEMANTIC_KITTI_CLASSES
+from occplug.data.formats import FormatError, find_predictions, load_npz, read_prediction
+from occplug.data.formats import occ3d, semantickitti
+from occplug.data.frame import Batch
+from occplug.geometry import GridSpec
+
+from .errors import UsageError
+
+#: ``--metric`` choices: Occ3D mIoU, RayIoU, SemanticKITTI SSC.
+METRICS = ("miou", "rayiou", "ssc")
+
+_DESCRIPTION = """\
+predictions: --pred DIR holds <token>.npz files with key 'pred', the (X, Y, Z) class-id grid
+(what occplug predict writes).
+
+ground truth (--gt DIR, layout detected):
+  Occ3D          labels.npz (semantics, mask_lidar, mask_camera) in DIR/gts/<scene>/<token>/,
+                 DIR/<scene>/<token>/ or DIR/<token>/; classes 0-17, 17 = free
+  SemanticKITTI  DIR/sequences/<XX>/voxels/<NNNNNN>.label + .invalid; token <XX>_<NNNNNN>;
+                 raw ids remapped to the 20 SSC classes (0 = empty, 255 ignored)
+
+RayIoU origins: --origins FILE.npz maps each token to an (S, 3) float array, the LiDAR positions
+of the sample's sequence in the sample's ego frame (np.savez(FILE, **{token: origins})); without
+it every sample uses the single --origin (default: the nuScenes LiDAR position for Occ3D, the
+sensor origin for SemanticKITTI).
+
+A missing or mismatched file is one error line naming the first offending token and the number
+of samples affected (exit code 2); nothing is written then.
+"""
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "eval",
+        help="score saved predictions (<token>.npz) against Occ3D or SemanticKITTI ground truth",
+        description=_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--pred", required=True, metavar="DIR", help="folder of <token>.npz predictions (key 'pred')")
+    p.add_argument("--gt", required=True, metavar="DIR", help="ground-truth root (Occ3D or SemanticKITTI layout)")
+    p.add_argument("--metric", action="extend", nargs="+", choices=METRICS, metavar="NAME",
+                   help="miou, rayiou and/or ssc (default: miou for Occ3D, ssc for SemanticKITTI)")
+    p.add_argument("--json", metavar="OUT", help="write the results to this JSON file")
+    p.add_argument("--mask", choices=("none", "camera", "lidar", "camera_and_lidar"),
+                   help="voxels miou evaluates (Occ3D default: camera)")
+    p.add_argument("--format", choices=("auto", "occ3d", "semantickitti"), default="auto", help="ground-truth layout")
+    p.add_argument("--origins", metavar="FILE", help="RayIoU origins: .npz of token -> (S, 3) ego-frame LiDAR positions")
+    p.add_argument("--origin", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="RayIoU's single origin when --origins is not given (ego frame, metres)")
+    p.add_argument("--grid", nargs=6, type=float, metavar="R",
+                   help="grid range x0 y0 z0 x1 y1 z1 (default: the data set's: Occ3D or SemanticKITTI SSC)")
+    p.add_argument("--voxel-size", nargs="+", type=float, metavar="V", help="voxel size with --grid (1 or 3 numbers)")
+    p.add_argument("--device", default="cpu", help="torch device to compute on (default cpu)")
+    p.set_defaults(func=cmd_eval)
+
+
+@dataclass
+class _Layout:
+    """One ground-truth layout: where its samples are and how to read one into batch fields."""
+
+    name: str
+    files: dict[str, Path]
+    read: Callable[[Path], dict[str, Tensor]]
+    grid: GridSpec
+    class_names: tuple[str, ...]
+    free_label: int
+    origin: tuple[float, float, float]
+    default_metrics: tuple[str, ...]
+
+
+def _grid_arg(args: argparse.Namespace) -> GridSpec | None:
+    if args.grid is None:
+        if args.voxel_size is not None:
+            raise UsageError("--voxel-size needs --grid")
+        return None
+    if args.voxel_size is None or len(args.voxel_size) not in (1, 3):
+        raise UsageError("--grid needs --voxel-size with 1 or 3 numbers")
+    try:
+        return GridSpec(args.grid, args.voxel_size[0] if len(args.voxel_size) == 1 else args.voxel_size)
+    except ValueError as exc:
+        raise UsageError(f"--grid: {exc}") from None
+
+
+def _layout(args: argparse.Namespace) -> _Layout:
+    root = Path(args.gt)
+    if not root.is_dir():
+        raise UsageError(f"--gt {root}: not a folder")
+    fmt = args.format
+    if fmt == "auto":
+        fmt = "semantickitti" if (root / "sequences").is_dir() else "occ3d"
+    grid = _grid_arg(args)
+    try:
+        if fmt == "semantickitti":
+            grid = grid or semantickitti.SSC_GRID
+            shape = grid.shape
+
+            def read_kitti(path: Path) -> dict[str, Tensor]:
+                vox = semantickitti.read_voxels(path, shape)
+                return {"voxel_labels": vox.labels, "voxel_invalid": vox.invalid}
+
+            return _Layout("semantickitti", semantickitti.find_label_files(root), read_kitti, grid,
+                           SEMANTIC_KITTI_CLASSES, 0, (0.0, 0.0, 0.0), ("ssc",))
+        expected = None if grid is None else grid.shape
+
+        def read_occ3d(path: Path) -> dict[str, Tensor]:
+            labels = occ3d.read_labels(path, expected)
+            return {"voxel_labels": labels.semantics, "mask_camera": labels.mask_camera, "mask_lidar": labels.mask_lidar}
+
+        return _Layout("occ3d", occ3d.find_label_files(root), read_occ3d, grid or occ3d.OCC3D_GRID,
+                       OCC3D_CLASSES, OCC3D_FREE, occ3d.OCC3D_LIDAR_ORIGIN, ("miou",))
+    except FormatError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _metrics(names: list[str], layout: _Layout, args: argparse.Namespace, device: torch.device) -> dict:
+    from occplug.metrics import Occ3DMIoU, RayIoU, SSCMetrics
+
+    common = {"num_classes": len(layout.class_names), "class_names": layout.class_names, "free_label": layout.free_label}
+    out = {}
+    for name in names:
+        if name == "miou":
+            if layout.name != "occ3d":
+                raise UsageError("--metric miou is the Occ3D metric; SemanticKITTI is scored with --metric ssc")
+            out[name] = Occ3DMIoU(**common, mask=args.mask or "camera")
+        elif name == "rayiou":
+            out[name] = RayIoU(**common, grid=layout.grid)
+        else:
+            out[name] = SSCMetrics(**common, ignore_label=255)
+    if args.mask is not None and "miou" not in out:
+        raise UsageError("--mask applies to --metric miou only")
+    return {name: metric.to(device) for name, metric in out.items()}
+
+
+def _read_origins(path: Path, tokens: list[str]) -> dict[str, Tensor]:
+    try:
+        arrays = load_npz(path)
+    except FormatError as exc:
+        raise UsageError(f"--origins: {exc}") from None
+    missing = [t for t in tokens if t not in arrays]
+    if missing:
+        raise UsageError(f"--origins {path}: no origins for token {missing[0]} ({len(missing)} of {len(tokens)} samples affected)")
+    bad = [t for t in tokens if arrays[t].ndim != 2 or arrays[t].shape[1] != 3 or not np.issubdtype(arrays[t].dtype, np.number)]
+    if bad:
+        raise UsageError(
+            f"--origins {path}: token {bad[0]} has an array of shape {arrays[bad[0]].shape} ({arrays[bad[0]].dtype}); "
+            f"expected (S, 3) numbers ({len(bad)} of {len(tokens)} samples affected)"
+        )
+    return {t: torch.from_numpy(arrays[t].astype(np.float64)) for t in tokens}
+
+
+def _batch(token: str, fields: dict[str, Tensor], origins: Tensor, device: torch.device) -> Batch:
+    """A one-sample Batch holding just what the metrics read."""
+    eye3 = torch.eye(3)[None, None]
+    return Batch(
+        images=torch.zeros(1, 0, 3, 1, 1),
+        intrinsics=eye3.expand(1, 0, 3, 3),
+        cam_to_ego=torch.eye(4)[None, None].expand(1, 0, 4, 4),
+        img_aug=eye3.expand(1, 0, 3, 3),
+        ego_to_global=torch.eye(4, dtype=torch.float64)[None],
+        timestamp=torch.zeros(1, dtype=torch.float64),
+        frame_index=torch.zeros(1, dtype=torch.int64),
+        has_voxel_labels=torch.ones(1, dtype=torch.bool),
+        is_sequence_start=torch.ones(1, dtype=torch.bool),
+        scene=[""],
+        token=[token],
+        sequence_lidar_origins=[origins],
+        **{name: value[None] for name, value in fields.items()},
+    ).to(device)
+
+
+def evaluate_folder(args: argparse.Namespace) -> tuple[dict[str, dict[str, float]], dict[str, str], int]:
+    """Score every sample; return ``({metric: {key: value}}, {metric: table}, samples)``.
+
+    Raises:
+        UsageError: a missing, extra or mismatched file (one line with the first token and a count).
+    """
+    pred_dir = Path(args.pred)
+    if not pred_dir.is_dir():
+        raise UsageError(f"--pred {pred_dir}: not a folder")
+    try:
+        device = torch.device(args.device)
+        torch.empty(0, device=device)
+    except (RuntimeError, AssertionError) as exc:
+        raise UsageError(f"--device {args.device}: {str(exc).splitlines()[0]}") from None
+    layout = _layout(args)
+    if not layout.files:
+        raise UsageError(f"--gt {args.gt}: no {layout.name} ground truth found (see occplug eval --help for the layouts)")
+    preds = find_predictions(pred_dir)
+    tokens = sorted(layout.files)
+    missing = [t for t in tokens if t not in preds]
+    if missing:
+        raise UsageError(
+            f"no prediction for token {missing[0]} ({pred_dir / (missing[0] + '.npz')}); "
+            f"{len(missing)} of {len(tokens)} samples affected"
+        )
+    extra = sorted(set(preds) - set(layout.files))
+    if extra:
+        raise UsageError(f"prediction {preds[extra[0]]} has no ground truth in {args.gt}; {len(extra)} predictions affected")
+    names = list(dict.fromkeys(args.metric or layout.default_metrics))
+    metrics = _metrics(names, layout, args, device)
+    origins = {}
+    if "rayiou" in metrics:
+        if args.origins:
+            origins = _read_origins(Path(args.origins), tokens)
+        single = torch.tensor([args.origin or layout.origin], dtype=torch.float64)
+        origins = {t: origins.get(t, single) for t in tokens}
+    first_error, errors = None, 0
+    for token in _progress(tokens):
+        try:
+            fields = layout.read(layout.files[token])
+            shape = tuple(fields["voxel_labels"].shape)
+            pred = read_prediction(preds[token], shape)
+        except FormatError as exc:
+            first_error, errors = first_error or f"token {token}: {exc}", errors + 1
+            continue
+        if "rayiou" in metrics and shape != layout.grid.shape:
+            first_error = first_error or (
+                f"token {token}: labels of shape {shape} do not match the RayIoU grid's {layout.grid.shape}; pass --grid/--voxel-size"
+            )
+            errors += 1
+        if first_error:
+            continue  # only counting the affected samples from here on
+        batch = _batch(token, fields, origins.get(token, torch.zeros(1, 3)), device)
+        for metric in metrics.values():
+            metric.update(pred[None].to(device), batch)
+    if first_error:
+        raise UsageError(f"{first_error} ({errors} of {len(tokens)} samples affected)")
+    results = {name: {k: float(v) for k, v in metric.compute().items()} for name, metric in metrics.items()}
+    tables = {name: metric.table() for name, metric in metrics.items()}
+    return results, tables, len(tokens)
+
+
+def _progress(tokens: list[str]):
+    from tqdm.auto import tqdm
+
+    return tqdm(tokens, desc="eval", unit="sample", disable=None, leave=False)
+
+
+def _is_headline(key: str) -> bool:
+    """Summary keys: everything except per-class values (``IoU_<class>``, ``RayIoU_<class>``)."""
+    if key.startswith("IoU_"):
+        return False
+    return not key.startswith("RayIoU_") or re.fullmatch(r"RayIoU_[0-9.]+m", key) is not None
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    if args.json and not Path(args.json).resolve().parent.is_dir():
+        raise UsageError(f"--json {args.json}: its folder does not exist")
+    results, tables, count = evaluate_folder(args)
+    for table in tables.values():
+        print(table)
+    summary = "; ".join(
+        f"{name}: " + ", ".join(f"{k}={v:.2f}" for k, v in res.items() if _is_headline(k)) for name, res in results.items()
+    )
+    print(f"evaluated {count} samples — {summary}")
+    if args.json:
+        payload = {
+            "samples": count,
+            "gt": str(args.gt),
+            "pred": str(args.pred),
+            "metrics": {name: {k: (None if math.isnan(v) else v) for k, v in res.items()} for name, res in results.items()},
+        }
+        Path(args.json).write_text(json.dumps(payload, indent=2) + "\n")
+    return 0

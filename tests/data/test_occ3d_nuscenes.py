@@ -1,0 +1,206 @@
+"""End to end: synthetic world -> nuScenes-shaped tree (occplug data synth --format occ3d) -> prepare nuscenes ->
+the Occ3D-nuScenes reader gives back the generated frames; bad inputs fail in one line; the baseline trains on it."""
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from occplug.cli import main
+from occplug.data.formats import FormatError
+from occplug.data.nuscenes_index import INDEX_NAME, matrix_to_quaternion, quaternion_to_matrix, read_index
+from occplug.data.occ3d_nuscenes import Occ3DNuScenesDataModule
+from occplug.data.sequences import relative_motion
+from occplug.data.synthetic import SyntheticDataset, default_cache_dir, preset
+from occplug.geometry import invert_pose
+
+TINY = preset("tiny")
+GRID = TINY.grid.to_dict()
+
+
+def prepare(tree, *extra):
+    return main(["data", "prepare", "nuscenes", "--root", str(tree), "--version", "v1.0-trainval", "--occ", str(tree),
+                 "--out", str(tree / "index"), "--splits", str(tree / "splits.json"), *extra])
+
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory):
+    root = tmp_path_factory.mktemp("nuscenes") / "tree"
+    assert main(["data", "synth", "--format", "occ3d", "--preset", "tiny", "--splits", "train", "val", "--pseudo",
+                 "default", "--out", str(root), "train_scenes=1"]) == 0
+    assert prepare(root, "--sweeps", "2") == 0
+    return root
+
+
+@pytest.fixture
+def copy(tree, tmp_path):
+    out = tmp_path / "tree"
+    shutil.copytree(tree, out, ignore=shutil.ignore_patterns("index"))
+    return out
+
+
+def module(tree, **kw):
+    return Occ3DNuScenesDataModule(root=str(tree), index=str(tree / "index"), grid=GRID, **kw)
+
+
+def wrap(a):
+    return a - 2 * math.pi * torch.floor((a + math.pi) / (2 * math.pi))
+
+
+def test_frames_read_back_equal_the_generated_ones(tree):
+    dm = module(tree)
+    index = read_index(tree / "index")
+    instances = {r["token"]: r["nbr_annotations"] for r in json.loads((tree / "v1.0-trainval" / "instance.json").read_text())}
+    for split in ("train", "val"):
+        ds, gen = dm.dataset(split), SyntheticDataset(TINY, split, cache_dir=default_cache_dir())
+        assert len(ds) == TINY.frames(split)
+        tracks = {}
+        for i in range(len(ds)):
+            a, g = ds[i], gen[i]
+            assert (a.token, a.scene, a.frame_index, a.timestamp, a.camera_names) == (
+                g.token, g.scene, g.frame_index, g.timestamp, g.camera_names)
+            assert a.extras["is_sequence_start"] == (g.frame_index == 0)
+            for name in ("images", "intrinsics", "voxel_labels", "mask_camera", "mask_lidar", "point_labels", "box_labels"):
+                x, y = getattr(a, name), getattr(g, name)
+                assert x.dtype == y.dtype and torch.equal(x, y), name  # lossless PNG, exact labels
+            assert torch.equal(a.img_aug, g.img_aug)
+            assert torch.allclose(a.cam_to_ego, g.cam_to_ego, atol=1e-5)
+            assert torch.allclose(a.lidar_to_ego, g.lidar_to_ego, atol=1e-6)
+            assert a.ego_to_global.dtype == torch.float64 and torch.allclose(a.ego_to_global, g.ego_to_global, atol=1e-7)
+            assert torch.equal(a.points[:, :3], g.points[:, :3]) and torch.allclose(a.points[:, 3], g.points[:, 3], atol=1e-6)
+            assert torch.allclose(a.sequence_lidar_origins, g.sequence_lidar_origins, atol=1e-4)
+            assert torch.allclose(a.boxes[:, :6], g.boxes[:, :6], atol=1e-4)
+            assert torch.allclose(wrap(a.boxes[:, 6] - g.boxes[:, 6]), torch.zeros(len(a.boxes)), atol=1e-5)
+            several = torch.tensor([instances[index.meta["instances"][t]] > 1 for t in a.box_track_ids.tolist()])
+            assert several.any()
+            assert torch.allclose(a.boxes[several, 7:], g.boxes[several, 7:], atol=1e-4)  # devkit velocities
+            for ours, theirs in zip(a.box_track_ids.tolist(), g.box_track_ids.tolist(), strict=True):
+                assert tracks.setdefault((a.scene, theirs), ours) == ours  # track ids: a consistent renaming
+        assert len(set(tracks.values())) == len(tracks)
+
+
+def test_adjacent_frames_sweeps_and_sequential_loading(tree):
+    dm = module(tree, adjacent_offsets=[-1, 1], num_sweeps=2, sequential=True)
+    ds = dm.dataset("train")
+    first, mid = ds[0], ds[1]
+    assert first.adjacent[-1].token == first.token and first.adjacent[1].token == mid.token  # clamped at the start
+    gen = SyntheticDataset(TINY, "train", cache_dir=default_cache_dir())
+    expected = invert_pose(gen[1].ego_to_global) @ gen[0].ego_to_global
+    assert torch.allclose(relative_motion(mid, -1), expected, atol=1e-6)
+    # the previous sweep, motion-compensated into this LiDAR frame, with its time lag
+    lag = mid.extras["point_time_lag"]
+    assert len(lag) == len(mid.points) == len(mid.point_labels) and set(lag.unique().tolist()) == {0.0, 0.5}
+    prev_in_cur = gen[0].points_in_ego().double() @ expected[:3, :3].T + expected[:3, 3]
+    swept = mid.points[lag > 0, :3].double() @ mid.lidar_to_ego[:3, :3].T.double() + mid.lidar_to_ego[:3, 3]
+    assert torch.allclose(swept, prev_in_cur, atol=1e-3)
+    starts = [b.is_sequence_start.tolist() for b in dm.train_dataloader()]
+    assert starts == [[True], [False], [False]]
+
+
+def test_points_are_not_opened_when_not_needed(copy):
+    shutil.rmtree(copy / "samples" / "LIDAR_TOP")
+    assert prepare(copy, "--no-check-files") == 0
+    f = Occ3DNuScenesDataModule(root=str(copy), index=str(copy / "index"), grid=GRID, load_points=False).dataset("val")[0]
+    assert f.points is None and f.voxel_labels is not None
+
+
+def test_pseudo_labels_from_the_tree(tree):
+    p = tree / "pseudo"
+    dm = module(tree, pseudo_labels={"depth": str(p / "depth"), "features": str(p / "features"),
+                                     "semantics": {"dir": str(p / "semantics"), "mapping": str(p / "semantics_mapping.yaml")}},
+                image_size=[24, 48])
+    f = dm.dataset("val")[0]
+    assert f.pseudo_depth.shape == (6, 24, 48) and f.pseudo_semantics.shape == (6, 24, 48)
+    assert f.pseudo_features.shape[:2] == (6, 16)
+
+
+@pytest.mark.parametrize("damage", ["missing_table", "missing_labels", "corrupt_bin", "no_split"])
+def test_bad_trees_fail_in_one_line_naming_the_file_and_leave_no_index(copy, damage, capsys):
+    extra = []
+    if damage == "missing_table":
+        (copy / "v1.0-trainval" / "sample_annotation.json").unlink()
+        expected = "v1.0-trainval/sample_annotation.json: missing nuScenes table 'sample_annotation'"
+    elif damage == "missing_labels":
+        victim = sorted((copy / "gts").rglob("labels.npz"))[1]
+        victim.unlink()
+        expected = f"{victim}: missing Occ3D labels.npz"
+    elif damage == "corrupt_bin":
+        victim = sorted((copy / "samples" / "LIDAR_TOP").iterdir())[-1]
+        victim.write_bytes(victim.read_bytes()[:-6])
+        expected = f"{victim}: "
+    else:
+        (copy / "splits.json").write_text(json.dumps({"train": ["synth-train-0000"]}))
+        expected = "synth-val-0000 are in no split"
+    capsys.readouterr()
+    assert prepare(copy, *extra) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("error: ") and expected in err[-1], err
+    assert not (copy / "index" / INDEX_NAME).exists() and not list((copy).glob("index/*"))
+
+
+def test_bad_inputs_at_construction_are_one_line_errors(copy, capsys):
+    assert prepare(copy) == 0
+    # wrong grid shape: the labels are 40 x 40 x 8, the default grid is Occ3D's 200 x 200 x 16
+    with pytest.raises(FormatError, match=r"labels\.npz: 'semantics' has shape \(40, 40, 8\); expected \(200, 200, 16\)"):
+        Occ3DNuScenesDataModule(root=str(copy), index=str(copy / "index"))
+    bad_map = copy / "pseudo" / "bad.yaml"
+    bad_map.write_text((copy / "pseudo" / "semantics_mapping.yaml").read_text().replace("pedestrian", "pedestrain"))
+    with pytest.raises(FormatError, match=r"bad\.yaml: map\.person: unknown target class 'pedestrain'"):
+        module(copy, pseudo_labels={"semantics": {"dir": str(copy / "pseudo" / "semantics"), "mapping": str(bad_map)}})
+    with pytest.raises(FormatError, match="no nuScenes index"):
+        Occ3DNuScenesDataModule(root=str(copy), index=str(copy / "nowhere"))
+    # through the CLI: one line, exit 2, no run directory
+    capsys.readouterr()
+    run = copy.parent / "run"
+    fit = ["fit", "--run-dir", str(run), "-c", "configs/baseline.yaml", "-c", "occplug/trainer/debug", "-c",
+           "occplug/data/occ3d_nuscenes", f"data.root={copy}", f"data.index={copy / 'index'}"]
+    assert main(fit) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "labels.npz: 'semantics' has shape" in err[0]
+    # a LiDAR file cut short after the index was built
+    victim = sorted((copy / "samples" / "LIDAR_TOP").iterdir())[0]
+    victim.write_bytes(victim.read_bytes()[:-4])
+    with pytest.raises(FormatError, match="not a whole number of 5-float32 points"):
+        module(copy)
+    assert main([*fit, f"grid.range={list(TINY.grid.range)}", "grid.voxel_size=0.8"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"error: {victim}: " in err[0]
+    assert not run.exists()
+
+
+def test_baseline_trains_on_the_tree_with_only_the_data_node_switched(tree, tmp_path, capsys):
+    """``occplug/configs/data/occ3d_nuscenes.yaml`` switches data (and the grid to Occ3D's); the tiny tree's
+    labels are 40 x 40 x 8 at 0.8 m, so its grid is set back, as a user of a smaller tree would."""
+    run = tmp_path / "run"
+    args = ["fit", "-c", "configs/baseline.yaml", "-c", "occplug/trainer/debug", "-c", "occplug/data/occ3d_nuscenes",
+            f"data.root={tree}", f"data.index={tree / 'index'}", "data.image_size=null", "data.num_workers=0",
+            f"grid.range={list(TINY.grid.range)}", f"grid.voxel_size={TINY.grid.voxel_size[0]}", "--run-dir", str(run)]
+    assert main(args) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["global_step"] == 2 and metrics["IoU"] == metrics["IoU"]
+    saved = (run / "config.yaml").read_text()
+    assert "type: occ3d_nuscenes" in saved
+
+
+def test_quaternions_round_trip():
+    g = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        q = torch.randn(4, generator=g, dtype=torch.float64)
+        q = (q / q.norm() * (1 if q[0] >= 0 else -1)).numpy()
+        r = quaternion_to_matrix(q)
+        assert np.allclose(r @ r.T, np.eye(3)) and np.isclose(np.linalg.det(r), 1)
+        assert np.allclose(matrix_to_quaternion(r), q)
+
+
+def test_decoded_frame_cache_gives_identical_frames(tree, tmp_path):
+    plain = module(tree, num_sweeps=2).dataset("val")
+    cached = module(tree, num_sweeps=2, cache_dir=str(tmp_path)).dataset("val")
+    for _ in range(2):  # the second pass reads the cache
+        a, b = plain[1], cached[1]
+        for name in ("images", "points", "point_labels", "voxel_labels", "mask_camera", "boxes", "cam_to_ego"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+        assert torch.equal(a.extras["point_time_lag"], b.extras["point_time_lag"])
+    assert len(list(tmp_path.rglob("*.pt"))) == 1

@@ -1,0 +1,124 @@
+"""Pseudo labels from files (documented layout, class-mapping table) and the synthetic world's realism knobs."""
+
+import numpy as np
+import pytest
+import torch
+
+from occplug.data import OCC3D_CLASSES
+from occplug.data.formats import FormatError
+from occplug.data.pseudo_labels import PseudoLabelSource, load_mapping
+from occplug.data.synthetic import SyntheticDataModule, SyntheticDataset, default_cache_dir, preset
+from occplug.data.synthetic.pseudo import FOREIGN_CLASSES, SyntheticPseudoLabels, mapping_table, pseudo_realism
+
+TINY = preset("tiny")
+
+
+@pytest.fixture(scope="module")
+def frame():
+    return SyntheticDataset(TINY, "train", cache_dir=default_cache_dir())[0]
+
+
+def sources(root):
+    return {
+        "depth": str(root / "depth"),
+        "semantics": {"dir": str(root / "semantics"), "mapping": str(root / "mapping.yaml")},
+        "features": str(root / "features"),
+    }
+
+
+def test_written_pseudo_labels_read_back_through_the_mapping_table(frame, tmp_path):
+    labeler = SyntheticPseudoLabels("default")
+    labeler.write(frame, tmp_path)
+    (tmp_path / "mapping.yaml").write_text(mapping_table("occ3d"))
+    assert (tmp_path / "depth" / frame.token / "CAM_FRONT.npy").is_file()
+    assert (tmp_path / "semantics" / frame.token / "CAM_BACK.png").is_file()
+    read = PseudoLabelSource(sources(tmp_path), OCC3D_CLASSES).attach(frame)
+    made = labeler.attach(frame)
+    assert torch.allclose(read.pseudo_depth, made.pseudo_depth)
+    assert torch.equal(read.pseudo_semantics, made.pseudo_semantics)
+    assert torch.allclose(read.pseudo_features, made.pseudo_features, atol=2e-3)  # stored as float16
+    h, w = frame.image_size
+    f = labeler.realism
+    assert read.pseudo_features.shape == (6, f.feature_dim, h // f.feature_stride, w // f.feature_stride)
+
+
+def test_maps_of_another_resolution_are_resized_to_the_image(frame, tmp_path):
+    cams = frame.camera_names
+    for c, cam in enumerate(cams):
+        folder = tmp_path / "depth" / frame.token
+        folder.mkdir(parents=True, exist_ok=True)
+        d = frame.depth[c][::2, ::2].numpy()  # half resolution, as a uint16 PNG in KITTI's depth * 256
+        from occplug.data.imageio import write_map
+
+        write_map(folder / f"{cam}.png", np.round(d * 256).astype(np.int64))
+    read = PseudoLabelSource({"depth": str(tmp_path / "depth")}, OCC3D_CLASSES).attach(frame)
+    assert read.pseudo_depth.shape == frame.depth.shape
+    assert torch.allclose(read.pseudo_depth[:, ::2, ::2], frame.depth[:, ::2, ::2], atol=1 / 256)
+
+
+def test_realism_knobs(frame):
+    perfect = SyntheticPseudoLabels("perfect").attach(frame)
+    assert torch.allclose(perfect.pseudo_depth, frame.depth)
+    noisy = SyntheticPseudoLabels("noisy").attach(frame)
+    on = frame.depth > 0
+    rel = (noisy.pseudo_depth[on] - frame.depth[on]).abs() / frame.depth[on]
+    assert 0.02 < float(rel.median()) < 0.5
+    truth = frame.semantics_2d
+    # the foreign taxonomy merges classes no table can split again (as in OccLE's Table B.1) ...
+    merged = (truth == 5) | (truth == 8) | (truth == 0) | (truth == 255)
+    agree = lambda p: float((p.pseudo_semantics == truth)[~merged].float().mean())  # noqa: E731
+    assert agree(perfect) == 1.0
+    assert torch.equal(perfect.pseudo_semantics[truth == 5], torch.full_like(truth[truth == 5], 10))  # construction -> truck
+    # ... and noise / boundary errors cost accuracy
+    assert 0.6 < agree(noisy) < agree(SyntheticPseudoLabels("default").attach(frame)) < 1.0
+    # deterministic per (seed, token, camera)
+    again = SyntheticPseudoLabels("noisy").attach(frame)
+    assert torch.equal(again.pseudo_semantics, noisy.pseudo_semantics) and torch.equal(again.pseudo_depth, noisy.pseudo_depth)
+    assert pseudo_realism({"preset": "noisy", "depth_noise": 0.0}).depth_noise == 0.0
+    with pytest.raises(ValueError, match="unknown knob 'depth_nosie'"):
+        pseudo_realism({"depth_nosie": 0.1})
+
+
+def test_synthetic_data_module_makes_pseudo_labels_on_the_fly():
+    dm = SyntheticDataModule(preset="tiny", train_scenes=1, pseudo_labels={"synthetic": "perfect", "kinds": ["depth"]},
+                             augment={"image": {"size": [24, 48]}})
+    f = dm.dataset("train")[0]
+    assert f.pseudo_depth.shape == (6, 24, 48) and f.pseudo_semantics is None
+    with pytest.raises(ValueError, match="only 'kinds'"):
+        SyntheticDataModule(preset="tiny", pseudo_labels={"synthetic": "default", "depth": "x"})
+
+
+def test_mapping_table_errors_name_the_file(tmp_path):
+    path = tmp_path / "map.yaml"
+    path.write_text(mapping_table("occ3d").replace("driveable_surface", "drivable_surface"))
+    with pytest.raises(FormatError, match=r"map\.yaml: map\.road: unknown target class 'drivable_surface'; did you mean 'driveable_surface'"):
+        load_mapping(path, OCC3D_CLASSES)
+    path.write_text("classes: {1: road}\nmap: {raod: driveable_surface}\n")
+    with pytest.raises(FormatError, match="unknown foreign class 'raod'.*did you mean 'road'"):
+        load_mapping(path, OCC3D_CLASSES)
+    path.write_text("map: {}\n")
+    with pytest.raises(FormatError, match="needs 'classes'"):
+        load_mapping(path, OCC3D_CLASSES)
+    path.write_text("classes: [\n")
+    with pytest.raises(FormatError, match="invalid YAML"):
+        load_mapping(path, OCC3D_CLASSES)
+    lut = load_mapping(_write(tmp_path / "ok.yaml", mapping_table("occ3d")), OCC3D_CLASSES)
+    assert lut[98] == OCC3D_CLASSES.index("driveable_surface") and lut[142] == 255 and lut[7] == 255
+    assert set(FOREIGN_CLASSES) >= {98, 100, 174, 176}
+
+
+def test_missing_files_fail_in_one_line_or_give_empty_maps(frame, tmp_path):
+    (tmp_path / "depth").mkdir()
+    with pytest.raises(FormatError, match=rf"depth/{frame.token}/CAM_FRONT\.png: no such file"):
+        PseudoLabelSource({"depth": str(tmp_path / "depth")}, OCC3D_CLASSES).attach(frame)
+    empty = PseudoLabelSource({"depth": str(tmp_path / "depth"), "missing": "empty"}, OCC3D_CLASSES).attach(frame)
+    assert empty.pseudo_depth.shape == frame.depth.shape and not empty.pseudo_depth.any()
+    with pytest.raises(FileNotFoundError, match="is not a folder"):
+        PseudoLabelSource({"features": str(tmp_path / "nope")}, OCC3D_CLASSES)
+    with pytest.raises(ValueError, match="did you mean 'semantics'"):
+        PseudoLabelSource({"semantic": str(tmp_path)}, OCC3D_CLASSES)
+
+
+def _write(path, text):
+    path.write_text(text)
+    return path

@@ -1,0 +1,132 @@
+"""End to end: synthetic world -> SemanticKITTI-shaped tree (occplug data synth --format semantickitti) -> the
+SemanticKITTI reader gives back the generated frames in the velodyne frame, bit packing included."""
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from occplug.cli import main
+from occplug.data import collate_frames
+from occplug.data.formats import FormatError
+from occplug.data.formats.semantickitti import pack, read_bits, unpack
+from occplug.data.semantickitti import SemanticKITTIDataModule
+from occplug.data.synthetic import LIDAR_TO_EGO, SyntheticDataset, default_cache_dir, preset
+from occplug.data.synthetic.export_semantickitti import OCC3D_TO_SSC, lidar_grid, semantickitti_world
+from occplug.geometry import invert_pose
+
+TINY = preset("tiny")
+GRID = lidar_grid(TINY)  # the tiny world's label grid in the LiDAR frame
+
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory):
+    root = tmp_path_factory.mktemp("kitti") / "tree"
+    grid = f"grid={{range: {list(GRID.range)}, voxel_size: {GRID.voxel_size[0]}}}"
+    assert semantickitti_world(TINY, GRID).cache_key() == TINY.cache_key()  # the cached tiny frames are reused
+    assert main(["data", "synth", "--format", "semantickitti", "--preset", "tiny", "--splits", "train", "val",
+                 "--pseudo", "default", "--out", str(root), "train_scenes=1", grid]) == 0
+    return root
+
+
+@pytest.fixture
+def copy(tree, tmp_path):
+    out = tmp_path / "tree"
+    shutil.copytree(tree, out)
+    return out
+
+
+def module(root, **kw):
+    return SemanticKITTIDataModule(root=str(root), grid=GRID.to_dict(), **kw)
+
+
+def test_layout_is_semantickitti(tree):
+    seq = tree / "sequences"
+    assert sorted(p.name for p in seq.iterdir()) == ["00", "08"]  # standard split: train 00, val 08
+    assert sorted(p.name for p in (seq / "00" / "voxels").iterdir())[:4] == [
+        "000000.bin", "000000.invalid", "000000.label", "000000.occluded"]
+    assert sorted(p.stem for p in (seq / "00" / "image_2").iterdir()) == ["000000", "000005", "000010"]
+    assert len((seq / "00" / "poses.txt").read_text().splitlines()) == 11  # every scan, 10 Hz
+    assert (seq / "00" / "calib.txt").read_text().splitlines()[4].startswith("Tr: ")
+
+
+def test_frames_read_back_equal_the_generated_ones(tree):
+    dm = module(tree)
+    lidar = LIDAR_TO_EGO.double()
+    ssc = torch.tensor(OCC3D_TO_SSC)
+    for split in ("train", "val"):
+        ds, gen = dm.dataset(split), SyntheticDataset(TINY, split, cache_dir=default_cache_dir())
+        assert len(ds) == TINY.frames(split)
+        origin = None
+        for i in range(len(ds)):
+            a, g = ds[i], gen[i]
+            cam = g.cam_to_ego[0].double()
+            origin = g.ego_to_global @ cam if g.frame_index == 0 else origin
+            assert a.token == f"{a.scene}_{5 * g.frame_index:06d}" and a.extras["scan"] == 5 * g.frame_index
+            assert (a.frame_index, a.camera_names) == (g.frame_index, ("image_2",))
+            assert abs(a.timestamp - g.timestamp) < 1e-12
+            assert torch.equal(a.images[0], g.images[0]) and torch.equal(a.intrinsics[0], g.intrinsics[0])
+            # the ego frame is the velodyne frame; the global frame is the sequence's first cam0 frame
+            assert torch.equal(a.lidar_to_ego, torch.eye(4))
+            assert torch.allclose(a.cam_to_ego[0].double(), invert_pose(lidar) @ cam, atol=1e-5)
+            assert torch.allclose(a.ego_to_global, invert_pose(origin) @ g.ego_to_global @ lidar, atol=1e-6)
+            assert torch.equal(a.points, g.points)
+            assert torch.equal(a.point_labels, ssc[g.point_labels])
+            assert a.voxel_labels.dtype == torch.uint8 and torch.equal(a.voxel_labels.long(), ssc[g.voxel_labels.long()])
+            assert torch.equal(a.voxel_invalid, ~(g.mask_lidar | g.mask_camera))  # through the bit packing
+            assert torch.allclose(a.sequence_lidar_origins, g.sequence_lidar_origins - lidar[:3, 3].float(), atol=1e-4)
+            assert a.boxes is None and a.mask_camera is None
+
+
+def test_bit_packing_round_trip(tree):
+    rng = np.random.default_rng(0)
+    bits = rng.random((16, 8, 4)) < 0.3
+    assert torch.equal(unpack(pack(bits), (16, 8, 4)), torch.from_numpy(bits))
+    assert pack(np.array([1, 0, 0, 0, 0, 0, 0, 1], bool)).tolist() == [0b10000001]  # most significant bit first
+    path = tree / "sequences" / "00" / "voxels" / "000005.invalid"
+    assert path.stat().st_size * 8 == int(np.prod(GRID.shape))
+    assert read_bits(path, GRID.shape).shape == GRID.shape
+
+
+def test_loader_with_resize_augmentation_adjacent_frames_and_pseudo_labels(tree):
+    p = tree / "pseudo"
+    dm = module(tree, image_size=[24, 48], adjacent_offsets=[-1], batch_size=2, sequential=True,
+                augment={"image": {"flip": 0.5}, "bev": {"flip_y": 0.5}},
+                pseudo_labels={"depth": str(p / "depth"),
+                               "semantics": {"dir": str(p / "semantics"), "mapping": str(p / "semantics_mapping.yaml")}})
+    batches = list(dm.train_dataloader())
+    b = batches[0]
+    assert b.images.shape == (2, 1, 3, 24, 48) and b.pseudo_depth.shape == (2, 1, 24, 48)
+    assert b.voxel_invalid.shape == (2, *GRID.shape) and b.adjacent[-1].token == b.token
+    assert int(b.pseudo_semantics.max()) <= 255 and int(b.pseudo_semantics[b.pseudo_semantics != 255].max()) < 20
+    assert b.is_sequence_start.tolist() == [True, True]  # lane 2 replays the only training sequence
+
+
+def test_bad_inputs_fail_in_one_line_naming_the_file(copy):
+    velo = copy / "sequences" / "08" / "velodyne" / "000005.bin"
+    good = velo.read_bytes()
+    velo.write_bytes(good[:-8])
+    with pytest.raises(FormatError, match=r"08/velodyne/000005\.bin: \d+ bytes is not a whole number of 4-float32 points"):
+        module(copy)
+    velo.write_bytes(good)
+    invalid = copy / "sequences" / "00" / "voxels" / "000010.invalid"
+    invalid.write_bytes(invalid.read_bytes()[:-1])
+    with pytest.raises(FormatError, match=r"000010\.invalid: \d+ bytes; expected \d+ \(\d+ voxels, 8 per byte\)"):
+        module(copy)
+    with pytest.raises(FormatError, match=r"000000\.label: \d+ bytes; expected"):
+        SemanticKITTIDataModule(root=str(copy))  # the default SSC grid (256 x 256 x 32) does not fit this tree
+    invalid.unlink()
+    with pytest.raises(FormatError, match=r"000010\.invalid: no such file"):
+        module(copy)
+    (copy / "sequences" / "00" / "calib.txt").write_text("P2: 1 2 3\n")
+    with pytest.raises(FormatError, match=r"calib\.txt: 'P2' has 3 numbers; expected 12"):
+        module(copy)
+    with pytest.raises(ValueError, match="unknown split"):
+        module(copy, splits={"training": ["00"]})
+
+
+def test_splits_argument_replaces_the_standard_split(tree):
+    dm = module(tree, splits={"train": ["08"], "val": ["00"]})
+    assert dm.dataset("train")[0].scene == "08" and dm.dataset("predict")[0].scene == "00"
+    assert collate_frames([dm.dataset("val")[0]]).voxel_labels.shape == (1, *GRID.shape)

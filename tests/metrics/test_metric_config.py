@@ -1,0 +1,39 @@
+"""Metrics chosen by the config's ``metrics:`` list, end to end through a fit."""
+
+import json
+from pathlib import Path
+
+from occplug.geometry import GridSpec
+from occplug.metrics import Occ3DMIoU, RayIoU
+from occplug.runner import metric_nodes
+from occplug.testing import run_config
+
+BASELINE = str(Path(__file__).resolve().parents[2] / "configs" / "baseline.yaml")
+
+
+def test_occ3d_style_run_reports_miou_and_rayiou(tmp_path, capsys):
+    results = run_config(BASELINE, run_dir=tmp_path / "run", overrides=["metrics=[occ3d_miou, rayiou]"])
+    assert {"mIoU", "IoU", "RayIoU", "RayIoU_1m", "RayIoU_2m", "RayIoU_4m", "RayIoU_car"} <= set(results)
+    assert 0 <= results["RayIoU"] <= 100
+    saved = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert saved["RayIoU"] == results["RayIoU"] and saved["mIoU"] == results["mIoU"]
+    out = capsys.readouterr().out
+    assert "Occ3D mIoU (evaluation mask: camera)" in out
+    assert "RayIoU (SparseOcc / Occ3D-nuScenes leaderboard; thresholds 1, 2, 4 m;" in out
+    assert "grid 60x60x8 @ 0.8/0.8/0.8 m" in out  # the run's grid reached the metric
+
+
+def test_ssc_run_reports_completion_and_semantic_scores(tmp_path, capsys):
+    results = run_config(BASELINE, run_dir=tmp_path / "run", overrides=["metrics=[ssc]"])
+    assert {"IoU", "mIoU", "Precision", "Recall", "IoU_car"} <= set(results)
+    assert "RayIoU" not in results
+    assert "SemanticKITTI SSC (semantic-kitti-api scorer; empty = free (17)" in capsys.readouterr().out
+
+
+def test_grid_is_filled_only_into_metrics_that_take_one():
+    grid = {"range": [-8.0, -8.0, -1.0, 8.0, 8.0, 2.2], "voxel_size": 0.8}
+    own = {"range": [0, 0, 0, 4, 4, 4], "voxel_size": 1.0}
+    nodes = metric_nodes(["occ3d_miou", "rayiou", {"type": "rayiou", "grid": own}], grid)
+    assert nodes == [{"type": "occ3d_miou"}, {"type": "rayiou", "grid": grid}, {"type": "rayiou", "grid": own}]
+    assert metric_nodes(None, grid) is None
+    assert isinstance(Occ3DMIoU(), Occ3DMIoU) and RayIoU(grid=grid).grid == GridSpec.from_config(grid)

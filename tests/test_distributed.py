@@ -1,0 +1,112 @@
+"""Distributed training: `occplug fit ... trainer.devices=2 trainer.strategy=ddp` as a user types it.
+
+Two gloo processes (Lightning's ``ddp`` strategy re-launches the ``occplug`` console script) train
+the baseline on a small synthetic world with an odd number of samples, so that the ranks get
+uneven shares; the run's final validation (after ``fit``, as the last epoch ran none) must
+equal a single-process ``occplug validate`` of the checkpoint it wrote.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from occplug.cli import main
+from occplug.data.datamodule import EvalShardSampler
+
+ROOT = Path(__file__).resolve().parents[1]
+BASELINE = str(ROOT / "configs" / "baseline.yaml")
+# 3 training and 3 validation samples, batch 1: rank 0 validates samples 0 and 2, rank 1 sample 1.
+DATA = ["data.preset=tiny", "data.frames_per_scene=3", "data.train_scenes=1", "data.test_scenes=0", "data.batch_size=1"]
+# Validation runs inside fit after epoch 2 (uneven batches through the DDP-wrapped model), and
+# again after fit (epoch 3 ended without one): the runner's final trainer.validate.
+RUN = ["trainer.accelerator=cpu", "trainer.enable_progress_bar=false", "trainer.max_epochs=3",
+       "trainer.check_val_every_n_epoch=2", "trainer.log_every_n_steps=1"]
+
+
+def occplug_command() -> list[str]:
+    """The installed ``occplug`` console script (what a user runs), else ``python -m occplug.cli``."""
+    script = Path(sys.executable).with_name("occplug")
+    if script.is_file():
+        return [str(script)]
+    found = shutil.which("occplug")
+    return [found] if found else [sys.executable, "-m", "occplug.cli"]
+
+
+def same(a: float, b: float) -> bool:
+    return (math.isnan(a) and math.isnan(b)) or a == b
+
+
+def test_eval_shard_sampler_splits_every_sample_exactly_once() -> None:
+    data = list(range(7))
+    shares = [list(EvalShardSampler(data, 3, r)) for r in range(3)]
+    assert shares == [[0, 3, 6], [1, 4], [2, 5]]
+    assert [len(EvalShardSampler(data, 3, r)) for r in range(3)] == [3, 2, 2]
+    assert EvalShardSampler.for_current_process(data) is None  # no process group here
+
+
+def test_ddp_fit_on_two_processes_equals_single_process_validation(tmp_path: Path) -> None:
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    cmd = [*occplug_command(), "fit", "-c", BASELINE, *DATA, *RUN, "trainer.devices=2", "trainer.strategy=ddp"]
+    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+    # One run directory (rank 1 re-ran the command a moment later: same default name), written once.
+    runs = list((tmp_path / "runs").iterdir())
+    assert len(runs) == 1, runs
+    run = runs[0]
+    assert sorted(p.name for p in run.iterdir()) == ["checkpoints", "config.yaml", "logs", "metrics.json", "plugins.json"]
+    assert [p.name for p in (run / "logs").iterdir()] == ["version_0"]
+    assert (run / "checkpoints" / "last.ckpt").is_file()
+    assert proc.stdout.count("run directory:") == 1 and proc.stdout.count("metrics:") == 1
+
+    ddp = json.loads((run / "metrics.json").read_text())
+    # Each rank trained on its half of the 3 samples (padded to 2 each): 2 steps an epoch, where one process takes 3.
+    assert ddp["global_step"] == 6 and ddp["epoch"] == 3
+    logged = (run / "logs" / "version_0" / "metrics.csv").read_text().splitlines()
+    header = logged[0].split(",")
+    val_steps = [row.split(",")[header.index("step")] for row in logged[1:] if row.split(",")[header.index("val/IoU")]]
+    assert val_steps == ["3", "6"], "one validation inside fit (after epoch 2), one after it (step 6)"
+
+    out = tmp_path / "single.json"
+    torch_threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as in each DDP worker (Lightning gives each process cores / processes)
+    try:
+        code = main(["validate", "--ckpt", str(run / "checkpoints" / "last.ckpt"), "--json", str(out),
+                     "trainer.devices=1", "trainer.strategy=auto"])
+    finally:
+        torch.set_num_threads(torch_threads)
+    assert code == 0
+    single = json.loads(out.read_text())
+    assert math.isfinite(single["mIoU"]) and math.isfinite(single["IoU"]) and single["IoU"] > 0
+    keys = [k for k in single if k == "mIoU" or k.startswith("IoU")]
+    assert len(keys) == 19  # mIoU, geometric IoU, 17 classes
+    mismatched = {k: (ddp[k], single[k]) for k in keys if not same(ddp[k], single[k])}
+    assert not mismatched, f"DDP vs single-process validation differ: {mismatched}"
+
+
+@pytest.mark.parametrize("rank_env, expected", [
+    ({}, True),
+    ({"LOCAL_RANK": "1", "NODE_RANK": "0"}, False),
+    ({"LOCAL_RANK": "0", "NODE_RANK": "1"}, False),
+    ({"LOCAL_RANK": "0", "NODE_RANK": "0", "SLURM_PROCID": "3"}, True),
+    ({"RANK": "2", "LOCAL_RANK": "0"}, False),
+])
+def test_rank_zero_follows_the_launcher_environment(monkeypatch: pytest.MonkeyPatch, rank_env: dict, expected: bool) -> None:
+    from occplug import runner
+
+    for key in ("RANK", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK", "SLURM_PROCID"):
+        monkeypatch.delenv(key, raising=False)
+    for key, value in rank_env.items():
+        monkeypatch.setenv(key, value)
+    assert runner.is_rank_zero() is expected
+    monkeypatch.setenv(runner.RUN_DIR_ENV, "/some/run")
+    assert (runner.default_run_dir(["baseline.yaml"]) == Path("/some/run")) is (not expected)
