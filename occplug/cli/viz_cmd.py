@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from occplug import runner
 
 from . import add_config_args
 from .errors import UsageError
+
+if TYPE_CHECKING:
+    from occplug.viz.source import SampleSource
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -34,6 +38,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     sample.add_argument(
         "--rerun", metavar="FILE.rrd", help="also write a Rerun recording of the whole sequence (scene) of each --index"
+    )
+    sample.add_argument(
+        "--max-frames",
+        type=int,
+        metavar="N",
+        help="record at most N frames of each scene in --rerun: the N from the --index frame on "
+        "(fewer left in the scene: its last N); default: the whole scene",
     )
     sample.add_argument("--dpi", type=int, default=100, help="resolution of the PNGs (default: 100)")
     sample.add_argument(
@@ -73,6 +84,8 @@ def cmd_sample(args: argparse.Namespace) -> int:
         raise UsageError("viz sample needs -c CONFIG (ground truth) and/or --ckpt CKPT (predictions)")
     if args.rerun and not str(args.rerun).endswith(".rrd"):
         raise UsageError(f"--rerun {args.rerun}: the recording file must end in .rrd")
+    if args.max_frames is not None and (args.max_frames < 1 or not args.rerun):
+        raise UsageError(f"--max-frames {args.max_frames}: a positive frame count, with --rerun FILE.rrd")
     view_size = _view_size(args.view_size)
     try:
         from occplug.viz.deps import require_matplotlib
@@ -103,7 +116,7 @@ def cmd_sample(args: argparse.Namespace) -> int:
             path = save_png(fig, out / f"{args.split}_{index % len(source):05d}.png")
             print(f"wrote {path}  ({frame.token})")
         if args.rerun:
-            _write_rerun(source, args.index, Path(args.rerun))
+            _write_rerun(source, args.index, Path(args.rerun), args.max_frames)
     except (runner.RunError, SourceError, MissingExtraError) as exc:
         raise UsageError(str(exc)) from None
     except ValueError as exc:  # e.g. a prediction on another grid, a sample with nothing to draw
@@ -111,19 +124,28 @@ def cmd_sample(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_rerun(source, indices: list[int], base: Path) -> None:  # type: ignore[no-untyped-def]
+def _window(items: list[int], index: int, max_frames: int | None) -> list[int]:
+    """The frames of a scene to record: all, or ``max_frames`` of them from ``index`` on (the last
+    ``max_frames`` when fewer follow it)."""
+    if max_frames is None or len(items) <= max_frames:
+        return items
+    start = min(items.index(index), len(items) - max_frames)
+    return items[start : start + max_frames]
+
+
+def _write_rerun(source: SampleSource, indices: list[int], base: Path, max_frames: int | None = None) -> None:
+    """One recording per scene of ``indices``, streamed frame by frame (load, predict, log, drop)."""
     from occplug.viz.rerun_export import export_sequence
 
     sequences: dict[str, list[int]] = {}
     for index in indices:
         scene = source.frame(index).scene
         if scene not in sequences:
-            sequences[scene] = source.sequence(index)
+            sequences[scene] = _window(source.sequence(index), index % len(source), max_frames)
     for scene, path in _rerun_paths(base, list(sequences)).items():
-        frames = [source.frame(i) for i in sequences[scene]]
-        preds = [source.predict(f) for f in frames]
-        export_sequence(frames, path, source.grid, source.palette, predictions=preds)
-        print(f"wrote {path}  (scene {scene}, {len(frames)} frames)")
+        items = sequences[scene]
+        export_sequence(source.stream(items), path, source.grid, source.palette, predict=source.predict)
+        print(f"wrote {path}  (scene {scene}, {len(items)} frames)")
 
 
 def cmd_run(args: argparse.Namespace) -> int:

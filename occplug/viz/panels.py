@@ -23,7 +23,7 @@ from . import bev as B
 from .cameras import blend_overlay, lidar_in_cameras, occupancy_in_cameras, rig_layout
 from .deps import require_matplotlib
 from .render3d import EGO_BOX, ViewCamera, default_view, render_voxels
-from .style import ERROR_COLORS, ERROR_NAMES, Palette
+from .style import ERROR_COLORS, ERROR_NAMES, MASK_HALO, MASK_LINE, Palette
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -34,7 +34,6 @@ if TYPE_CHECKING:
 __all__ = ["bev_figure", "figure_to_rgb", "sample_figure", "save_png"]
 
 _TEXT = "#1d1f27"
-_MASK_LINE = "#ffffff"
 _LIDAR_CMAP = "turbo"
 _LEGEND_WIDTH = 2.3  # inches
 _MARGINS = {"left": 0.04, "right": 0.99, "top": 0.9, "bottom": 0.1}
@@ -62,6 +61,15 @@ def figure_to_rgb(fig: Figure) -> np.ndarray:
     """``(H, W, 3)`` uint8 pixels of a figure (for loggers with an image API)."""
     fig.canvas.draw()
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+
+
+def _mask_line_style() -> dict[str, Any]:
+    """How the camera-mask outline is drawn, on the maps and in their legend alike:
+    :data:`~occplug.viz.style.MASK_LINE` dashes on a :data:`~occplug.viz.style.MASK_HALO` halo."""
+    from matplotlib import patheffects
+
+    halo = patheffects.withStroke(linewidth=3.0, foreground=np.asarray(MASK_HALO) / 255)
+    return {"color": tuple(np.asarray(MASK_LINE) / 255), "linestyle": "--", "linewidth": 1.2, "path_effects": [halo]}
 
 
 # ---------------------------------------------------------------- legends
@@ -107,7 +115,7 @@ def _legend(
                 for c in (B.CORRECT, B.WRONG_CLASS, B.MISSED, B.FALSE_OCCUPIED)
             ]
         if mask:
-            extra.append(Line2D([], [], color="#666666", linestyle="--", linewidth=1.2, label="camera mask (outline)"))
+            extra.append(Line2D([], [], label="camera mask (outline)", **_mask_line_style()))
         second = ax.legend(
             handles=extra,
             loc="lower left",
@@ -133,7 +141,17 @@ def _bev_axes(ax: Axes, image: np.ndarray, grid: GridSpec, title: str, mask: Ten
         if 0 < cols.sum() < cols.size:
             xs = grid.lower[0] + (np.arange(grid.shape[0]) + 0.5) * grid.voxel_size[0]
             ys = grid.lower[1] + (np.arange(grid.shape[1]) + 0.5) * grid.voxel_size[1]
-            ax.contour(ys, xs, cols, levels=[0.5], colors=_MASK_LINE, linewidths=1.1, linestyles="--")
+            style = _mask_line_style()
+            outline = ax.contour(
+                ys,
+                xs,
+                cols,
+                levels=[0.5],
+                colors=[style["color"]],
+                linewidths=style["linewidth"],
+                linestyles=style["linestyle"],
+            )
+            outline.set_path_effects(style["path_effects"])
     ax.set_title(title, fontsize=10, color=_TEXT)
     ax.set_xlabel("y (m, left +)", fontsize=7)
     ax.set_ylabel("x (m, forward +)", fontsize=7)

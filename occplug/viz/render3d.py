@@ -25,7 +25,7 @@ from torch import Tensor
 
 from occplug.geometry import GridSpec, camera_rays, first_hit
 
-from .style import BACKGROUND, EGO_COLOR, Palette
+from .style import BACKGROUND, EGO_COLOR, FLOOR, FLOOR_LINE, Palette
 
 __all__ = [
     "FACE_SHADE",
@@ -50,8 +50,6 @@ FACE_SHADE: dict[tuple[int, int], float] = {
 }
 _EDGE_PIXELS = 1.0  # width of the darkened voxel edges, pixels
 _EDGE_SHADE = 0.72  # brightness on an edge of a voxel seen large; edges fade out on small voxels
-_FLOOR = (44, 47, 58)
-_FLOOR_LINE = (70, 74, 88)
 #: The ego vehicle as a box in the ego frame (nuScenes origin: rear axle on the ground).
 EGO_BOX = ((-1.0, -0.95, 0.0), (3.6, 0.95, 1.6))
 
@@ -350,7 +348,7 @@ def render_voxels(
     frac = torch.remainder(fxy, 10.0)
     line = ((frac < 0.12) | (frac > 10.0 - 0.12)).any(-1)
     floor_rgb = torch.where(
-        line[:, None], torch.tensor(_FLOOR_LINE, dtype=torch.float64), torch.tensor(_FLOOR, dtype=torch.float64)
+        line[:, None], torch.tensor(FLOOR_LINE, dtype=torch.float64), torch.tensor(FLOOR, dtype=torch.float64)
     )
     out[hits.floor] = floor_rgb
     # the ego

@@ -8,18 +8,23 @@ Entities (``/world`` is the ego frame of the sequence's first frame; z up):
 * ``world/ego``: the ego pose of each frame (``Transform3D``);
 * ``world/ego/cameras/<NAME>``: each camera as a pinhole (``img_aug @ K``, OpenCV axes) placed by
   ``cam_to_ego``, with its image;
-* ``world/ego/lidar``: LiDAR points in the ego frame, coloured by range;
+* ``world/ego/lidar``: LiDAR points in the ego frame, coloured by range (distance from the
+  sensor) on one scale for the whole recording: 0 to :func:`lidar_range_max` (the grid's farthest
+  corner), farther points take the scale's last colour;
 * ``world/ego/occupancy/gt`` and ``world/ego/occupancy/pred``: occupied voxels as boxes with class
   ids (surface voxels only: those with a free face-neighbour; the hidden interior is left out);
 * ``world/ego/boxes``: 3D boxes with class ids and ``<class> #<track id>`` labels.
 
 Timelines: ``frame`` (sequence number = ``Frame.frame_index``) and ``time`` (``Frame.timestamp``,
-seconds). Needs ``rerun-sdk`` (the ``viz`` extra).
+seconds). Frames are streamed: each is logged and dropped before the next is taken (the ego path,
+static, is logged at the end), so a sequence of thousands of frames needs the memory of one.
+Needs ``rerun-sdk`` (the ``viz`` extra).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import math
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +38,7 @@ from occplug.geometry import GridSpec, invert_pose
 from .deps import require_matplotlib, require_rerun
 from .style import Palette
 
-__all__ = ["export_sequence", "surface_voxels"]
+__all__ = ["export_sequence", "lidar_range_max", "surface_voxels"]
 
 _RANGE_CMAP = "turbo"
 
@@ -63,6 +68,13 @@ def _voxel_boxes(rr: Any, labels: Tensor, grid: GridSpec, palette: Palette) -> A
     )
 
 
+def lidar_range_max(grid: GridSpec) -> float:
+    """The top of the recording's LiDAR range colour scale: the distance from the ego origin to
+    the grid's farthest corner, rounded up to 10 m (Occ3D's grid: 60 m)."""
+    corners = np.abs(np.asarray(grid.range, dtype=np.float64).reshape(2, 3)).max(axis=0)
+    return max(10.0, math.ceil(float(np.linalg.norm(corners)) / 10.0) * 10.0)
+
+
 def _range_colors(ranges: np.ndarray, vmax: float) -> np.ndarray:
     from matplotlib import colormaps
 
@@ -70,7 +82,14 @@ def _range_colors(ranges: np.ndarray, vmax: float) -> np.ndarray:
 
 
 def _log_frame(
-    rr: Any, rec: Any, frame: Frame, pred: Tensor | None, grid: GridSpec, palette: Palette, world_from_first: Tensor
+    rr: Any,
+    rec: Any,
+    frame: Frame,
+    pred: Tensor | None,
+    grid: GridSpec,
+    palette: Palette,
+    world_from_first: Tensor,
+    range_max: float,
 ) -> None:
     pose = (invert_pose(world_from_first) @ frame.ego_to_global.double()).float().numpy()
     rec.log("world/ego", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
@@ -89,7 +108,7 @@ def _log_frame(
         ranges = frame.points[:, :3].norm(dim=-1).numpy()
         rec.log(
             "world/ego/lidar",
-            rr.Points3D(ego_pts, colors=_range_colors(ranges, max(float(ranges.max(initial=0)), 1.0)), radii=0.04),
+            rr.Points3D(ego_pts, colors=_range_colors(ranges, range_max), radii=0.04),
         )
     if frame.voxel_labels is not None:
         rec.log("world/ego/occupancy/gt", _voxel_boxes(rr, frame.voxel_labels, grid, palette))
@@ -122,8 +141,13 @@ def export_sequence(
     palette: Palette,
     predictions: Iterable[Tensor | None] | None = None,
     recording_name: str | None = None,
+    predict: Callable[[Frame], Tensor | None] | None = None,
+    range_max: float | None = None,
 ) -> Path:
-    """Write the frames of one sequence (in time order) as a Rerun recording.
+    """Write the frames of one sequence (in time order) as a Rerun recording, streaming them.
+
+    ``frames`` (and ``predictions``) may be generators: each frame is logged and let go before
+    the next is drawn, so nothing of a sequence is held but its ego poses.
 
     Args:
         frames: the sequence's frames, in time order (one scene).
@@ -132,24 +156,33 @@ def export_sequence(
         palette: class names and colours (the annotation context).
         predictions: per frame, ``(X, Y, Z)`` predicted class ids or None (same order as frames).
         recording_name: a name shown in the viewer (default: the scene name).
+        predict: instead of ``predictions``, called on each frame as it is logged.
+        range_max: top of the LiDAR range colour scale, metres, for every frame (default
+            :func:`lidar_range_max` of ``grid``).
 
     Returns:
         ``path``.
+
+    Raises:
+        ValueError: no frame, or not one prediction per frame (found when the shorter one ends;
+            the file then holds the frames logged so far).
     """
     rr = require_rerun("--rerun")
     require_matplotlib("--rerun (LiDAR range colours)")
-    frames = list(frames)
-    if not frames:
+    if predictions is not None and predict is not None:
+        raise ValueError("export_sequence takes predictions or predict, not both")
+    frame_iter = iter(frames)
+    head = next(frame_iter, None)
+    if head is None:
         raise ValueError("export_sequence needs at least one frame")
-    preds = list(predictions) if predictions is not None else [None] * len(frames)
-    if len(preds) != len(frames):
-        raise ValueError(f"{len(preds)} predictions for {len(frames)} frames")
+    pred_iter = iter(predictions) if predictions is not None else None
+    range_max = float(range_max) if range_max is not None else lidar_range_max(grid)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    rec = rr.RecordingStream("occplug", recording_id=f"occplug-{frames[0].scene}")
+    rec = rr.RecordingStream("occplug", recording_id=f"occplug-{head.scene}")
     rec.save(str(path))
     if hasattr(rec, "send_recording_name"):
-        rec.send_recording_name(recording_name or frames[0].scene)
+        rec.send_recording_name(recording_name or head.scene)
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     rec.log(
         "world",
@@ -158,13 +191,33 @@ def export_sequence(
         ),
         static=True,
     )
-    first = frames[0].ego_to_global.double()
-    path_pts = torch.stack([(invert_pose(first) @ f.ego_to_global.double())[:3, 3] for f in frames]).float().numpy()
-    rec.log("world/ego_path", rr.LineStrips3D([path_pts], colors=[(255, 255, 255)]), static=True)
-    for frame, pred in zip(frames, preds, strict=True):
-        rec.set_time("frame", sequence=int(frame.frame_index))
-        rec.set_time("time", duration=float(frame.timestamp))
-        _log_frame(rr, rec, frame, pred, grid, palette, first)
-    rec.flush()
-    rec.disconnect()
+    first = head.ego_to_global.double()
+    frame: Frame | None = head
+    del head
+    positions: list[Tensor] = []
+    try:
+        while frame is not None:
+            pred: Tensor | None = None
+            if pred_iter is not None:
+                pred = next(pred_iter, _MISSING)
+                if pred is _MISSING:
+                    raise ValueError(f"fewer predictions than frames (none for frame {len(positions)})")
+            elif predict is not None:
+                pred = predict(frame)
+            rec.set_time("frame", sequence=int(frame.frame_index))
+            rec.set_time("time", duration=float(frame.timestamp))
+            _log_frame(rr, rec, frame, pred, grid, palette, first, range_max)
+            positions.append((invert_pose(first) @ frame.ego_to_global.double())[:3, 3])
+            frame = pred = None  # let go of this frame before the next one is loaded
+            frame = next(frame_iter, None)
+        if pred_iter is not None and next(pred_iter, _MISSING) is not _MISSING:
+            raise ValueError(f"more predictions than the {len(positions)} frames")
+        path_pts = torch.stack(positions).float().numpy()
+        rec.log("world/ego_path", rr.LineStrips3D([path_pts], colors=[(255, 255, 255)]), static=True)
+    finally:
+        rec.flush()
+        rec.disconnect()
     return path
+
+
+_MISSING: Any = object()

@@ -7,8 +7,11 @@ final validation metrics, flat: ``{"mIoU": ..., "IoU_car": ..., ...}``).
 * :func:`read_logs` reads every version's CSV into columns of float arrays (empty cells: NaN).
 * :func:`curves_figure` plots losses, validation metrics and learning rates against the step,
   one line per metric across all versions, resumes marked.
-* :func:`class_iou_figure` draws the per-class values of ``metrics.json`` (every key family
-  ``<metric>_<class>``, e.g. ``IoU_car``) as bars in the classes' colours.
+* :func:`class_iou_figure` draws the per-class values of ``metrics.json`` as bars in the classes'
+  colours, one chart per key family ``<metric>_<class>``: ``IoU_<class>`` (metrics
+  ``occ3d_miou`` and ``ssc``) and ``RayIoU_<class>`` (``rayiou``). RayIoU's threshold keys
+  (``RayIoU_1m``, ``RayIoU_2m``, ``RayIoU_4m``) are summaries over classes, not classes: they go
+  into the headline with ``mIoU``, ``IoU``, ``RayIoU``, ``Precision``, ``Recall``.
 """
 
 from __future__ import annotations
@@ -39,6 +42,10 @@ if TYPE_CHECKING:
 __all__ = ["RunLogs", "class_iou_figure", "curves_figure", "plot_run", "read_logs", "read_metrics"]
 
 _VERSION = re.compile(r"version_(\d+)$")
+#: The suffix of a per-threshold summary key (``RayIoU_1m``, ``RayIoU_0.5m``: ``f"{tau:g}m"``).
+_THRESHOLD = re.compile(r"\d+(\.\d*)?(e[+-]?\d+)?m")
+#: Bookkeeping entries of ``metrics.json``, neither metrics nor classes.
+_BOOKKEEPING = ("epoch", "global_step")
 
 
 @dataclass
@@ -135,7 +142,7 @@ def _groups(logs: RunLogs) -> list[tuple[str, list[str]]]:
     names = [n for n in logs.columns if n not in ("step", "epoch") and np.isfinite(logs.columns[n]).any()]
     lrs = [n for n in names if n.split("/")[-1].startswith("lr") or n.endswith("learning_rate")]
     losses = [n for n in names if n not in lrs and (n.startswith("train/") or "loss" in n.split("/")[-1])]
-    metrics = [n for n in names if n not in losses and n not in lrs and "_" not in n.split("/")[-1]]
+    metrics = [n for n in names if n not in losses and n not in lrs and _per_class(n.split("/")[-1]) is None]
     groups = [("losses", losses), ("validation metrics", metrics), ("learning rate", lrs)]
     return [(t, g) for t, g in groups if g]
 
@@ -177,23 +184,41 @@ def curves_figure(logs: RunLogs, title: str = "") -> Figure:
     return fig
 
 
-def _class_color(name: str) -> tuple[float, float, float]:
-    for names, colors in ((OCC3D_CLASSES, OCC3D_COLORS), (SEMANTIC_KITTI_CLASSES, SEMANTIC_KITTI_COLORS)):
-        if name in names:
-            r, g, b = colors[names.index(name)]
-            return r / 255, g / 255, b / 255
-    r, g, b = class_colors((name,))[0]
-    return r / 255, g / 255, b / 255
+def _class_colors(names: list[str]) -> list[tuple[float, float, float]]:
+    """Colours of a family's classes from the official palette that knows most of them (``car`` is
+    Occ3D's blue among Occ3D classes, SemanticKITTI's among SemanticKITTI's); other names get
+    distinct hues from :func:`~occplug.data.classes.class_colors`."""
+    taxonomies = ((OCC3D_CLASSES, OCC3D_COLORS), (SEMANTIC_KITTI_CLASSES, SEMANTIC_KITTI_COLORS))
+    known, colors = max(taxonomies, key=lambda t: sum(n in t[0] for n in names))  # ties: Occ3D
+    others = class_colors(names)  # distinct hues, for names neither palette has
+    out = []
+    for i, name in enumerate(names):
+        r, g, b = colors[known.index(name)] if name in known else others[i]
+        out.append((r / 255, g / 255, b / 255))
+    return out
 
 
-def _families(metrics: dict[str, float]) -> dict[str, dict[str, float]]:
-    """Per-class key families: ``{"IoU": {"car": 40.1, ...}, ...}`` (a family needs 2+ classes)."""
+def _per_class(key: str) -> tuple[str, str] | None:
+    """``(family, class)`` of a per-class key (``IoU_car`` -> ``("IoU", "car")``, class names may
+    hold ``_``), None for a summary key (``mIoU``, ``RayIoU_1m``) or bookkeeping (``global_step``)."""
+    family, sep, cls = key.partition("_")
+    if not (family and sep and cls) or key in _BOOKKEEPING or _THRESHOLD.fullmatch(cls):
+        return None
+    return family, cls
+
+
+def _families(metrics: dict[str, float]) -> tuple[dict[str, dict[str, float]], dict[str, float]]:
+    """Per-class key families ``{"IoU": {"car": 40.1, ...}, "RayIoU": {...}}`` (a family needs 2+
+    classes) and the remaining summary values ``{"mIoU": ..., "RayIoU_1m": ...}`` (bookkeeping left out)."""
     fams: dict[str, dict[str, float]] = {}
     for key, value in metrics.items():
-        prefix, sep, cls = key.partition("_")
-        if sep and cls and prefix:
-            fams.setdefault(prefix, {})[cls] = value
-    return {k: v for k, v in fams.items() if len(v) >= 2}
+        split = _per_class(key)
+        if split is not None:
+            fams.setdefault(split[0], {})[split[1]] = value
+    fams = {k: v for k, v in fams.items() if len(v) >= 2}
+    in_family = {f"{family}_{cls}" for family, values in fams.items() for cls in values}
+    summary = {k: v for k, v in metrics.items() if k not in in_family and k not in _BOOKKEEPING}
+    return fams, summary
 
 
 def class_iou_figure(metrics: dict[str, float], title: str = "") -> Figure:
@@ -201,18 +226,18 @@ def class_iou_figure(metrics: dict[str, float], title: str = "") -> Figure:
 
     Classes whose value is NaN (absent from truth and prediction) are marked ``n/a``.
     """
-    fams = _families(metrics)
+    fams, summary = _families(metrics)
     if not fams:
         raise ValueError("metrics.json holds no per-class values (keys like IoU_<class>)")
     n_cls = max(len(v) for v in fams.values())
     fig = _figure(max(8.0, 0.48 * n_cls + 2.0), 4.6 * len(fams))
     axes = np.atleast_1d(fig.subplots(len(fams), 1, squeeze=False)).ravel()
-    headline = {k: v for k, v in metrics.items() if "_" not in k and k not in ("epoch",) and math.isfinite(v)}
+    headline = {k: v for k, v in summary.items() if math.isfinite(v)}
     for ax, (family, values) in zip(axes, fams.items(), strict=True):
         names = list(values)
         vals = np.array([values[n] for n in names], dtype=np.float64)
         finite = np.isfinite(vals)
-        colors = [_class_color(n) for n in names]
+        colors = _class_colors(names)
         bars = ax.bar(
             np.arange(len(names)), np.where(finite, vals, 0.0), color=colors, edgecolor="#333333", linewidth=0.6
         )
@@ -236,9 +261,11 @@ def class_iou_figure(metrics: dict[str, float], title: str = "") -> Figure:
         ax.set_ylabel(f"{family} (%)")
         top = float(np.nanmax(vals)) if finite.any() else 1.0
         ax.set_ylim(0, max(1.0, top * 1.15))
-        ax.set_title(f"per-class {family}", fontsize=11)
+        taus = [k.partition("_")[2] for k in summary if k.partition("_")[0] == family]
+        taus = [t for t in taus if _THRESHOLD.fullmatch(t)]
+        ax.set_title(f"per-class {family}" + (f" (mean over {', '.join(taus)})" if taus else ""), fontsize=11)
         ax.grid(axis="y", alpha=0.3)
-    text = ", ".join(f"{k} = {v:.2f}" for k, v in headline.items() if k not in ("global_step",))
+    text = ", ".join(f"{k} = {v:.2f}" for k, v in headline.items())
     fig.suptitle(f"{title}  {text}".strip(), fontsize=11)
     fig.tight_layout()
     return fig

@@ -7,6 +7,9 @@ and, given a checkpoint, the model (``runner.build_model`` + the checkpoint's we
 
 from __future__ import annotations
 
+from collections import OrderedDict
+from collections.abc import Iterator
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +18,7 @@ from torch import Tensor
 
 from occplug import runner
 from occplug.data.frame import Frame, collate_frames
+from occplug.data.sequences import SceneIndex
 from occplug.geometry import GridSpec
 
 from .style import Palette
@@ -22,6 +26,7 @@ from .style import Palette
 __all__ = ["SampleSource", "SourceError"]
 
 SPLITS = ("train", "val", "test", "predict")
+_CACHED_FRAMES = 4  # frames kept by SampleSource.frame (a decoded frame can be hundreds of MB)
 
 
 class SourceError(ValueError):
@@ -53,7 +58,7 @@ class SampleSource:
         self.grid: GridSpec = self.dm.grid
         self.palette = Palette.from_datamodule(self.dm)
         self.model: Any = None
-        self._frames: dict[int, Frame] = {}
+        self._frames: OrderedDict[int, Frame] = OrderedDict()
         if ckpt_path is not None:
             self.model = self._load_model(cfg, Path(ckpt_path))
 
@@ -74,16 +79,29 @@ class SampleSource:
     def __len__(self) -> int:
         return len(self.dataset)  # type: ignore[arg-type]
 
-    def frame(self, index: int) -> Frame:
-        """Item ``index`` of the split (negative indices count from the end)."""
+    def _checked(self, index: int) -> int:
+        """``index`` in ``[0, len)`` (negative indices count from the end); SourceError when out of range."""
         n = len(self)
         if not -n <= index < n:
             raise SourceError(f"--index {index} is out of range: the {self.split} split has {n} samples")
-        index %= n
-        if index not in self._frames:
-            if len(self._frames) > 64:
-                self._frames.clear()
+        return index % n
+
+    def load(self, index: int) -> Frame:
+        """Item ``index`` of the split, decoded afresh unless recently used, and not kept (for
+        streaming long sequences)."""
+        index = self._checked(index)
+        cached = self._frames.get(index)
+        return cached if cached is not None else self.dataset[index]
+
+    def frame(self, index: int) -> Frame:
+        """Item ``index`` of the split (negative indices count from the end); the last few are kept."""
+        index = self._checked(index)
+        if index in self._frames:
+            self._frames.move_to_end(index)
+        else:
             self._frames[index] = self.dataset[index]
+            while len(self._frames) > _CACHED_FRAMES:
+                self._frames.popitem(last=False)
         return self._frames[index]
 
     @torch.no_grad()
@@ -94,20 +112,46 @@ class SampleSource:
         batch = collate_frames([frame]).to(self.model.device)
         return self.model.predict_occupancy(batch)[0].cpu()
 
+    @cached_property
+    def scenes(self) -> SceneIndex | None:
+        """The split's scene structure without decoding a frame, or None when the data set has none.
+
+        The readers' data sets (and a pipelined synthetic one) carry a ``scenes``
+        :class:`~occplug.data.sequences.SceneIndex`; the bare synthetic data set is scene-major with
+        ``frames_per_scene`` frames in each of its ``num_scenes`` scenes.
+        """
+        scenes = getattr(self.dataset, "scenes", None)
+        if isinstance(scenes, SceneIndex):
+            return scenes
+        per_scene, count = getattr(self.dataset, "frames_per_scene", None), getattr(self.dataset, "num_scenes", None)
+        if isinstance(per_scene, int) and isinstance(count, int) and per_scene > 0 and per_scene * count == len(self):
+            return SceneIndex.regular([f"scene {s}" for s in range(count)], per_scene)
+        return None
+
     def sequence(self, index: int) -> list[int]:
         """Indices of every frame of ``index``'s scene, in time order.
 
-        Data sets laid out scene-major (every occplug data module) are walked outwards from
-        ``index`` while the scene name stays the same.
+        Read from :attr:`scenes` where the data set has a scene structure; otherwise (a data set laid
+        out scene-major, as every occplug data module is) found by decoding the frames outwards from
+        ``index`` while the scene name stays the same, one at a time, keeping only their scene names
+        and frame numbers.
         """
-        self.frame(index)
-        index %= len(self)
+        index = self._checked(index)
+        if self.scenes is not None:
+            return list(self.scenes.items[self.scenes.locate(index)[0]])
         scene = self.frame(index).scene
-        first = index
-        while first > 0 and self.frame(first - 1).scene == scene:
-            first -= 1
-        last = index
-        while last + 1 < len(self) and self.frame(last + 1).scene == scene:
-            last += 1
-        order = sorted(range(first, last + 1), key=lambda i: (self.frame(i).frame_index, i))
-        return order
+        order = {index: self.frame(index).frame_index}
+        for step in (-1, 1):
+            i = index + step
+            while 0 <= i < len(self):
+                frame = self.load(i)
+                if frame.scene != scene:
+                    break
+                order[i] = frame.frame_index
+                i += step
+        return sorted(order, key=lambda i: (order[i], i))
+
+    def stream(self, indices: list[int]) -> Iterator[Frame]:
+        """The frames of ``indices`` one at a time, each decoded when it is asked for and not kept."""
+        for i in indices:
+            yield self.load(i)

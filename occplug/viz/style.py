@@ -16,11 +16,30 @@ from torch import Tensor
 
 from occplug.data.classes import class_colors
 
-__all__ = ["BACKGROUND", "EGO_COLOR", "ERROR_COLORS", "ERROR_NAMES", "Palette"]
+__all__ = [
+    "BACKGROUND",
+    "EGO_COLOR",
+    "ERROR_COLORS",
+    "ERROR_NAMES",
+    "FLOOR",
+    "FLOOR_LINE",
+    "MASK_HALO",
+    "MASK_LINE",
+    "Palette",
+]
 
-#: RGB of empty space (free columns, sky, pixels without a hit): a dark slate that every class
-#: colour stands out against, even the light ``manmade`` lavender.
-BACKGROUND: tuple[int, int, int] = (28, 30, 38)
+#: RGB of empty space (free columns, sky, pixels without a hit): a mid-dark slate teal, at least
+#: 30 CIELAB units (Delta E 1976) from every colour of both official palettes, black (Occ3D
+#: ``others``) and the light ``manmade`` lavender included; :data:`FLOOR` and
+#: :data:`FLOOR_LINE` (the 3D view's ground plane) stay 25 units from every class colour too.
+BACKGROUND: tuple[int, int, int] = (44, 72, 80)
+#: The 3D view's floor (the grid's ground plane where no voxel is hit) and its 10 m lines.
+FLOOR: tuple[int, int, int] = (36, 58, 66)
+FLOOR_LINE: tuple[int, int, int] = (56, 86, 94)
+#: The camera-mask outline (BEV maps and their legend): white dashes on a black halo, so that one
+#: of the two contrasts with any class colour, the background and the figure's white.
+MASK_LINE: tuple[int, int, int] = (255, 255, 255)
+MASK_HALO: tuple[int, int, int] = (0, 0, 0)
 #: RGB of the ego vehicle marker in the 3D view.
 EGO_COLOR: tuple[int, int, int] = (0, 255, 127)
 

@@ -71,3 +71,34 @@ def test_bev_figure_shows_the_maps_pixel_exact(grid, palette):
     ax = fig.axes[0]
     image = ax.get_images()[0].get_array()
     assert np.asarray(image).shape == (*grid.shape[:2], 3)
+
+
+def test_mask_outline_and_its_legend_entry_are_drawn_alike(grid, palette):
+    from matplotlib.colors import to_rgb
+    from matplotlib.contour import ContourSet
+    from viz_helpers import empty
+
+    from occplug.viz.style import MASK_HALO, MASK_LINE
+
+    gt = empty(grid)
+    gt[2:6, 2:6, 0] = CAR
+    mask = torch.zeros(grid.shape, dtype=torch.bool)
+    mask[8:, 4:12] = True
+    fig = bev_figure(gt, gt.clone(), palette, grid, mask=mask)
+    contours = [c for ax in fig.axes for c in ax.collections if isinstance(c, ContourSet)]
+    assert len(contours) == 3  # one outline per map
+    legends = [c for ax in fig.axes for c in ax.get_children() if type(c).__name__ == "Legend"]
+    entries = [
+        h
+        for legend in legends
+        for h, t in zip(legend.legend_handles, legend.get_texts(), strict=True)
+        if t.get_text() == "camera mask (outline)"
+    ]
+    assert len(entries) == 1
+    line, halo = np.asarray(MASK_LINE) / 255, np.asarray(MASK_HALO) / 255
+    assert np.allclose(to_rgb(entries[0].get_color()), line)
+    for c in contours:
+        assert np.allclose(c.get_edgecolor()[0][:3], line)
+    for artist in [entries[0], *contours]:
+        (effect,) = artist.get_path_effects()
+        assert np.allclose(to_rgb(effect._gc["foreground"]), halo)

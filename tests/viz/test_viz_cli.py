@@ -81,6 +81,26 @@ def test_viz_sample_with_checkpoint_config_and_rerun(run_dir, tmp_path, capsys):
     assert "scene synth-val-0000, 2 frames" in capsys.readouterr().out
 
 
+def test_viz_sample_rerun_max_frames_records_a_window_of_the_scene(tmp_path, capsys):
+    pytest.importorskip("rerun")
+    from viz_helpers import read_rrd
+
+    rrd = tmp_path / "seq.rrd"
+    args = ["viz", "sample", "-c", BASELINE, *TINY, "--split", "train", "--index", "4", "--out", str(tmp_path)]
+    assert main([*args, "--rerun", str(rrd), "--max-frames", "2", *SMALL]) == 0
+    assert read_rrd(rrd)["/world/ego/lidar"]["frames"] == {1, 2}  # train item 4: frame 1 of a 3-frame scene
+    assert "scene synth-train-0001, 2 frames" in capsys.readouterr().out
+
+
+def test_max_frames_window():
+    from occplug.cli.viz_cmd import _window
+
+    scene = [10, 11, 12, 13, 14]
+    assert _window(scene, 12, None) == scene and _window(scene, 12, 9) == scene
+    assert _window(scene, 11, 2) == [11, 12]  # from the --index frame on
+    assert _window(scene, 14, 3) == [12, 13, 14]  # near the end: the scene's last frames
+
+
 def test_viz_run_writes_curves_and_class_iou(run_dir, tmp_path):
     assert main(["viz", "run", str(run_dir), "--out", str(tmp_path)]) == 0
     assert (tmp_path / "curves.png").is_file() and (tmp_path / "class_iou.png").is_file()
@@ -93,6 +113,8 @@ def test_viz_run_writes_curves_and_class_iou(run_dir, tmp_path):
         (["viz", "sample", "-c", BASELINE, *TINY, "--index", "99", "--out", "x"], "out of range: the val split has 2"),
         (["viz", "sample", "-c", BASELINE, *TINY, "--split", "nope", "--out", "x"], "--split nope"),
         (["viz", "sample", "-c", BASELINE, *TINY, "--out", "x", "--rerun", "x.txt"], "must end in .rrd"),
+        (["viz", "sample", "-c", BASELINE, *TINY, "--out", "x", "--rerun", "x.rrd", "--max-frames", "0"], "positive"),
+        (["viz", "sample", "-c", BASELINE, *TINY, "--out", "x", "--max-frames", "3"], "with --rerun"),
         (["viz", "sample", "--ckpt", "missing.ckpt", "--out", "x"], "does not exist"),
         (["viz", "sample", "-c", BASELINE, "--out", "x", "--view-size", "big"], "expected WIDTHxHEIGHT"),
         (["viz", "run", "no/such/run"], "no such run directory"),
