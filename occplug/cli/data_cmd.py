@@ -1,4 +1,5 @@
-"""``occplug data synth`` (write the synthetic world to disk) and ``occplug data prepare`` (index a real data set)."""
+"""``occplug data synth`` (write the synthetic world to disk), ``occplug data prepare`` (index a real data set) and
+``occplug data check`` (verify a data tree or an index, read only)."""
 
 from __future__ import annotations
 
@@ -49,6 +50,42 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     ns.add_argument("--sweeps", type=int, default=10, help="earlier LiDAR sweeps to record per sample (default 10)")
     ns.add_argument("--no-check-files", action="store_true", help="do not check that every referenced file exists")
     ns.set_defaults(func=cmd_prepare_nuscenes)
+
+    check = actions.add_parser("check", help="verify a data tree or a prepared index (read only; exit 2 on any problem)",
+                               description="Verify every label file (keys, dtypes, shapes), the files the tables name "
+                               "(images, LiDAR), and the scenes / sequences of the official split. Writes nothing; "
+                               "reports the first offending file with the number of files affected and exits 2.")
+    targets = check.add_subparsers(dest="dataset", required=True, metavar="DATASET")
+    cn = targets.add_parser("nuscenes", help="a nuScenes tree with Occ3D-nuScenes labels (as prepare nuscenes reads it)")
+    cn.add_argument("--root", required=True, metavar="DIR", help="nuScenes data root (samples/, sweeps/, <version>/)")
+    cn.add_argument("--version", required=True, help="v1.0-trainval, v1.0-mini or v1.0-test (the folder of JSON tables)")
+    cn.add_argument("--occ", metavar="DIR", help="Occ3D-nuScenes folder holding gts/<scene>/<token>/labels.npz")
+    cn.add_argument("--splits", default="official", metavar="official|FILE",
+                    help="the scenes each split should hold: the official lists, or a JSON file {split: [scene names]}")
+    cn.add_argument("--sweeps", type=int, default=10, help="earlier LiDAR sweeps checked per sample (default 10, as prepare)")
+    _check_common(cn, "200 200 16 (Occ3D)")
+    cn.set_defaults(func=cmd_check)
+    ck = targets.add_parser("semantickitti", help="a SemanticKITTI tree (sequences/XX/)")
+    ck.add_argument("--root", required=True, metavar="DIR", help="the folder holding sequences/ (SemanticKITTI's dataset/)")
+    ck.add_argument("--splits", metavar="FILE", help="a JSON file {split: [sequences]} replacing splits of the standard "
+                    "one (train 00-07, 09, 10; val 08; test 11-21, optional)")
+    _check_common(ck, "256 256 32 (SSC)")
+    ck.set_defaults(func=cmd_check)
+    ci = targets.add_parser("index", help="an index written by prepare nuscenes, and every file it names")
+    ci.add_argument("--index", required=True, metavar="DIR", help="the index folder (or its nuscenes_index.npz)")
+    ci.add_argument("--root", metavar="DIR", help="nuScenes data root (default: the one recorded in the index)")
+    ci.add_argument("--occ", metavar="DIR", help="Occ3D-nuScenes folder (default: the one recorded in the index)")
+    ci.add_argument("--splits", default="official", metavar="official|FILE",
+                    help="the scenes each split should hold: the official lists, or a JSON file {split: [scene names]}")
+    _check_common(ci, "200 200 16 (Occ3D)")
+    ci.set_defaults(func=cmd_check)
+
+
+def _check_common(p: argparse.ArgumentParser, default_shape: str) -> None:
+    p.add_argument("--shape", type=int, nargs=3, metavar=("X", "Y", "Z"),
+                   help=f"the voxel grid every label file must have (default {default_shape})")
+    p.add_argument("--no-lidar", action="store_true", help="camera-only data: do not check LiDAR files")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (shown on large trees)")
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
@@ -118,4 +155,28 @@ def cmd_prepare_nuscenes(args: argparse.Namespace) -> int:
     counts = {s: len(index.split_indices(s)) for s in ("train", "val", "test")}
     summary = ", ".join(f"{k} {v}" for k, v in counts.items() if v)
     print(f"wrote the index of {len(index.samples)} samples ({summary}) to {path}")
+    return 0
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from occplug.data import check
+
+    kwargs: dict = {"lidar": not args.no_lidar, "progress": not args.no_progress}
+    if args.shape is not None:
+        if min(args.shape) < 1:
+            raise UsageError(f"--shape must be three positive sizes, got {' '.join(map(str, args.shape))}")
+        kwargs["shape"] = tuple(args.shape)
+    try:
+        if args.dataset == "nuscenes":
+            if args.sweeps < 0:
+                raise UsageError(f"--sweeps must be >= 0, got {args.sweeps}")
+            summary = check.check_nuscenes(args.root, args.version, occ_root=args.occ, splits=args.splits,
+                                           sweeps=args.sweeps, **kwargs)
+        elif args.dataset == "semantickitti":
+            summary = check.check_semantickitti(args.root, splits=args.splits, **kwargs)
+        else:
+            summary = check.check_index(args.index, root=args.root, occ_root=args.occ, splits=args.splits, **kwargs)
+    except (ValueError, FileNotFoundError) as exc:
+        raise UsageError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
+    print("\n".join(summary.lines()))
     return 0

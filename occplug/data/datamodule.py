@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 import lightning as L
 import torch.distributed as dist
@@ -28,6 +28,10 @@ class OccDataModule(L.LightningDataModule):
         class_names: names of the label ids, index = id.
         free_label: id of empty space in ``voxel_labels`` (Occ3D 17, SemanticKITTI 0).
         ignore_label: id to ignore in losses and metrics, or None.
+
+    Attributes:
+        required_fields: the optional :class:`~occplug.data.Frame` fields the model reads, as declared
+            through :meth:`require_fields` (None until then = unknown: every field is loaded).
     """
 
     def __init__(
@@ -47,6 +51,25 @@ class OccDataModule(L.LightningDataModule):
         self.free_label = free_label
         self.ignore_label = ignore_label
         self._datasets: dict[str, Dataset[Frame]] = {}
+        self.required_fields: frozenset[str] | None = None
+
+    def require_fields(self, fields: Collection[str]) -> None:
+        """Declare the optional frame fields the model's components, metrics and callbacks read.
+
+        The runner calls this once, after building the model and before any training or evaluation
+        (e.g. ``{"points", "point_labels"}`` for a LiDAR-supervised model, an empty set for a
+        camera-only one). File readers then skip what nobody reads (a camera-only run opens no LiDAR
+        file) and check the files that are needed. Datasets built earlier are dropped, so they are
+        rebuilt with the declared fields.
+
+        Raises:
+            ValueError: a field the data module's settings exclude (one line naming the setting).
+            FormatError: a file the declared fields need is missing or corrupt (one line naming it).
+        """
+        if isinstance(fields, str):
+            raise TypeError(f"require_fields: expected a collection of field names, got the string {fields!r}")
+        self.required_fields = frozenset(str(f) for f in fields)
+        self._datasets.clear()
 
     def build_dataset(self, split: str) -> Dataset[Frame]:
         """Return the dataset of ``split`` (``train``, ``val``, ``test`` or ``predict``)."""

@@ -151,8 +151,9 @@ class Batch:
     ``(B, X, Y, Z)`` ...); fields whose length varies per sample (``points``, ``point_labels``,
     ``boxes``, ``box_labels``, ``box_track_ids``, ``sequence_lidar_origins``) are lists of ``B`` tensors. ``timestamp`` is a
     ``(B,)`` float64 tensor, ``frame_index`` a ``(B,)`` int64 tensor, ``has_voxel_labels`` a
-    ``(B,)`` bool tensor. ``is_sequence_start`` is ``(B,)`` bool: the frame opens its scene
-    (or follows a gap) so stream state must be reset. ``adjacent`` maps an offset to the
+    ``(B,)`` bool tensor. ``is_sequence_start`` is ``(B,)`` bool: the frame is the first of its
+    scene in the data set (``Frame.extras["is_sequence_start"]``, else ``frame_index == 0``), so
+    stream state must be reset; frames missing within a scene are not detected. ``adjacent`` maps an offset to the
     :class:`Batch` of those adjacent frames (every frame of a batch has the same offsets).
     """
 

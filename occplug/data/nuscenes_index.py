@@ -68,11 +68,13 @@ __all__ = [
     "NuScenesIndex",
     "build_index",
     "category_to_occ3d",
+    "collect_index",
     "index_path",
     "official_splits",
     "quaternion_to_matrix",
     "matrix_to_quaternion",
     "read_index",
+    "split_lists",
 ]
 
 INDEX_FORMAT = "occplug-nuscenes-index-1"
@@ -374,7 +376,9 @@ def build_index(root: str | Path, version: str, out: str | Path, occ_root: str |
             folder itself), or None for no occupancy labels.
         splits: ``official`` (the devkit's scene lists) or a JSON file ``{split: [scene names]}``.
         sweeps: how many earlier LiDAR sweeps to record per sample.
-        check_files: check that every image, LiDAR file, lidarseg file and ``labels.npz`` exists.
+        check_files: check that every image, LiDAR file (keyframes and the recorded sweeps, with
+            whole-point sizes), lidarseg file and ``labels.npz`` exists (``labels.npz`` are checked
+            whenever ``occ_root`` is given).
         progress: show a progress bar.
 
     Returns:
@@ -383,7 +387,41 @@ def build_index(root: str | Path, version: str, out: str | Path, occ_root: str |
     Raises:
         FormatError: a missing table or file, a broken reference, a scene in no split (one line naming the file).
     """
-    root, out = Path(root), Path(out)
+    index = collect_index(root, version, occ_root, splits, sweeps, progress)
+    if check_files or occ_root is not None:
+        root = Path(root)
+        for rec in index.samples:
+            to_check = [] if rec["occ"] is None or occ_root is None else [Path(occ_root) / rec["occ"]]
+            if check_files:
+                to_check.extend(root / f for f in (*rec["cams"], rec["lidar"], *([rec["lidarseg"]] if rec["lidarseg"] else [])))
+            for path in to_check:
+                if not path.is_file():
+                    what = "Occ3D labels.npz" if path.name == "labels.npz" else "file"
+                    raise FormatError(f"{path}: missing {what}")
+                if path.name.endswith(".pcd.bin") and path.stat().st_size % 20:
+                    raise FormatError(f"{path}: {path.stat().st_size} bytes is not a whole number of 5-float32 points (corrupt .bin?)")
+            for rel in rec["sweeps"] if check_files else ():
+                path = root / rel
+                if not path.is_file():
+                    raise FormatError(f"{path}: missing LiDAR sweep (of sample {rec['token']}; --sweeps 0 records none)")
+                if path.stat().st_size % 20:
+                    raise FormatError(f"{path}: {path.stat().st_size} bytes is not a whole number of 5-float32 points (corrupt .bin?)")
+    return _write_index(Path(out), index.meta, index.arrays)
+
+
+def collect_index(root: str | Path, version: str, occ_root: str | Path | None = None, splits: str | Path = "official",
+                  sweeps: int = 10, progress: bool = True, progress_delay: float = 0.0) -> NuScenesIndex:
+    """What :func:`build_index` writes, built in memory from the tables only (no data file is opened).
+
+    Args: as :func:`build_index`; ``progress_delay``: seconds before the progress bar appears.
+
+    Returns:
+        The index; its ``path`` is the folder of tables (``root / version``).
+
+    Raises:
+        FormatError: a missing or malformed table, a broken reference, a scene in no split (one line naming the file).
+    """
+    root = Path(root)
     tables = _Tables(root, version)
     occ = None
     if occ_root is not None:
@@ -439,9 +477,8 @@ def build_index(root: str | Path, version: str, out: str | Path, occ_root: str |
     box_offsets, sweep_offsets = [0], [0]
     sweep_to_lidar: list[np.ndarray] = []
     sweep_lag: list[float] = []
-    to_check: list[Path] = []
     scene_start = 0
-    for sample, frame_index in tqdm(ordered, desc="nuScenes index", unit="sample", disable=not progress):
+    for sample, frame_index in tqdm(ordered, desc="nuScenes index", unit="sample", disable=not progress, delay=progress_delay):
         scene = tables.get("scene", sample["scene_token"], f"sample {sample['token']}")
         name = scene["name"]
         if frame_index == 0:
@@ -485,12 +522,7 @@ def build_index(root: str | Path, version: str, out: str | Path, occ_root: str |
         if occ is not None:
             rel = Path(name) / sample["token"] / "labels.npz"
             occ_file = str((occ_gts / rel).relative_to(occ))
-            to_check.append(occ_gts / rel)
         seg = lidarseg.get(lidar_sd["token"])
-        if check_files:
-            to_check.extend(root / f for f in (*cam_files, lidar_sd["filename"]))
-            if seg:
-                to_check.append(root / seg)
         records.append({
             "token": sample["token"], "scene": name, "frame_index": frame_index, "split": scene_split[name],
             "lidar": lidar_sd["filename"], "cams": cam_files, "occ": occ_file, "lidarseg": seg, "sweeps": sweep_files,
@@ -503,13 +535,6 @@ def build_index(root: str | Path, version: str, out: str | Path, occ_root: str |
         cols["intrinsics"].append(np.stack(ks))
         cols["image_hw"].append(hws)
         cols["lidar_origin"].append((ego @ lidar)[:3, 3])
-    if check_files or occ is not None:
-        for path in to_check:
-            if not path.is_file():
-                what = "Occ3D labels.npz" if path.name == "labels.npz" else "file"
-                raise FormatError(f"{path}: missing {what}")
-            if path.name.endswith(".pcd.bin") and path.stat().st_size % 20:
-                raise FormatError(f"{path}: {path.stat().st_size} bytes is not a whole number of 5-float32 points (corrupt .bin?)")
     s = len(records)
     arrays: dict[str, np.ndarray] = {
         "timestamp": np.asarray(cols["timestamp"], dtype=np.int64).reshape(s),
@@ -542,17 +567,23 @@ def build_index(root: str | Path, version: str, out: str | Path, occ_root: str |
         "splits": {k: sorted(n for n, sp in scene_split.items() if sp == k) for k in ("train", "val", "test")},
         "samples": records,
     }
-    return _write_index(out, meta, arrays)
+    return NuScenesIndex(tables.folder, meta, arrays)
+
+
+def split_lists(version: str, splits: str | Path) -> tuple[dict[str, set[str]], str]:
+    """``({split: scene names}, description)`` of ``official`` (the lists of ``version``) or a split JSON file.
+
+    Raises:
+        FormatError: an unknown version, or a missing or malformed split file (one line naming it).
+    """
+    source = str(splits)
+    if source == "official":
+        return official_splits(version), f"the official {version} split"
+    return _check_split_file(Path(source)), source
 
 
 def _scene_splits(tables: _Tables, version: str, splits: str | Path) -> dict[str, str]:
-    source = str(splits)
-    if source == "official":
-        lists = official_splits(version)
-        where = f"the official {version} split"
-    else:
-        lists = _check_split_file(Path(source))
-        where = source
+    lists, where = split_lists(version, splits)
     out = {}
     missing = []
     for scene in tables.rows["scene"]:

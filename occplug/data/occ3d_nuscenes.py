@@ -21,12 +21,16 @@ label), the 3D ``boxes`` with velocities and instance track ids, the Occ3D ``vox
 ``mask_lidar`` and ``mask_camera``, and ``sequence_lidar_origins`` (every sample of the scene).
 The official train/val split is by scene; ``predict`` reads ``val``.
 
-Readers are lazy: the index is read once; each item opens only its own files (no LiDAR file when
-``load_points`` is False).
+Readers are lazy: the index is read once; each item opens only its own files. LiDAR files
+(keyframe, sweeps, lidarseg) are opened only when points are loaded: ``load_points: true``, or the
+default ``null`` (auto) when the model declares that it reads ``points`` / ``point_labels``
+(:meth:`~occplug.data.datamodule.OccDataModule.require_fields`; the runner calls it). A camera-only
+run thus opens no ``LIDAR_TOP`` file, and a tree without them trains and evaluates.
 """
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +45,7 @@ from .formats.occ3d import OCC3D_GRID, read_labels
 from .frame import Frame
 from .imageio import read_rgb
 from .nuscenes_index import NuScenesIndex, category_to_occ3d, read_index
-from .pipeline import FramePipeline, ReaderDataModule, ReaderDataset, stat_files
+from .pipeline import FramePipeline, ReaderDataModule, ReaderDataset, resolve_load_points, stat_files
 from .sequences import SceneIndex
 
 __all__ = ["Occ3DNuScenesDataModule", "Occ3DNuScenesDataset", "read_pcd_bin"]
@@ -116,18 +120,26 @@ class Occ3DNuScenesDataset(ReaderDataset):
     def token(self, index: int) -> str:
         return self.index.samples[self.items[index]]["token"]
 
-    def files(self, first_only: bool = False) -> list:
-        """The files items read (``(path, size check)`` pairs for LiDAR files), for :func:`stat_files`."""
-        out: list = []
-        for s in self.items[:1] if first_only else self.items:
+    def files(self) -> list[Path]:
+        """The images and ``labels.npz`` files items read, for :func:`stat_files` (LiDAR files: :meth:`lidar_files`)."""
+        out: list[Path] = []
+        for s in self.items:
             rec = self.index.samples[s]
             out.extend(self.root / rec["cams"][c] for c in self.camera_ids)
-            if self.load_points:
-                out.append((self.root / rec["lidar"], _pcd_size_problem))
-                if rec.get("lidarseg"):
-                    out.append(self.root / rec["lidarseg"])
             if self.occ_root is not None and rec.get("occ"):
                 out.append(self.occ_root / rec["occ"])
+        return out
+
+    def lidar_files(self) -> list:
+        """The LiDAR files items read when points are loaded: the keyframe and its ``num_sweeps - 1`` sweeps
+        (``(path, size check)`` pairs) and the lidarseg file, for :func:`stat_files`."""
+        out: list = []
+        for s in self.items:
+            rec = self.index.samples[s]
+            out.append((self.root / rec["lidar"], _pcd_size_problem))
+            if rec.get("lidarseg"):
+                out.append(self.root / rec["lidarseg"])
+            out.extend((self.root / rel, _pcd_size_problem) for rel in rec["sweeps"][: max(0, self.num_sweeps - 1)])
         return out
 
     def load(self, index: int) -> Frame:
@@ -217,7 +229,9 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
         cameras: camera channels to load, in order (default all six).
         image_size: ``[H, W]`` the images are resized to (all splits), e.g. ``[256, 704]``.
         num_sweeps: LiDAR sweeps per frame (1 = keyframe only; up to the number ``prepare`` recorded + 1).
-        load_points: read LiDAR points (False opens no LiDAR file).
+        load_points: read LiDAR points and lidarseg labels: true, false (opens no LiDAR file), or null
+            (default, auto): iff the model reads ``points`` or ``point_labels`` (see
+            :meth:`~occplug.data.datamodule.OccDataModule.require_fields`; loaded when undeclared).
         load_occupancy: read the Occ3D labels.
         min_box_points: drop boxes with fewer LiDAR points (nuScenes ``num_lidar_pts``).
         adjacent_offsets: sample offsets loaded into ``Frame.adjacent`` (e.g. ``[-1, 1]``).
@@ -228,8 +242,11 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
         num_workers: loader worker processes.
         pin_memory: pin batches in memory (for GPU training).
         cache_dir: cache decoded frames on disk here, or None.
-        check_files: at construction, check that every file of every split exists (and LiDAR sizes)
-            and that the first ``labels.npz`` has the grid's shape, so a bad tree fails in one line.
+        check_files: at construction, check that every image and ``labels.npz`` of every split exists
+            and that the first ``labels.npz`` has the grid's shape (any later one with another shape
+            fails when it is read), so a bad tree fails in one line. LiDAR files (keyframes, the sweeps
+            used, lidarseg; sizes of ``.pcd.bin``) are checked then with ``load_points: true``, and with
+            auto when :meth:`require_fields` declares points.
     """
 
     def __init__(
@@ -241,7 +258,7 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
         cameras: list[str] | None = None,
         image_size: list[int] | None = None,
         num_sweeps: int = 1,
-        load_points: bool = True,
+        load_points: bool | None = None,
         load_occupancy: bool = True,
         min_box_points: int = 0,
         adjacent_offsets: list[int] | None = None,
@@ -277,19 +294,39 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
         if num_sweeps < 1:
             raise ValueError(f"data.num_sweeps must be >= 1, got {num_sweeps}")
         self.num_sweeps = num_sweeps
+        if load_points not in (None, True, False):
+            raise ValueError(f"data.load_points must be true, false or null (auto), got {load_points!r}")
         self.load_points = load_points
         self.min_box_points = min_box_points
+        self.check_files = check_files
         if check_files:
             for split in ("train", "val", "test"):
                 ds = self.build_dataset(split)
                 assert isinstance(ds, Occ3DNuScenesDataset)
                 stat_files(ds.files())
+                if load_points:
+                    stat_files(ds.lidar_files())
                 if len(ds) and ds.occ_root is not None and self.index.samples[ds.items[0]].get("occ"):
                     read_labels(ds.occ_root / self.index.samples[ds.items[0]]["occ"], expected_shape=self.grid.shape)
+
+    @property
+    def reads_points(self) -> bool:
+        """Whether items open LiDAR files (``load_points``, resolved against the declared fields)."""
+        return resolve_load_points(self.load_points, self.required_fields)
+
+    def require_fields(self, fields: Collection[str]) -> None:
+        """See :meth:`OccDataModule.require_fields`; with ``load_points`` auto and points declared, checks
+        every LiDAR file of every split now (keyframes, the sweeps used, lidarseg)."""
+        super().require_fields(fields)
+        if self.reads_points and self.load_points is None and self.check_files:
+            for split in ("train", "val", "test"):
+                ds = self.build_dataset(split)
+                assert isinstance(ds, Occ3DNuScenesDataset)
+                stat_files(ds.lidar_files())
 
     def build_dataset(self, split: str) -> Dataset[Frame]:
         """The :class:`Occ3DNuScenesDataset` of ``split`` (``predict`` = ``val``)."""
         return Occ3DNuScenesDataset(
-            self.index, split, self.root, self.occ_root, self.cameras, self.grid, self.num_sweeps, self.load_points,
+            self.index, split, self.root, self.occ_root, self.cameras, self.grid, self.num_sweeps, self.reads_points,
             self.min_box_points, self.adjacent_offsets, self.pipeline(split), self.cache_dir,
         )

@@ -36,7 +36,42 @@ from .frame import Frame
 from .pseudo_labels import PseudoLabelSource
 from .sequences import SceneIndex, SceneSequenceSampler
 
-__all__ = ["FramePipeline", "PipelineDataset", "PseudoLabeler", "ReaderDataModule", "ReaderDataset", "default_cache_root"]
+__all__ = [
+    "LIDAR_FIELDS",
+    "FramePipeline",
+    "PipelineDataset",
+    "PseudoLabeler",
+    "ReaderDataModule",
+    "ReaderDataset",
+    "default_cache_root",
+    "latest_mtime",
+    "resolve_load_points",
+    "stat_files",
+]
+
+#: The optional frame fields decoded from LiDAR files (``LIDAR_TOP`` sweeps, lidarseg, ``velodyne/``, ``labels/``).
+LIDAR_FIELDS = frozenset({"points", "point_labels"})
+
+
+def resolve_load_points(load_points: bool | None, required_fields: frozenset[str] | None) -> bool:
+    """Whether a file reader opens LiDAR files.
+
+    Args:
+        load_points: the reader's ``load_points`` setting: True / False, or None = auto (load them
+            iff the model reads :data:`LIDAR_FIELDS`; when the model never declared its fields,
+            :meth:`~occplug.data.datamodule.OccDataModule.require_fields`, load them).
+        required_fields: the declared fields, or None.
+
+    Raises:
+        ValueError: ``load_points`` is False but the model reads LiDAR fields.
+    """
+    needed = sorted(LIDAR_FIELDS & required_fields) if required_fields is not None else []
+    if load_points is False and needed:
+        raise ValueError(f"data.load_points is false but the model reads LiDAR points ({', '.join(needed)}); "
+                         "set data.load_points to null (auto) or true")
+    if load_points is None:
+        return required_fields is None or bool(needed)
+    return bool(load_points)
 
 
 class PseudoLabeler(Protocol):
@@ -267,3 +302,18 @@ def stat_files(paths: Sequence[tuple[Path, Callable[[int], str | None]] | Path])
             problem = check(size)
             if problem:
                 raise FormatError(f"{path}: {problem}")
+
+
+def latest_mtime(paths: Sequence[tuple[Path, Callable[[int], str | None]] | Path]) -> int:
+    """The newest modification time (ns) among ``paths`` (as :func:`stat_files` takes them); missing files are skipped.
+
+    Part of a decoded-frame cache key, so that frames of a rewritten tree are decoded again.
+    """
+    newest = 0
+    for item in paths:
+        path = item if isinstance(item, Path) else item[0]
+        try:
+            newest = max(newest, path.stat().st_mtime_ns)
+        except FileNotFoundError:
+            continue
+    return newest

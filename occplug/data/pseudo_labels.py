@@ -12,8 +12,10 @@ token, ``08_000123`` for SemanticKITTI) and ``<camera>`` a name of ``Frame.camer
     <semantics dir>/<token>/<camera>.png   (H', W') uint8 or uint16 single-channel PNG of foreign class ids
     <semantics dir>/<token>/<camera>.npy   (H', W') integer foreign class ids
     <features dir>/<token>/<camera>.npy    (F, h, w) float16/float32 low-resolution features
+    <features dir>/<token>/<camera>.npz    the same array under the key ``features`` (e.g. written with
+                                           ``numpy.savez_compressed(path, features=array)``)
 
-Depth and semantic maps may have another resolution than the image: they are resized to the
+Where both ``<camera>.npy`` and another extension exist, ``.npy`` is read. Depth and semantic maps may have another resolution than the image: they are resized to the
 original image (nearest neighbour, pixel-centre convention) and then follow every image
 augmentation. Feature maps keep their resolution (they must cover the whole original image).
 
@@ -60,15 +62,17 @@ from torch import Tensor
 
 from occplug.registry import closest
 
-from .formats import FormatError
+from .formats import FormatError, load_npz
 from .frame import Frame
 from .imageio import read_map
 
-__all__ = ["IGNORE", "PseudoLabelSource", "load_mapping"]
+__all__ = ["FEATURES_KEY", "IGNORE", "PseudoLabelSource", "load_mapping"]
 
 #: ``Frame.pseudo_semantics`` id of pixels without a target class.
 IGNORE = 255
 _KINDS = ("depth", "semantics", "features")
+#: The array of a feature map stored as ``.npz``.
+FEATURES_KEY = "features"
 
 
 def load_mapping(path: str | Path, class_names: Sequence[str]) -> np.ndarray:
@@ -133,7 +137,7 @@ class _Source:
 
     def path(self, token: str, camera: str) -> Path:
         folder = self.dir / token
-        for ext in ((".npy",) if self.kind == "features" else (".npy", ".png")):
+        for ext in ((".npy", ".npz") if self.kind == "features" else (".npy", ".png")):
             candidate = folder / f"{camera}{ext}"
             if candidate.is_file():
                 return candidate
@@ -193,7 +197,13 @@ class PseudoLabelSource:
         path = src.path(token, camera)
         if not path.is_file() and self.missing == "empty":
             return None
-        array = read_map(path)
+        if path.suffix == ".npz":
+            data = load_npz(path)
+            if FEATURES_KEY not in data:
+                raise FormatError(f"{path}: no '{FEATURES_KEY}' array (keys: {', '.join(sorted(data)) or 'none'})")
+            array = data[FEATURES_KEY]
+        else:
+            array = read_map(path)
         expected = 3 if src.kind == "features" else 2
         if array.ndim != expected:
             layout = "(F, h, w)" if expected == 3 else "(H, W)"

@@ -24,6 +24,8 @@ There are no boxes and no Occ3D-style visibility masks.
 
 from __future__ import annotations
 
+from collections.abc import Collection
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -34,10 +36,10 @@ from occplug.geometry import GridSpec
 
 from .classes import SEMANTIC_KITTI_CLASSES
 from .formats import FormatError
-from .formats.semantickitti import IGNORE, SSC_GRID, learning_map_lut, read_voxels, sample_token
+from .formats.semantickitti import IGNORE, SSC_GRID, learning_map_lut, read_voxels, sample_token, voxel_file_problem
 from .frame import Frame
 from .imageio import read_rgb
-from .pipeline import FramePipeline, ReaderDataModule, ReaderDataset, stat_files
+from .pipeline import FramePipeline, ReaderDataModule, ReaderDataset, latest_mtime, resolve_load_points, stat_files
 from .sequences import SceneIndex
 
 __all__ = ["SPLIT_SEQUENCES", "SemanticKITTIDataModule", "SemanticKITTIDataset", "read_calib", "read_poses", "read_velodyne"]
@@ -168,10 +170,16 @@ class SemanticKITTIDataset(ReaderDataset):
     Args:
         root: the folder holding ``sequences/``.
         split: ``train``, ``val``, ``test`` or ``predict`` (= ``val``).
-        sequences: the split's sequences.
+        sequences: the split's sequences; those without a folder are left out (:attr:`missing`), but
+            a non-empty list of which none is present is an error.
         grid: the voxel grid (velodyne frame); voxel files must have its shape.
         load_points: read velodyne scans and point labels.
-        offsets, pipeline, cache_dir: see :class:`~occplug.data.pipeline.ReaderDataset`.
+        offsets, pipeline, cache_dir: see :class:`~occplug.data.pipeline.ReaderDataset`; the cache
+            key holds the newest modification time of the files items read, so a rewritten tree is
+            decoded again.
+
+    Raises:
+        FormatError: none of ``sequences`` is present (one line naming the first expected folder).
     """
 
     def __init__(self, root: Path, split: str, sequences: tuple[str, ...], grid: GridSpec, load_points: bool = True,
@@ -180,13 +188,21 @@ class SemanticKITTIDataset(ReaderDataset):
         self.split = "val" if split == "predict" else split
         self.grid = grid
         self.load_points = load_points
-        self.sequences = [_Sequence(root, s, with_labels=False) for s in sequences if (root / "sequences" / s).is_dir()]
+        present = [s for s in sequences if (root / "sequences" / s).is_dir()]
+        #: The split's sequences without a folder under ``sequences/``.
+        self.missing = [s for s in sequences if s not in present]
+        if sequences and not present:
+            raise FormatError(f"{root / 'sequences' / sequences[0]}: no such sequence folder (none of the {self.split} "
+                              f"sequences {', '.join(sequences)} is present)")
+        self.sequences = [_Sequence(root, s, with_labels=False) for s in present]
         self.items = [(seq, pos, scan) for seq in self.sequences for pos, scan in enumerate(seq.scans)]
-        super().__init__(
-            SceneIndex.from_scene_names([seq.name for seq, _, _ in self.items]), offsets, pipeline, cache_dir,
-            cache_key={"reader": "semantickitti", "root": str(root.resolve()), "split": self.split, "grid": grid.to_dict(),
-                       "points": load_points},
-        )
+        key: dict = {"reader": "semantickitti", "root": str(root.resolve()), "split": self.split, "grid": grid.to_dict(),
+                     "points": load_points}
+        if cache_dir is not None:
+            own = [seq.folder / name for seq in self.sequences for name in ("calib.txt", "poses.txt", "times.txt")]
+            key["mtime"] = latest_mtime([*own, *self.files(), *(self.lidar_files() if load_points else [])])
+        super().__init__(SceneIndex.from_scene_names([seq.name for seq, _, _ in self.items]), offsets, pipeline,
+                         cache_dir, cache_key=key)
         self._point_lut = _point_lut()
 
     def token(self, index: int) -> str:
@@ -194,27 +210,28 @@ class SemanticKITTIDataset(ReaderDataset):
         return sample_token(seq.name, scan)
 
     def files(self) -> list:
-        """The files items read (``(path, size check)`` pairs where the size is known), for :func:`stat_files`."""
+        """The images and voxel files items read (``(path, size check)`` pairs for voxel files), for
+        :func:`stat_files` (LiDAR files: :meth:`lidar_files`)."""
         out: list = []
-        count = int(np.prod(self.grid.shape))
-        shape = self.grid.shape
-
-        def label_size(n: int) -> str | None:
-            return None if n == 2 * count else f"{n} bytes; expected {2 * count} ({count} uint16 voxels of a {shape} grid)"
-
-        def bits_size(n: int) -> str | None:
-            return None if n * 8 == count else f"{n} bytes; expected {count // 8} ({count} voxels, 8 per byte)"
-
+        label_size = partial(voxel_file_problem, ".label", shape=self.grid.shape)
+        bits_size = partial(voxel_file_problem, ".invalid", shape=self.grid.shape)
         for seq, _, scan in self.items:
             name = f"{scan:06d}"
             out.append(seq.folder / "image_2" / f"{name}.png")
-            if self.load_points:
-                out.append((seq.folder / "velodyne" / f"{name}.bin", _velodyne_problem))
-                if seq.labelled:
-                    out.append(seq.folder / "labels" / f"{name}.label")
             if seq.labelled:
                 out.append((seq.folder / "voxels" / f"{name}.label", label_size))
                 out.append((seq.folder / "voxels" / f"{name}.invalid", bits_size))
+        return out
+
+    def lidar_files(self) -> list:
+        """The LiDAR files items read when points are loaded: ``velodyne/*.bin`` (with a size check) and, in
+        labelled sequences, ``labels/*.label``, for :func:`stat_files`."""
+        out: list = []
+        for seq, _, scan in self.items:
+            name = f"{scan:06d}"
+            out.append((seq.folder / "velodyne" / f"{name}.bin", _velodyne_problem))
+            if seq.labelled:
+                out.append(seq.folder / "labels" / f"{name}.label")
         return out
 
     def load(self, index: int) -> Frame:
@@ -263,7 +280,9 @@ class SemanticKITTIDataModule(ReaderDataModule):
         grid: the voxel grid in the velodyne frame (default the SSC grid, 256 x 256 x 32 at 0.2 m).
         splits: ``{split: [sequence names]}`` replacing the standard split (train 00-07, 09, 10; val 08; test 11-21).
         image_size: ``[H, W]`` the images are resized to (all splits), e.g. ``[370, 1220]``.
-        load_points: read velodyne scans and point labels (False opens no LiDAR file).
+        load_points: read velodyne scans and point labels: true, false (opens no LiDAR file), or null
+            (default, auto): iff the model reads ``points`` or ``point_labels`` (see
+            :meth:`~occplug.data.datamodule.OccDataModule.require_fields`; loaded when undeclared).
         adjacent_offsets: sample offsets loaded into ``Frame.adjacent`` (labelled scans, 0.5 s apart).
         sequential: read sequences in temporal order (:class:`~occplug.data.sequences.SceneSequenceSampler`).
         augment: training augmentation (:mod:`occplug.data.augment`; mirror with ``bev.flip_y``: the grid is
@@ -273,8 +292,12 @@ class SemanticKITTIDataModule(ReaderDataModule):
         num_workers: loader worker processes.
         pin_memory: pin batches in memory (for GPU training).
         cache_dir: cache decoded frames on disk here, or None.
-        check_files: at construction, check every file of every split (existence; sizes of voxel and
-            velodyne files), so a bad tree fails in one line.
+        check_files: at construction, check every image and voxel file of every split (existence,
+            sizes), so a bad tree fails in one line; LiDAR files (``velodyne/`` with sizes, ``labels/``)
+            then with ``load_points: true``, and with auto when :meth:`require_fields` declares points.
+            The train and val splits need at least one of their sequences (missing ones are left out;
+            ``occplug data check semantickitti`` lists them); a test split none of whose sequences is
+            present fails only when it is read.
     """
 
     def __init__(
@@ -283,7 +306,7 @@ class SemanticKITTIDataModule(ReaderDataModule):
         grid: dict | None = None,
         splits: dict[str, list[str]] | None = None,
         image_size: list[int] | None = None,
-        load_points: bool = True,
+        load_points: bool | None = None,
         adjacent_offsets: list[int] | None = None,
         sequential: bool = False,
         augment: str | dict | None = None,
@@ -308,19 +331,46 @@ class SemanticKITTIDataModule(ReaderDataModule):
             if split not in ("train", "val", "test"):
                 raise ValueError(f"data.splits.{split}: unknown split (valid: train, val, test)")
             self.splits[split] = tuple(f"{int(s):02d}" if str(s).isdigit() else str(s) for s in seqs)
+        if load_points not in (None, True, False):
+            raise ValueError(f"data.load_points must be true, false or null (auto), got {load_points!r}")
         self.load_points = load_points
+        self.check_files = check_files
         if check_files:
-            for split in ("train", "val", "test"):
-                ds = self.build_dataset(split)
-                assert isinstance(ds, SemanticKITTIDataset)
-                if split in ("train", "val"):
+            for ds in self._checked_datasets():
+                if ds.split in ("train", "val"):
                     for seq in ds.sequences:
                         if not seq.labelled:
-                            raise FormatError(f"{seq.folder / 'voxels'}: no voxel labels (*.label) in {split} sequence {seq.name}")
+                            raise FormatError(f"{seq.folder / 'voxels'}: no voxel labels (*.label) in {ds.split} sequence {seq.name}")
                 stat_files(ds.files())
+                if load_points:
+                    stat_files(ds.lidar_files())
+
+    def _checked_datasets(self) -> list[SemanticKITTIDataset]:
+        """The datasets the file checks cover: train, val, and test when any of its sequences is present."""
+        out = []
+        for split in ("train", "val", "test"):
+            if split == "test" and not any((self.root / "sequences" / s).is_dir() for s in self.splits["test"]):
+                continue
+            ds = self.build_dataset(split)
+            assert isinstance(ds, SemanticKITTIDataset)
+            out.append(ds)
+        return out
+
+    @property
+    def reads_points(self) -> bool:
+        """Whether items open LiDAR files (``load_points``, resolved against the declared fields)."""
+        return resolve_load_points(self.load_points, self.required_fields)
+
+    def require_fields(self, fields: Collection[str]) -> None:
+        """See :meth:`OccDataModule.require_fields`; with ``load_points`` auto and points declared, checks
+        every ``velodyne/`` and ``labels/`` file now."""
+        super().require_fields(fields)
+        if self.reads_points and self.load_points is None and self.check_files:
+            for ds in self._checked_datasets():
+                stat_files(ds.lidar_files())
 
     def build_dataset(self, split: str) -> Dataset[Frame]:
         """The :class:`SemanticKITTIDataset` of ``split`` (``predict`` = ``val``)."""
         key = "val" if split == "predict" else split
-        return SemanticKITTIDataset(self.root, split, self.splits[key], self.grid, self.load_points, self.adjacent_offsets,
+        return SemanticKITTIDataset(self.root, split, self.splits[key], self.grid, self.reads_points, self.adjacent_offsets,
                                     self.pipeline(split), self.cache_dir)

@@ -107,6 +107,88 @@ def test_points_are_not_opened_when_not_needed(copy):
     assert f.points is None and f.voxel_labels is not None
 
 
+def _lidar(paths):
+    return [p for p in paths if "LIDAR_TOP" in p or "lidarseg" in p]
+
+
+def test_camera_only_runs_never_open_lidar_files(copy, touched):
+    assert prepare(copy, "--sweeps", "2") == 0
+    # control: a LiDAR-reading model opens them (so the spy sees LiDAR paths when they are opened)
+    dm = module(copy, num_sweeps=2)
+    dm.require_fields({"points", "point_labels"})
+    assert dm.dataset("val")[1].points is not None and _lidar(touched)
+    # every LIDAR_TOP file (keyframes, which are also the sweeps of this tree) and every lidarseg file removed
+    index = read_index(copy / "index")
+    assert any(rec["sweeps"] for rec in index.samples)
+    shutil.rmtree(copy / "samples" / "LIDAR_TOP")
+    shutil.rmtree(copy / "lidarseg")
+    touched.clear()
+    dm = module(copy, num_sweeps=2)  # load_points auto: construction stats no LiDAR file
+    dm.require_fields(set())
+    read = 0
+    for split in ("train", "val", "test", "predict"):
+        ds = dm.dataset(split)
+        for i in range(len(ds)):
+            f = ds[i]
+            assert f.points is None and f.point_labels is None and f.voxel_labels is not None and f.images.shape[0] == 6
+            read += 1
+    assert read == 2 * TINY.frames("val") + TINY.frames("train")
+    assert touched and not _lidar(touched)
+    # a LiDAR-supervised model: one line naming the first missing file (the first training sample's keyframe)
+    first = copy / index.samples[index.split_indices("train")[0]]["lidar"]
+    with pytest.raises(FormatError, match=rf"^{first}: no such file$"):
+        module(copy).require_fields({"points"})
+    with pytest.raises(FormatError, match=rf"^{first}: no such file$"):
+        module(copy).require_fields({"point_labels"})
+    with pytest.raises(ValueError, match=r"data\.load_points is false but the model reads LiDAR points \(points\)"):
+        module(copy, load_points=False).require_fields({"points", "mask_camera"})
+    # an explicit load_points false stays camera-only when undeclared too
+    assert module(copy, load_points=False).dataset("val")[0].points is None
+
+
+def test_sweeps_are_checked_when_used(copy, capsys):
+    """A sweep (a non-keyframe LiDAR sample_data in the ``prev`` chain) that is missing: ``prepare`` names it, and a
+    reader with ``num_sweeps > 1`` names it at construction (keyframe-only readers do not need it)."""
+    folder = copy / "v1.0-trainval"
+    rows = json.loads((folder / "sample_data.json").read_text())
+    key = next(r for r in rows if r["is_key_frame"] and "LIDAR_TOP" in r["filename"] and r["prev"])
+    sweep = dict(key, token="extra-sweep", is_key_frame=False, next=key["token"], sample_token=key["sample_token"],
+                 filename="sweeps/LIDAR_TOP/extra-sweep.pcd.bin", timestamp=key["timestamp"] - 50_000)
+    next(r for r in rows if r["token"] == key["prev"])["next"] = sweep["token"]
+    key["prev"] = sweep["token"]
+    (folder / "sample_data.json").write_text(json.dumps([*rows, sweep]))
+    missing = copy / sweep["filename"]
+    capsys.readouterr()
+    assert prepare(copy, "--sweeps", "2") == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"error: {missing}: missing LiDAR sweep (of sample {key['sample_token']}; --sweeps 0 records none)")
+    assert not (copy / "index" / INDEX_NAME).exists()
+    assert prepare(copy, "--sweeps", "2", "--no-check-files") == 0
+    with pytest.raises(FormatError, match=rf"^{missing}: no such file$"):
+        module(copy, num_sweeps=2, load_points=True)
+    with pytest.raises(FormatError, match=rf"^{missing}: no such file$"):
+        module(copy, num_sweeps=2).require_fields({"points"})
+    module(copy, num_sweeps=1, load_points=True)  # the keyframes alone are complete
+    missing.parent.mkdir(parents=True)
+    missing.write_bytes(b"\0" * 30)  # 1.5 points
+    with pytest.raises(FormatError, match=rf"^{missing}: 30 bytes is not a whole number of 5-float32 points"):
+        module(copy, num_sweeps=2, load_points=True)
+
+
+def test_a_wrong_shape_met_after_the_first_label_file_fails_in_one_line_when_read(copy):
+    assert prepare(copy) == 0
+    index = read_index(copy / "index")
+    items = index.split_indices("val")
+    victim = copy / index.samples[items[1]]["occ"]
+    good = np.load(victim)
+    np.savez_compressed(victim, semantics=good["semantics"][:, :, :4], mask_lidar=good["mask_lidar"][:, :, :4],
+                        mask_camera=good["mask_camera"][:, :, :4])
+    ds = module(copy).dataset("val")  # construction checks only the first labels.npz of a split: cheap
+    assert ds[0].voxel_labels.shape == TINY.grid.shape
+    with pytest.raises(FormatError, match=rf"^{victim}: 'semantics' has shape \(40, 40, 4\); expected \(40, 40, 8\)$"):
+        ds[1]
+
+
 def test_pseudo_labels_from_the_tree(tree):
     p = tree / "pseudo"
     dm = module(tree, pseudo_labels={"depth": str(p / "depth"), "features": str(p / "features"),
@@ -160,12 +242,16 @@ def test_bad_inputs_at_construction_are_one_line_errors(copy, capsys):
     assert main(fit) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and "labels.npz: 'semantics' has shape" in err[0]
-    # a LiDAR file cut short after the index was built
+    # a LiDAR file cut short after the index was built: found at construction with load_points true, and
+    # with auto (the default) once the model declares that it reads points
     victim = sorted((copy / "samples" / "LIDAR_TOP").iterdir())[0]
     victim.write_bytes(victim.read_bytes()[:-4])
     with pytest.raises(FormatError, match="not a whole number of 5-float32 points"):
-        module(copy)
-    assert main([*fit, f"grid.range={list(TINY.grid.range)}", "grid.voxel_size=0.8"]) == 2
+        module(copy, load_points=True)
+    dm = module(copy)
+    with pytest.raises(FormatError, match=f"{victim}: .* not a whole number of 5-float32 points"):
+        dm.require_fields({"points"})
+    assert main([*fit, f"grid.range={list(TINY.grid.range)}", "grid.voxel_size=0.8", "data.load_points=true"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"error: {victim}: " in err[0]
     assert not run.exists()
@@ -204,3 +290,29 @@ def test_decoded_frame_cache_gives_identical_frames(tree, tmp_path):
             assert torch.equal(getattr(a, name), getattr(b, name)), name
         assert torch.equal(a.extras["point_time_lag"], b.extras["point_time_lag"])
     assert len(list(tmp_path.rglob("*.pt"))) == 1
+
+
+def test_camera_only_runs_need_no_lidar_file_and_lidar_supervision_names_the_missing_one(copy, tmp_path, capsys):
+    """With every LIDAR_TOP file (keyframes and sweeps) and lidarseg file gone, the camera-only baseline
+    trains, validates and predicts; adding LiDAR depth supervision fails in one line naming the first missing file."""
+    assert prepare(copy, "--sweeps", "2") == 0  # the index of the complete tree
+    removed = [p for p in copy.rglob("*") if p.is_file() and ("LIDAR_TOP" in p.name or "lidarseg" in p.parts)]
+    assert len(removed) > 5
+    for path in removed:
+        path.unlink()
+    common = ["-c", "configs/baseline.yaml", "-c", "occplug/trainer/debug", "-c", "occplug/data/occ3d_nuscenes",
+              f"data.root={copy}", f"data.index={copy / 'index'}", "data.image_size=null", "data.num_workers=0",
+              f"grid.range={list(TINY.grid.range)}", f"grid.voxel_size={TINY.grid.voxel_size[0]}"]
+    run = tmp_path / "camera_only"
+    assert main(["fit", *common, "--run-dir", str(run)]) == 0
+    assert json.loads((run / "metrics.json").read_text())["global_step"] == 2
+    ckpt = str(run / "checkpoints" / "last.ckpt")
+    assert main(["validate", "--ckpt", ckpt]) == 0
+    assert main(["predict", "--ckpt", ckpt, "--out", str(tmp_path / "preds")]) == 0
+    capsys.readouterr()
+
+    lidar_run = tmp_path / "lidar"
+    assert main(["fit", *common, "model.supervision.depth={type: lidar_depth}", "--run-dir", str(lidar_run)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "LIDAR_TOP" in err and err.endswith(".pcd.bin: no such file"), err
+    assert not lidar_run.exists()  # nothing written half-way

@@ -122,3 +122,18 @@ def test_missing_files_fail_in_one_line_or_give_empty_maps(frame, tmp_path):
 def _write(path, text):
     path.write_text(text)
     return path
+
+
+def test_feature_maps_read_from_npz_under_the_features_key(frame, tmp_path):
+    labeler = SyntheticPseudoLabels("default")
+    labeler.write(frame, tmp_path)
+    npy = PseudoLabelSource({"features": str(tmp_path / "features")}, OCC3D_CLASSES).attach(frame).pseudo_features
+    for path in sorted((tmp_path / "features" / frame.token).glob("*.npy")):
+        np.savez_compressed(path.with_suffix(".npz"), features=np.load(path))
+        path.unlink()
+    read = PseudoLabelSource({"features": str(tmp_path / "features")}, OCC3D_CLASSES).attach(frame)
+    assert torch.equal(read.pseudo_features, npy)  # the same arrays, from .npz
+    victim = tmp_path / "features" / frame.token / f"{frame.camera_names[0]}.npz"
+    np.savez_compressed(victim, feats=np.zeros((2, 3, 4), np.float16))
+    with pytest.raises(FormatError, match=rf"{victim.name}: no 'features' array \(keys: feats\)"):
+        PseudoLabelSource({"features": str(tmp_path / "features")}, OCC3D_CLASSES).attach(frame)

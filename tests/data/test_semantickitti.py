@@ -108,7 +108,10 @@ def test_bad_inputs_fail_in_one_line_naming_the_file(copy):
     good = velo.read_bytes()
     velo.write_bytes(good[:-8])
     with pytest.raises(FormatError, match=r"08/velodyne/000005\.bin: \d+ bytes is not a whole number of 4-float32 points"):
-        module(copy)
+        module(copy, load_points=True)
+    dm = module(copy)  # load_points auto: LiDAR files are checked once the model declares points
+    with pytest.raises(FormatError, match=r"08/velodyne/000005\.bin: \d+ bytes is not a whole number of 4-float32 points"):
+        dm.require_fields({"points"})
     velo.write_bytes(good)
     invalid = copy / "sequences" / "00" / "voxels" / "000010.invalid"
     invalid.write_bytes(invalid.read_bytes()[:-1])
@@ -130,3 +133,65 @@ def test_splits_argument_replaces_the_standard_split(tree):
     dm = module(tree, splits={"train": ["08"], "val": ["00"]})
     assert dm.dataset("train")[0].scene == "08" and dm.dataset("predict")[0].scene == "00"
     assert collate_frames([dm.dataset("val")[0]]).voxel_labels.shape == (1, *GRID.shape)
+
+
+def _lidar(paths):
+    return [p for p in paths if "/velodyne/" in p or "/labels/" in p]
+
+
+def test_camera_only_runs_never_open_velodyne_or_point_label_files(copy, touched):
+    dm = module(copy)
+    dm.require_fields({"points"})
+    assert dm.dataset("val")[0].point_labels is not None and _lidar(touched)  # control: the spy sees them
+    for seq in ("00", "08"):
+        shutil.rmtree(copy / "sequences" / seq / "velodyne")
+        shutil.rmtree(copy / "sequences" / seq / "labels")
+    touched.clear()
+    dm = module(copy)  # load_points auto
+    dm.require_fields(set())
+    read = 0
+    for split in ("train", "val", "predict"):
+        ds = dm.dataset(split)
+        for i in range(len(ds)):
+            f = ds[i]
+            assert f.points is None and f.point_labels is None and f.voxel_labels is not None
+            read += 1
+    assert read == len(dm.dataset("train")) + 2 * len(dm.dataset("val")) > 0
+    assert touched and not _lidar(touched)
+    first = copy / "sequences" / "00" / "velodyne" / "000000.bin"
+    with pytest.raises(FormatError, match=rf"^{first}: no such file$"):
+        module(copy).require_fields({"points"})
+    for seq in ("00", "08"):  # velodyne back, labels/ still missing: a point-label model names the first .label
+        (copy / "sequences" / seq / "velodyne").mkdir()
+        for scan in (0, 5, 10):
+            (copy / "sequences" / seq / "velodyne" / f"{scan:06d}.bin").write_bytes(b"\0" * 32)
+    with pytest.raises(FormatError, match=rf"^{copy / 'sequences' / '00' / 'labels' / '000000.label'}: no such file$"):
+        module(copy).require_fields({"point_labels"})
+    with pytest.raises(ValueError, match=r"data\.load_points is false but the model reads LiDAR points \(point_labels\)"):
+        module(copy, load_points=False).require_fields({"point_labels"})
+
+
+def test_missing_sequences(copy):
+    with pytest.raises(FormatError, match=rf"^{copy / 'sequences' / '05'}: no such sequence folder \(none of the val "
+                                          r"sequences 05, 06 is present\)$"):
+        module(copy, splits={"val": ["05", "06"]})
+    dm = module(copy, splits={"train": ["00", "03"]})  # partly present: read what is there
+    assert dm.dataset("train").missing == ["03"] and {f.scene for f in dm.dataset("train")} == {"00"}
+    # the standard test split (11-21) is absent: fine until it is read
+    with pytest.raises(FormatError, match=rf"^{copy / 'sequences' / '11'}: no such sequence folder"):
+        dm.dataset("test")
+
+
+def test_decoded_frame_cache_is_not_stale_after_the_tree_is_rewritten(copy, tmp_path):
+    cache = tmp_path / "cache"
+    before = module(copy, cache_dir=str(cache)).dataset("val")[1]
+    assert len(list(cache.rglob("*.pt"))) == 1
+    again = module(copy, cache_dir=str(cache)).dataset("val")[1]  # unchanged tree: served from the cache
+    assert len(list(cache.rglob("*.pt"))) == 1 and torch.equal(again.voxel_labels, before.voxel_labels)
+    label = copy / "sequences" / "08" / "voxels" / f"{before.extras['scan']:06d}.label"
+    raw = np.fromfile(label, dtype=np.uint16)
+    raw[:] = 40  # every voxel "road" (SSC class 9), rewritten in place with the same size
+    raw.tofile(label)
+    after = module(copy, cache_dir=str(cache)).dataset("val")[1]
+    assert bool((after.voxel_labels == 9).all()) and not torch.equal(after.voxel_labels, before.voxel_labels)
+    assert len(list(cache.rglob("*.pt"))) == 2

@@ -38,6 +38,7 @@ __all__ = [
     "SSC_GRID",
     "SSC_SHAPE",
     "SSCVoxels",
+    "VOXEL_EXTENSIONS",
     "find_label_files",
     "learning_map_lut",
     "pack",
@@ -47,6 +48,7 @@ __all__ = [
     "remap_labels",
     "sample_token",
     "unpack",
+    "voxel_file_problem",
     "write_bits",
     "write_raw_labels",
 ]
@@ -116,6 +118,28 @@ def _read_array(path: Path, dtype: type, count: int) -> np.ndarray:
         values = f" ({count} {item.name} values)" if item.itemsize > 1 else ""
         raise FormatError(f"{path}: {path.stat().st_size} bytes; expected {count * item.itemsize}{values}")
     return data
+
+
+#: The voxel files of a labelled scan, ``voxels/<NNNNNN><ext>``.
+VOXEL_EXTENSIONS: tuple[str, ...] = (".bin", ".label", ".invalid", ".occluded")
+
+
+def voxel_file_problem(suffix: str, size: int, shape: tuple[int, ...] = SSC_SHAPE) -> str | None:
+    """What is wrong with the size of a voxel file, or None.
+
+    Args:
+        suffix: the file's extension (:data:`VOXEL_EXTENSIONS`): ``.label`` holds ``uint16`` per voxel,
+            the others one bit per voxel.
+        size: the file size in bytes.
+        shape: the voxel grid.
+    """
+    count = int(np.prod(shape))
+    shape = tuple(shape)
+    if suffix == ".label":
+        return None if size == 2 * count else f"{size} bytes; expected {2 * count} ({count} uint16 voxels of a {shape} grid)"
+    if suffix not in VOXEL_EXTENSIONS:
+        raise ValueError(f"unknown voxel file extension {suffix!r} (valid: {', '.join(VOXEL_EXTENSIONS)})")
+    return None if size * 8 == count else f"{size} bytes; expected {count // 8} ({count} voxels, 8 per byte)"
 
 
 def read_bits(path: str | Path, shape: tuple[int, ...] = SSC_SHAPE) -> Tensor:
