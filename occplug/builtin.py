@@ -34,6 +34,7 @@ def occplug_register_components(registry: Registry) -> None:
     registry.add("scene", "dense_voxels", c.DenseVoxels)
     registry.add("head", "voxel_classifier", c.VoxelClassifier)
     registry.add("supervision", "voxel_ce", c.VoxelCrossEntropy)
+    registry.add("supervision", "lidar_depth", c.LidarDepthSupervision)
     registry.add("data", "synthetic", SyntheticDataModule)
     registry.add("data", "occ3d_nuscenes", Occ3DNuScenesDataModule)
     registry.add("data", "semantickitti", SemanticKITTIDataModule)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import warnings
 from typing import Annotated, Any
 
@@ -15,7 +16,7 @@ from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 from occplug.metrics.base import OccMetric
 from occplug.plugins import get_registry
-from occplug.training import build_optimizer, build_scheduler
+from occplug.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
 
 __all__ = ["KIND_INTERFACES", "OccModel", "build_component"]
 
@@ -117,6 +118,24 @@ class OccModel(L.LightningModule):
         self.test_metrics = self._build_metrics(metrics, ignore_label)
         self.last_results: dict[str, dict[str, float]] = {}
         self.last_tables: dict[str, str] = {}
+        #: samples per optimizer step and the learning rate used (set when training starts).
+        self.effective_batch: EffectiveBatch | None = None
+        self.effective_lr: float | None = None
+
+    def required_fields(self) -> frozenset[str]:
+        """Optional :class:`~occplug.data.Frame` fields some component or metric reads (their ``requires``).
+
+        The runner tells the data module (``require_fields``), so a camera-only model never opens
+        a LiDAR file.
+        """
+        out: set[str] = set()
+        for module in self.modules():
+            out |= set(getattr(module, "requires", ()))
+        return frozenset(out)
+
+    def training_masks(self) -> dict[str, str]:
+        """``{supervision name: its training_mask}`` (``none``, ``camera``, ``lidar``, ...)."""
+        return {name: str(getattr(source, "training_mask", "none")) for name, source in self.supervision.items()}
 
     def _build_metrics(self, specs: list | None, ignore_label: int | None) -> nn.ModuleDict:
         out = nn.ModuleDict()
@@ -166,6 +185,13 @@ class OccModel(L.LightningModule):
         return out
 
     # ---------------------------------------------------------------- steps
+    def on_train_start(self) -> None:
+        if self.effective_batch is not None and self.logger is not None:
+            self.logger.log_metrics(
+                {"train/effective_batch": float(self.effective_batch.total), "train/effective_lr": float(self.effective_lr or 0.0)},
+                step=self.global_step,
+            )
+
     def training_step(self, batch: Batch, batch_idx: int) -> Tensor:
         outputs = self(batch)
         losses = self.losses(batch, outputs)
@@ -188,16 +214,19 @@ class OccModel(L.LightningModule):
             metric.update(pred, batch)
 
     def _eval_epoch_end(self, stage: str, metrics: nn.ModuleDict) -> None:
+        computed = {name: metric.compute() for name, metric in metrics.items()}  # torchmetrics syncs ranks here
+        keys = [key for values in computed.values() for key in values]
+        shared = {key for key in keys if keys.count(key) > 1}  # e.g. mIoU of occ3d_miou and of ssc
         results: dict[str, float] = {}
-        for name, metric in metrics.items():
-            values = metric.compute()  # torchmetrics syncs states across ranks here
+        for name, values in computed.items():
             for key, value in values.items():
+                key = f"{name}/{key}" if key in shared else key
                 with warnings.catch_warnings():  # Lightning's "use sync_dist=True" hint: the value is already synced
                     warnings.filterwarnings("ignore", message=".*sync_dist=True.*")
                     self.log(f"{stage}/{key}", value, sync_dist=False, prog_bar=key in ("mIoU", "RayIoU"))
                 results[key] = float(value)
-            self.last_tables[name] = metric.table()
-            metric.reset()
+            self.last_tables[name] = metrics[name].table()
+            metrics[name].reset()
         self.last_results[stage] = results
 
     def validation_step(self, batch: Batch, batch_idx: int) -> None:
@@ -216,8 +245,22 @@ class OccModel(L.LightningModule):
         return {"token": list(batch.token), "pred": self.predict_occupancy(batch)}
 
     # ---------------------------------------------------------------- optimisation
+    def _effective_batch(self) -> EffectiveBatch | None:
+        trainer = self._trainer
+        per_device = getattr(getattr(trainer, "datamodule", None), "batch_size", None)
+        if trainer is None or per_device is None:
+            return None
+        return EffectiveBatch(int(trainer.world_size), int(per_device), int(trainer.accumulate_grad_batches))
+
     def configure_optimizers(self) -> Any:
-        optimizer = build_optimizer(self.parameters(), self.hparams.get("optimizer"))
+        spec = self.hparams.get("optimizer")
+        self.effective_batch = self._effective_batch()
+        self.effective_lr = scaled_lr(spec, self.effective_batch)
+        if self.effective_batch is not None and self.trainer.is_global_zero:
+            notice = batch_notice(spec, self.effective_batch)
+            if notice:
+                print(notice, file=sys.stderr)
+        optimizer = build_optimizer(self.parameters(), spec, self.effective_batch)
         total = int(self.trainer.estimated_stepping_batches) if self.trainer is not None else 1
         scheduler = build_scheduler(optimizer, self.hparams.get("scheduler"), max(total, 1))
         if scheduler is None:

@@ -103,6 +103,10 @@ class Registry:
             )
         self._entries[key] = Entry(kind, name, factory, self.current_plugin, self.current_distribution)
 
+    def has(self, kind: str, name: str) -> bool:
+        """Whether ``name`` is registered under ``kind``."""
+        return (kind, name) in self._entries
+
     def get(self, kind: str, name: str) -> Entry:
         """The entry of ``(kind, name)``.
 

@@ -11,11 +11,14 @@ A run directory holds::
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import inspect
 import json
+import math
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -28,12 +31,14 @@ from lightning.pytorch.loggers import CSVLogger
 
 from occplug.config import ConfigError, compose, validate
 from occplug.data.datamodule import OccDataModule
+from occplug.data.formats import FormatError
 from occplug.model import OccModel
 from occplug.plugins import get_registry, plugin_reports
 
 __all__ = [
     "build_datamodule",
     "build_model",
+    "Evaluation",
     "evaluate",
     "fit",
     "is_rank_zero",
@@ -50,12 +55,41 @@ class RunError(Exception):
     """A user-facing problem with a run (exit code 2 from the CLI)."""
 
 
+#: The evaluation mask when a config names none (the Occ3D-nuScenes convention).
+DEFAULT_EVAL_MASK = "camera"
+
+
 def load_config(refs: Sequence[str], overrides: Sequence[str] = (), saved: dict | None = None) -> dict[str, Any]:
-    """Compose, resolve and validate a config (raises :class:`~occplug.config.ConfigError`)."""
+    """Compose, resolve and validate a config (raises :class:`~occplug.config.ConfigError`).
+
+    The evaluation mask is resolved into ``eval_mask`` (see :func:`resolve_eval_mask`), so the
+    saved config, the checkpoint and ``metrics.json`` all name it.
+    """
     composed = compose(refs, overrides, data=saved)
     cfg = composed.resolved()
     validate(cfg, get_registry())
+    cfg["eval_mask"] = resolve_eval_mask(cfg)
     return cfg
+
+
+def resolve_eval_mask(cfg: dict[str, Any]) -> str:
+    """The run's one evaluation mask: ``eval_mask``, else a ``mask`` set on a metric node, else ``camera``.
+
+    Raises:
+        ConfigError: metric nodes set a ``mask`` that differs from ``eval_mask`` (or from each other).
+    """
+    chosen = cfg.get("eval_mask")
+    source = "eval_mask"
+    for i, spec in enumerate(cfg.get("metrics") or []):
+        if isinstance(spec, dict) and spec.get("mask") is not None:
+            if chosen is None:
+                chosen, source = spec["mask"], f"metrics.{i}.mask"
+            elif spec["mask"] != chosen:
+                raise ConfigError(
+                    f"metrics.{i}.mask: {spec['mask']!r} differs from {source}={chosen!r}; set the evaluation mask "
+                    "once, with the top-level eval_mask"
+                )
+    return str(chosen if chosen is not None else DEFAULT_EVAL_MASK)
 
 
 def plugin_versions() -> dict[str, str | None]:
@@ -83,36 +117,73 @@ def build_model(cfg: dict[str, Any], dm: OccDataModule) -> L.LightningModule:
         ignore_label=dm.ignore_label,
         optimizer=cfg.get("optimizer"),
         scheduler=cfg.get("scheduler"),
-        metrics=metric_nodes(cfg.get("metrics"), grid),
+        metrics=metric_nodes(cfg.get("metrics"), grid, cfg.get("eval_mask") or DEFAULT_EVAL_MASK),
     )
     model.run_config = cfg  # stored in every checkpoint (self-contained checkpoints)
     return model
 
 
-def metric_nodes(specs: list | None, grid: dict[str, Any]) -> list | None:
-    """The config's ``metrics`` as nodes, with the run's ``grid`` filled into metrics that take one
-    (e.g. ``rayiou``) and do not set it."""
+def metric_nodes(specs: list | None, grid: dict[str, Any], eval_mask: str = DEFAULT_EVAL_MASK) -> list | None:
+    """The config's ``metrics`` as nodes, with the run's ``grid`` and ``eval_mask`` filled into the
+    metrics that take them (``grid``: e.g. ``rayiou``; ``mask``: e.g. ``occ3d_miou``)."""
     if specs is None:
         return None
     out = []
     for spec in specs:
         node = {"type": spec} if isinstance(spec, str) else dict(spec)
-        factory = get_registry().get("metric", node["type"]).factory
-        if "grid" not in node and "grid" in inspect.signature(factory).parameters:
+        params = inspect.signature(get_registry().get("metric", node["type"]).factory).parameters
+        if "grid" not in node and "grid" in params:
             node["grid"] = grid
+        if "mask" in params:
+            node["mask"] = eval_mask
         out.append(node)
     return out
 
 
-class _RunInfoCallback(Callback):
-    """Stores the resolved config and plugin versions in every checkpoint; tracks validations."""
+def mask_settings(cfg: dict[str, Any], model: L.LightningModule) -> dict[str, Any]:
+    """``{"eval_mask": ..., "train_masks": {supervision name: mask}}`` of a run (see README, Metrics)."""
+    train = model.training_masks() if hasattr(model, "training_masks") else {}
+    return {"eval_mask": cfg.get("eval_mask") or DEFAULT_EVAL_MASK, "train_masks": train}
 
-    def __init__(self, cfg: dict[str, Any]) -> None:
-        self.cfg = cfg
+
+def describe_masks(masks: dict[str, Any]) -> str:
+    """One line naming the evaluation and training masks, printed above every per-class table."""
+    train = ", ".join(f"{name}: {mask}" for name, mask in masks["train_masks"].items()) or "(no supervision)"
+    return f"evaluation mask: {masks['eval_mask']} | training masks: {train}"
+
+
+def run_info(cfg: dict[str, Any], model: L.LightningModule, dm: OccDataModule) -> dict[str, Any]:
+    """What a checkpoint carries besides the weights, so it rebuilds and explains itself alone.
+
+    ``config`` (resolved), ``class_names``, ``grid``, ``masks`` (:func:`mask_settings`), ``plugins``
+    (name -> version) and ``components`` (every ``type:`` the config uses with the plugin and
+    distribution that provides it).
+    """
+    used = validate(cfg, get_registry())
+    versions = plugin_versions()
+    return {
+        "config": cfg,
+        "class_names": list(dm.class_names),
+        "grid": dm.grid.to_dict() if cfg.get("grid") is None else dict(cfg["grid"]),
+        "masks": mask_settings(cfg, model),
+        "plugins": versions,
+        "components": [
+            {"path": u.path, "kind": u.kind, "type": u.type, "plugin": u.plugin, "distribution": u.distribution,
+             "version": versions.get(u.plugin)}
+            for u in used
+        ],
+    }
+
+
+class _RunInfoCallback(Callback):
+    """Stores :func:`run_info` in every checkpoint; tracks validations."""
+
+    def __init__(self, info: dict[str, Any]) -> None:
+        self.info = info
         self.last_val_step = -1
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict) -> None:
-        checkpoint[CHECKPOINT_KEY] = {"config": self.cfg, "plugins": plugin_versions()}
+        checkpoint[CHECKPOINT_KEY] = self.info
 
     def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if not trainer.sanity_checking:
@@ -202,7 +273,7 @@ def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, f
         os.environ[RUN_DIR_ENV] = str(run_dir.absolute())  # inherited by the ranks a DDP launcher starts
     L.seed_everything(int(cfg.get("seed", 0)), workers=True, verbose=False)
     dm, model = _build(cfg)
-    info = _RunInfoCallback(cfg)
+    info = _RunInfoCallback(run_info(cfg, model, dm))
     checkpoint = ModelCheckpoint(dirpath=str(ckpt_dir), **{"save_last": True, **(cfg.get("checkpoint") or {})})
     logger = CSVLogger(save_dir=str(run_dir), name="logs")  # logs/version_<n>/: a resume never overwrites
     trainer = _trainer(cfg, run_dir, [checkpoint, info], logger)
@@ -213,17 +284,73 @@ def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, f
             + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None)
         )
         (run_dir / "plugins.json").write_text(json.dumps(plugin_versions(), indent=2) + "\n")
-    trainer.fit(model, datamodule=dm, ckpt_path=str(last) if resume else None)
-    if info.last_val_step != trainer.global_step:  # training stopped between validations
-        trainer.validate(model, datamodule=dm, verbose=False)
+    with _data_errors():
+        trainer.fit(model, datamodule=dm, ckpt_path=str(last) if resume else None)
+        if info.last_val_step != trainer.global_step:  # training stopped between validations
+            trainer.validate(model, datamodule=dm, verbose=False)
     results = dict(model.last_results.get("val", {}))
     if trainer.is_global_zero:
-        payload = {**results, "global_step": trainer.global_step, "epoch": trainer.current_epoch}
-        (run_dir / "metrics.json").write_text(json.dumps(payload, indent=2) + "\n")
-        for table in model.last_tables.values():
-            if table:
-                print(table)
+        masks = info.info["masks"]
+        batch = model.effective_batch
+        payload = {
+            **results,
+            "global_step": trainer.global_step,
+            "epoch": trainer.current_epoch,
+            **masks,
+            "effective_batch": None if batch is None else batch.total,
+            "effective_batch_parts": None if batch is None else {
+                "devices": batch.devices, "per_device": batch.per_device, "accumulation": batch.accumulation},
+            "lr": model.effective_lr,
+        }
+        write_json(run_dir / "metrics.json", payload)
+        print_tables(model.last_tables, masks)
     return results
+
+
+def write_json(path: Path, payload: dict[str, Any]) -> None:
+    """Write strict JSON (NaN, e.g. the IoU of a class absent from both sides, becomes ``null``)."""
+
+    def clean(v: Any) -> Any:
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        if isinstance(v, dict):
+            return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [clean(x) for x in v]
+        return v
+
+    Path(path).write_text(json.dumps(clean(payload), indent=2, allow_nan=False) + "\n")
+
+
+def print_tables(tables: dict[str, str], masks: dict[str, Any]) -> None:
+    """Print every metric's per-class table under one line naming the masks."""
+    shown = [t for t in tables.values() if t]
+    if shown:
+        print(describe_masks(masks))
+        for table in shown:
+            print(table)
+
+
+@contextlib.contextmanager
+def _data_errors() -> Iterator[None]:
+    """A bad data file met during a loop (possibly in a loader worker) becomes one :class:`RunError` line."""
+    try:
+        yield
+    except FormatError as exc:
+        raise RunError(_original_message(exc)) from None
+    except Exception as exc:
+        # DataLoader workers re-raise the worker's exception type with the worker traceback in the message
+        if type(exc).__name__ == "FormatError" or "FormatError: " in str(exc):
+            raise RunError(_original_message(exc)) from None
+        raise
+
+
+def _original_message(exc: BaseException) -> str:
+    text = str(exc).strip()
+    marker = "FormatError: "
+    if marker in text:  # "Caught FormatError in DataLoader worker ... Original Traceback ... FormatError: <msg>"
+        return text.rsplit(marker, 1)[1].splitlines()[0]
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:
@@ -237,21 +364,57 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
         raise RunError(f"checkpoint {path} cannot be read safely (weights_only=True): {str(exc).splitlines()[0]}") from None
 
 
-def config_from_checkpoint(ckpt: dict[str, Any], path: Path) -> dict[str, Any]:
-    """The resolved config stored in an occplug checkpoint."""
+def checkpoint_info(ckpt: dict[str, Any], path: Path) -> dict[str, Any]:
+    """The :func:`run_info` an occplug checkpoint carries."""
     info = ckpt.get(CHECKPOINT_KEY)
     if not isinstance(info, dict) or "config" not in info:
         raise RunError(f"checkpoint {path} carries no occplug config; pass -c CONFIG")
-    return info["config"]
+    return info
+
+
+def config_from_checkpoint(ckpt: dict[str, Any], path: Path) -> dict[str, Any]:
+    """The resolved config stored in an occplug checkpoint."""
+    return checkpoint_info(ckpt, path)["config"]
+
+
+def check_checkpoint_plugins(info: dict[str, Any], path: Path) -> None:
+    """Raise one line naming the first plugin a checkpoint's components need that is not installed."""
+    registry = get_registry()
+    for comp in info.get("components") or []:
+        if not registry.has(comp["kind"], comp["type"]):
+            dist = comp.get("distribution") or comp["plugin"]
+            version = comp.get("version") or (info.get("plugins") or {}).get(comp["plugin"])
+            raise RunError(
+                f"checkpoint {path} needs plugin '{comp['plugin']}' ({dist}{' ' + version if version else ''}) for "
+                f"{comp['path']}: {comp['kind']} '{comp['type']}', which is not installed; pip install {dist}"
+                f"{'==' + version if version else ''}"
+            )
 
 
 def _build(cfg: dict[str, Any]) -> tuple[OccDataModule, L.LightningModule]:
-    """Data module and model; a component rejecting its arguments is a user-facing error."""
+    """Data module and model, the data module told which optional fields the model reads.
+
+    A component rejecting its arguments, or a data file the model needs being missing, is a
+    user-facing error.
+    """
     try:
         dm = build_datamodule(cfg)
-        return dm, build_model(cfg, dm)
+        model = build_model(cfg, dm)
+        dm.require_fields(set(model.required_fields()) | callback_requirements(cfg))
+        return dm, model
+    except FormatError as exc:
+        raise RunError(str(exc).splitlines()[0]) from None
     except (ValueError, TypeError, FileNotFoundError, ImportError) as exc:
         raise RunError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
+
+
+def callback_requirements(cfg: dict[str, Any]) -> set[str]:
+    """Frame fields the configured callbacks declare in ``requires``."""
+    out: set[str] = set()
+    for node in (cfg.get("callbacks") or {}).values():
+        if node is not None:
+            out |= set(getattr(get_registry().get("callback", node["type"]).factory, "requires", ()))
+    return out
 
 
 def _restore(cfg: dict[str, Any], ckpt: dict[str, Any], path: Path) -> tuple[OccDataModule, L.LightningModule]:
@@ -263,16 +426,27 @@ def _restore(cfg: dict[str, Any], ckpt: dict[str, Any], path: Path) -> tuple[Occ
     return dm, model
 
 
-def evaluate(cfg: dict[str, Any], ckpt_path: Path, stage: str = "validate") -> tuple[dict[str, float], dict[str, str]]:
-    """Evaluate a checkpoint; return ``(metrics, per-metric tables)``."""
+@dataclass
+class Evaluation:
+    """What :func:`evaluate` found: flat metrics, per-metric tables and the mask settings."""
+
+    results: dict[str, float]
+    tables: dict[str, str]
+    masks: dict[str, Any]
+
+
+def evaluate(cfg: dict[str, Any], ckpt_path: Path, stage: str = "validate") -> Evaluation:
+    """Evaluate a checkpoint on the ``validate`` or ``test`` split."""
     ckpt = load_checkpoint(ckpt_path)
     dm, model = _restore(cfg, ckpt, ckpt_path)
     trainer = _trainer(cfg, None, [])
-    if stage == "validate":
-        trainer.validate(model, datamodule=dm, verbose=False)
-        return dict(model.last_results.get("val", {})), dict(model.last_tables)
-    trainer.test(model, datamodule=dm, verbose=False)
-    return dict(model.last_results.get("test", {})), dict(model.last_tables)
+    with _data_errors():
+        if stage == "validate":
+            trainer.validate(model, datamodule=dm, verbose=False)
+        else:
+            trainer.test(model, datamodule=dm, verbose=False)
+    key = "val" if stage == "validate" else "test"
+    return Evaluation(dict(model.last_results.get(key, {})), dict(model.last_tables), mask_settings(cfg, model))
 
 
 def predict(cfg: dict[str, Any], ckpt_path: Path, out: Path) -> int:
@@ -282,15 +456,25 @@ def predict(cfg: dict[str, Any], ckpt_path: Path, out: Path) -> int:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     trainer = _trainer(cfg, None, [_NpzPredictionWriter(out)])
-    trainer.predict(model, datamodule=dm, return_predictions=False)
+    with _data_errors():
+        trainer.predict(model, datamodule=dm, return_predictions=False)
     return len(list(out.glob("*.npz")))
 
 
 def resolve_run_config(refs: Sequence[str], overrides: Sequence[str], ckpt: Path | None = None) -> dict[str, Any]:
-    """Config for validate/test/predict: ``-c`` files if given, else the checkpoint's own config."""
-    if refs:
-        return load_config(refs, overrides)
-    if ckpt is None:
+    """Config for validate/test/predict: the checkpoint's own config, with ``-c`` files and overrides on top.
+
+    Without a checkpoint config, ``-c`` is required. A checkpoint whose components come from a
+    plugin that is not installed fails naming that plugin and its version.
+    """
+    saved = None
+    if ckpt is not None:
+        data = load_checkpoint(ckpt)
+        if refs and not isinstance(data.get(CHECKPOINT_KEY), dict):
+            return load_config(refs, overrides)  # a foreign checkpoint: -c carries the whole config
+        info = checkpoint_info(data, ckpt)
+        check_checkpoint_plugins(info, ckpt)
+        saved = info["config"]
+    if saved is None and not refs:
         raise ConfigError("no -c CONFIG given")
-    saved = config_from_checkpoint(load_checkpoint(ckpt), ckpt)
-    return load_config([], overrides, saved=saved)
+    return load_config(refs, overrides, saved=saved)

@@ -41,8 +41,9 @@ def occplug_command() -> list[str]:
     return [found] if found else [sys.executable, "-m", "occplug.cli"]
 
 
-def same(a: float, b: float) -> bool:
-    return (math.isnan(a) and math.isnan(b)) or a == b
+def same(a: float | None, b: float | None) -> bool:
+    """Equal values, or both undefined (``null`` in metrics.json: a class absent from truth and prediction)."""
+    return a == b
 
 
 def test_eval_shard_sampler_splits_every_sample_exactly_once() -> None:
@@ -87,6 +88,8 @@ def test_ddp_fit_on_two_processes_equals_single_process_validation(tmp_path: Pat
     assert code == 0
     single = json.loads(out.read_text())
     assert math.isfinite(single["mIoU"]) and math.isfinite(single["IoU"]) and single["IoU"] > 0
+    assert ddp["effective_batch"] == 2 and ddp["effective_batch_parts"]["devices"] == 2  # 2 processes x 1 sample
+    assert ddp["eval_mask"] == single["eval_mask"] == "camera"
     keys = [k for k in single if k == "mIoU" or k.startswith("IoU")]
     assert len(keys) == 19  # mIoU, geometric IoU, 17 classes
     mismatched = {k: (ddp[k], single[k]) for k in keys if not same(ddp[k], single[k])}

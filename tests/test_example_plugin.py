@@ -45,3 +45,15 @@ def test_example_plugin_before_and_after_install(tmp_path):
         capture_output=True, text=True, env=env, cwd=tmp_path,
     )
     assert tests.returncode == 0, tests.stdout[-3000:] + tests.stderr[-2000:]
+
+    # a checkpoint made with the plugin names it (and its version) where the plugin is not installed
+    run = tmp_path / "run"
+    fitted = occplug("fit", "-c", "example/tiny", "data.preset=tiny", "trainer.max_steps=1", "trainer.accelerator=cpu",
+                     "trainer.enable_progress_bar=false", "--run-dir", str(run), env=env)
+    assert fitted.returncode == 0, fitted.stderr[-2000:]
+    missing = occplug("validate", "--ckpt", str(run / "checkpoints" / "last.ckpt"))
+    assert missing.returncode == 2 and "Traceback" not in missing.stderr
+    assert missing.stderr.strip() == (
+        f"error: checkpoint {run / 'checkpoints' / 'last.ckpt'} needs plugin 'example' (occplug-example 0.1.0) for "
+        "model.heads.occupancy: head 'tiny_mlp', which is not installed; pip install occplug-example==0.1.0"
+    )

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import yaml
@@ -34,7 +33,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def _print_metrics(results: dict[str, float]) -> None:
-    headline = {k: v for k, v in results.items() if not k.startswith("IoU_")}
+    headline = {k: v for k, v in results.items() if not k.split("/")[-1].startswith("IoU_")}
     print("metrics: " + ", ".join(f"{k}={v:.2f}" for k, v in headline.items()))
 
 
@@ -64,15 +63,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     try:
         cfg = runner.resolve_run_config(args.config, args.overrides, Path(args.ckpt))
-        results, tables = runner.evaluate(cfg, Path(args.ckpt), stage=args.stage)
+        found = runner.evaluate(cfg, Path(args.ckpt), stage=args.stage)
     except runner.RunError as exc:
         raise UsageError(str(exc)) from None
-    for table in tables.values():
-        if table:
-            print(table)
-    _print_metrics(results)
+    if not runner.is_rank_zero():  # DDP: every rank runs this command; one reports
+        return 0
+    runner.print_tables(found.tables, found.masks)
+    _print_metrics(found.results)
     if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=2) + "\n")
+        runner.write_json(Path(args.json), {**found.results, **found.masks})
     return 0
 
 
@@ -82,5 +81,6 @@ def cmd_predict(args: argparse.Namespace) -> int:
         count = runner.predict(cfg, Path(args.ckpt), Path(args.out))
     except runner.RunError as exc:
         raise UsageError(str(exc)) from None
-    print(f"wrote {count} predictions to {args.out}")
+    if runner.is_rank_zero():
+        print(f"wrote {count} predictions to {args.out}")
     return 0

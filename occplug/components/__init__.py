@@ -10,9 +10,11 @@ registry name             kind                class
 ``dense_voxels``          scene               :class:`DenseVoxels`
 ``voxel_classifier``      head                :class:`VoxelClassifier`
 ``voxel_ce``              supervision         :class:`VoxelCrossEntropy`
+``lidar_depth``           supervision         :class:`LidarDepthSupervision`
 ========================  ==================  ==========================
 """
 
+from .depth_supervision import LidarDepthSupervision
 from .encoders import SmallCNN, TimmEncoder
 from .heads import VoxelClassifier
 from .scenes import DenseVoxels, DenseVoxelScene
@@ -24,6 +26,7 @@ __all__ = [
     "DenseVoxelScene",
     "DenseVoxels",
     "LSSViewTransform",
+    "LidarDepthSupervision",
     "SmallCNN",
     "TimmEncoder",
     "VoxelClassifier",

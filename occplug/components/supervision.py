@@ -18,7 +18,9 @@ class VoxelCrossEntropy(SupervisionSource):
     """Cross-entropy of an occupancy head's ``(B, K, X, Y, Z)`` logits against the voxel labels.
 
     A voxel counts when its sample has ``batch.has_voxel_labels``, its label is not
-    ``ignore_label``, and (if asked) ``batch.mask_camera`` / ``batch.mask_lidar`` is set there.
+    ``ignore_label``, it is not flagged in ``batch.voxel_invalid`` (SemanticKITTI's ``.invalid``
+    voxels, which the benchmark ignores too), and (if asked) ``batch.mask_camera`` /
+    ``batch.mask_lidar`` is set there.
     The loss is the mean over counted voxels, exactly ``F.cross_entropy(logits[counted],
     labels[counted], weight=class_weights, label_smoothing=label_smoothing)`` (with class weights,
     normalised by the summed weights of the counted labels, as PyTorch does). A batch with no
@@ -71,11 +73,20 @@ class VoxelCrossEntropy(SupervisionSource):
             raise ValueError(f"voxel_ce needs head '{self.head}' to output 'logits'; it outputs: {', '.join(head_out)}")
         return head_out["logits"]
 
+    @property
+    def training_mask(self) -> str:
+        """``camera``, ``lidar``, ``camera_and_lidar`` or ``none``, from ``camera_mask`` / ``lidar_mask``."""
+        return {(False, False): "none", (True, False): "camera", (False, True): "lidar", (True, True): "camera_and_lidar"}[
+            (self.camera_mask, self.lidar_mask)
+        ]
+
     def counted(self, batch: Batch, labels: Tensor) -> Tensor:
         """``(B, X, Y, Z)`` bool: the voxels that count toward the loss."""
         keep = batch.has_voxel_labels.to(labels.device).view(-1, 1, 1, 1).expand_as(labels)
         if self.ignore_label is not None:
             keep = keep & (labels != self.ignore_label)
+        if batch.voxel_invalid is not None:
+            keep = keep & ~batch.voxel_invalid.bool()
         if self.camera_mask:
             batch.require("mask_camera", by="voxel_ce with camera_mask")
             keep = keep & batch.mask_camera.bool()

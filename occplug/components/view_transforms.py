@@ -285,6 +285,7 @@ class LSSViewTransform(ViewTransform):
             grid=self.grid,
             depth_probs=probs.view(b, n, d, h, w),
             depth_bins=self.depth_centers,
+            image_stride=self.image_stride,
         )
 
 

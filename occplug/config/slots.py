@@ -32,10 +32,11 @@ TOP_LEVEL: dict[str, Slot | str] = {
     "grid": "mapping {range, voxel_size}: the label/evaluation grid, shared via ${grid}",
     "data": Slot("data"),
     "model": Slot("model"),
-    "optimizer": "mapping {type: adamw|adam|sgd, lr, ...}",
+    "optimizer": "mapping {type: adamw|adam|sgd, lr, ..., reference_batch, lr_scaling: none|linear}",
     "scheduler": "mapping {type: none|cosine|step, ...}",
     "trainer": "mapping of lightning.Trainer arguments",
     "metrics": Slot("metric", sequence=True),
+    "eval_mask": "none|camera|lidar|camera_and_lidar: voxels every masked metric evaluates (default: the data set's)",
     "checkpoint": "mapping of lightning ModelCheckpoint arguments",
     "callbacks": Slot("callback", mapping=True),
 }

@@ -10,6 +10,7 @@ from __future__ import annotations
 import collections.abc as cabc
 import inspect
 import typing
+from dataclasses import dataclass
 from typing import Any
 
 from occplug.geometry import GridSpec
@@ -18,7 +19,7 @@ from occplug.registry import Registry, closest
 from .errors import ConfigError
 from .slots import TOP_LEVEL, Slot, component_params, slot_of
 
-__all__ = ["INJECTED", "OPTIMIZERS", "SCHEDULERS", "check_type", "validate"]
+__all__ = ["INJECTED", "OPTIMIZERS", "SCHEDULERS", "UsedComponent", "check_type", "validate"]
 
 #: Arguments the builder passes to a kind from elsewhere, so a config may leave them out.
 INJECTED: dict[str, set[str]] = {
@@ -103,9 +104,21 @@ def check_type(value: Any, annotation: Any) -> bool:
     return True
 
 
+@dataclass(frozen=True)
+class UsedComponent:
+    """A component node of a config: where it sits, its kind and registered name, who provides it."""
+
+    path: str
+    kind: str
+    type: str
+    plugin: str
+    distribution: str | None
+
+
 class _Validator:
     def __init__(self, registry: Registry) -> None:
         self.registry = registry
+        self.used: list[UsedComponent] = []
 
     def node(self, node: Any, kind: str, path: str) -> None:
         if isinstance(node, str) and kind == "metric":
@@ -120,6 +133,7 @@ class _Validator:
             entry = self.registry.get(kind, str(name))
         except LookupError as exc:
             raise ConfigError(f"{path}.type: {exc}") from None
+        self.used.append(UsedComponent(path, kind, entry.name, entry.plugin, entry.distribution))
         params = component_params(entry.factory)
         label = f"{entry.name} ({kind}{', plugin ' + entry.plugin if entry.plugin != 'occplug' else ''})"
         for key, value in node.items():
@@ -204,15 +218,22 @@ def _validate_named_choice(value: Any, section: str, choices: tuple[str, ...]) -
     return {k: v for k, v in value.items() if k != "type"}
 
 
-def validate(config: dict[str, Any], registry: Registry) -> None:
+def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
     """Validate a resolved config; raise :class:`ConfigError` at the first problem.
 
     Required top-level sections: ``data`` and ``model``.
+
+    Returns:
+        every component node of the config, in the order met (checkpoints record them, so a
+        missing plugin is named before anything is rebuilt).
     """
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint
 
-    from occplug.training import optimizer_class, scheduler_factory
+    from occplug.metrics.base import EvalMask
+    from occplug.training import OPTIMIZER_EXTRAS, optimizer_class, scheduler_factory
+
+    eval_masks = typing.get_args(EvalMask)
 
     if not isinstance(config, dict):
         raise ConfigError("a config must be a mapping")
@@ -234,8 +255,16 @@ def validate(config: dict[str, Any], registry: Registry) -> None:
     for section, slot in TOP_LEVEL.items():
         if isinstance(slot, Slot) and section in config:
             v.slot(config[section], slot, section)
+    if config.get("eval_mask") is not None and config["eval_mask"] not in eval_masks:
+        hint = closest(str(config["eval_mask"]), list(eval_masks))
+        raise ConfigError(
+            f"eval_mask: unknown mask {config['eval_mask']!r}{f'; did you mean {hint!r}?' if hint else ''} "
+            f"(one of: {', '.join(eval_masks)})"
+        )
     if config.get("optimizer") is not None:
         args = _validate_named_choice(config["optimizer"], "optimizer", OPTIMIZERS)
+        _validate_lr_scaling(args)
+        args = {k: v for k, v in args.items() if k not in OPTIMIZER_EXTRAS}
         _validate_kwargs(args, "optimizer", optimizer_class(config["optimizer"]["type"]), {"params"})
     if config.get("scheduler") is not None:
         args = _validate_named_choice(config["scheduler"], "scheduler", SCHEDULERS)
@@ -244,3 +273,15 @@ def validate(config: dict[str, Any], registry: Registry) -> None:
         _validate_kwargs(config["trainer"], "trainer", L.Trainer, {"callbacks", "logger", "default_root_dir"})
     if config.get("checkpoint") is not None:
         _validate_kwargs(config["checkpoint"], "checkpoint", ModelCheckpoint, {"dirpath"})
+    return v.used
+
+
+def _validate_lr_scaling(args: dict[str, Any]) -> None:
+    scaling = args.get("lr_scaling", "none")
+    if scaling not in ("none", "linear"):
+        raise ConfigError(f"optimizer.lr_scaling: expected 'none' or 'linear', got {_describe(scaling)}")
+    ref = args.get("reference_batch")
+    if ref is not None and (not isinstance(ref, int) or isinstance(ref, bool) or ref < 1):
+        raise ConfigError(f"optimizer.reference_batch: expected a positive int (the paper's total batch), got {_describe(ref)}")
+    if scaling == "linear" and ref is None:
+        raise ConfigError("optimizer.lr_scaling: 'linear' needs optimizer.reference_batch (the batch the lr was tuned for)")

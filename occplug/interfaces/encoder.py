@@ -23,6 +23,10 @@ class ImageEncoder(nn.Module, ABC):
     .. versionadded:: 0.1
     """
 
+    #: Optional :class:`~occplug.data.Frame` fields this component reads (e.g. ``{"points"}``):
+    #: data modules skip loading what no component requires (a camera-only model opens no LiDAR file).
+    requires: frozenset[str] = frozenset()
+
     out_channels: int
     stride: int
 

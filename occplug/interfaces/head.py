@@ -20,6 +20,10 @@ class Head(nn.Module, ABC):
     .. versionadded:: 0.1
     """
 
+    #: Optional :class:`~occplug.data.Frame` fields this component reads (e.g. ``{"points"}``):
+    #: data modules skip loading what no component requires (a camera-only model opens no LiDAR file).
+    requires: frozenset[str] = frozenset()
+
     @abstractmethod
     def forward(self, scene: Scene, batch: Batch) -> dict[str, Tensor]:
         """Named predictions for the batch (training and validation outputs)."""

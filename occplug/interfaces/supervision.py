@@ -44,7 +44,17 @@ class SupervisionSource(nn.Module, ABC):
     .. versionadded:: 0.1
     """
 
+    #: Optional :class:`~occplug.data.Frame` fields this component reads (e.g. ``{"points"}``):
+    #: data modules skip loading what no component requires (a camera-only model opens no LiDAR file).
+    requires: frozenset[str] = frozenset()
+
     weight: float
+
+    @property
+    def training_mask(self) -> str:
+        """Which visibility mask restricts this source's targets: ``none``, ``camera``, ``lidar`` or
+        ``camera_and_lidar`` (recorded in checkpoints and ``metrics.json`` beside the evaluation mask)."""
+        return "none"
 
     @abstractmethod
     def forward(self, batch: Batch, outputs: ModelOutputs) -> dict[str, Tensor]:

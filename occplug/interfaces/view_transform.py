@@ -24,6 +24,7 @@ class Lifted:
         depth_probs: ``(B, N, D, h, w)`` per-pixel depth distributions, if the transform predicts
             them (depth supervision reads this together with ``depth_bins``).
         depth_bins: ``(D,)`` bin centres in metres (camera-frame z) for ``depth_probs``.
+        image_stride: image pixels per cell of ``depth_probs`` (the encoder's stride).
         extras: transform-specific outputs for a matching supervision source.
     """
 
@@ -31,6 +32,7 @@ class Lifted:
     grid: GridSpec
     depth_probs: Tensor | None = None
     depth_bins: Tensor | None = None
+    image_stride: int | None = None
     extras: dict[str, Tensor] = field(default_factory=dict)
 
 
@@ -42,6 +44,10 @@ class ViewTransform(nn.Module, ABC):
 
     .. versionadded:: 0.1
     """
+
+    #: Optional :class:`~occplug.data.Frame` fields this component reads (e.g. ``{"points"}``):
+    #: data modules skip loading what no component requires (a camera-only model opens no LiDAR file).
+    requires: frozenset[str] = frozenset()
 
     out_channels: int
     grid: GridSpec

@@ -11,7 +11,7 @@ from torchmetrics import Metric
 
 from occplug.data.frame import Batch
 
-__all__ = ["EvalMask", "OccMetric", "evaluation_mask"]
+__all__ = ["EvalMask", "OccMetric", "check_class_ids", "evaluation_mask"]
 
 EvalMask = Literal["none", "camera", "lidar", "camera_and_lidar"]
 
@@ -28,6 +28,8 @@ class OccMetric(Metric):
     """
 
     full_state_update = False
+    #: Optional Frame fields the metric reads beyond the labels (see ``SupervisionSource.requires``).
+    requires: frozenset[str] = frozenset()
 
     @abstractmethod
     def update(self, pred: Tensor, batch: Batch) -> None:  # type: ignore[override]
@@ -56,3 +58,14 @@ def evaluation_mask(batch: Batch, mask: EvalMask) -> Tensor | None:
     for name in parts:
         out &= getattr(batch, name).bool()
     return out
+
+
+def check_class_ids(pred: Tensor, num_classes: int, who: str) -> None:
+    """Raise a clear error when a prediction holds an id outside ``0..num_classes-1`` (e.g. 255).
+
+    The reference scorers fail on such ids too; clamping them would silently count them as the
+    last class.
+    """
+    if pred.numel() and (int(pred.min()) < 0 or int(pred.max()) >= num_classes):
+        bad = int(pred.min()) if int(pred.min()) < 0 else int(pred.max())
+        raise ValueError(f"{who}: the prediction holds class id {bad}, outside 0..{num_classes - 1}")

@@ -9,7 +9,7 @@ from torch import Tensor
 
 from occplug.data.frame import Batch
 
-from .base import EvalMask, OccMetric, evaluation_mask
+from .base import EvalMask, OccMetric, check_class_ids, evaluation_mask
 
 __all__ = ["Occ3DMIoU", "confusion_matrix", "iou_from_confusion"]
 
@@ -18,14 +18,15 @@ def confusion_matrix(pred: Tensor, target: Tensor, num_classes: int, valid: Tens
     """``(K, K)`` int64 counts, rows = ground truth, columns = prediction.
 
     Voxels whose target is outside ``[0, K)`` (e.g. 255 = ignore) or where ``valid`` is False
-    are not counted.
+    are not counted. A predicted id outside ``[0, K)`` is an error.
     """
+    check_class_ids(pred, num_classes, "confusion matrix")
     target = target.long().reshape(-1)
     pred = pred.long().reshape(-1)
     keep = (target >= 0) & (target < num_classes)
     if valid is not None:
         keep &= valid.reshape(-1).bool()
-    idx = target[keep] * num_classes + pred[keep].clamp(0, num_classes - 1)
+    idx = target[keep] * num_classes + pred[keep]
     return torch.bincount(idx, minlength=num_classes * num_classes).reshape(num_classes, num_classes)
 
 

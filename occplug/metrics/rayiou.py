@@ -64,7 +64,7 @@ from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 from occplug.geometry.raycast import first_hits
 
-from .base import OccMetric
+from .base import OccMetric, check_class_ids
 
 __all__ = [
     "QueryRays",
@@ -242,6 +242,9 @@ class RayIoU(OccMetric):
         self.add_state("gt_count", torch.zeros(num_classes, dtype=torch.int64), dist_reduce_fx="sum")
         self.add_state("pred_count", torch.zeros(num_classes, dtype=torch.int64), dist_reduce_fx="sum")
         self.add_state("tp", torch.zeros(len(self.thresholds), num_classes, dtype=torch.int64), dist_reduce_fx="sum")
+        # how many origins were cast from, over how many samples (the table reports the mean)
+        self.add_state("origins_used", torch.zeros((), dtype=torch.int64), dist_reduce_fx="sum")
+        self.add_state("samples", torch.zeros((), dtype=torch.int64), dist_reduce_fx="sum")
 
     def _grid_for(self, shape: Sequence[int]) -> GridSpec:
         grid = self.grid
@@ -270,10 +273,13 @@ class RayIoU(OccMetric):
         if pred.shape != target.shape:
             raise ValueError(f"prediction shape {tuple(pred.shape)} differs from label shape {tuple(target.shape)}")
         grid = self._grid_for(target.shape[1:])
+        check_class_ids(pred, self.num_classes, "rayiou")
         if self._directions is None or self._directions.device != target.device:
             self._directions = query_ray_directions(device=target.device)
         for b in range(target.shape[0]):
             origins = select_origins(self._origins(batch, b), self.origin_limit, self.max_origins)
+            self.origins_used += origins.shape[0]
+            self.samples += 1
             rays = cast_query_rays(pred[b], target[b], grid, origins, self.free_label, self._directions)
             gt, pr, tp = rayiou_counts(rays, self.num_classes, self.free_label, self.thresholds)
             self.gt_count += gt
@@ -306,12 +312,19 @@ class RayIoU(OccMetric):
             f"per origin; up to {self.max_origins} origins with |x|,|y| < {self.origin_limit:g} m; {grid})"
         )
 
+    def mean_origins(self) -> float:
+        """Origins cast from per sample, on average (8 on Occ3D-nuScenes sequences; 1 means one fixed origin)."""
+        return float(self.origins_used) / max(1, int(self.samples))
+
     def table(self) -> str:
-        """Per-class RayIoU at each threshold (percent), headed by the settings."""
+        """Per-class RayIoU at each threshold (percent), headed by the settings and the origins actually used."""
         iou = self.per_class_iou() * 100
         res = self.compute()
         heads = [f"@{t:g}m" for t in self.thresholds]
-        lines = [self.describe(), f"{'class':<24}" + "".join(f"{h:>9}" for h in heads)]
+        used = f"cast from {self.mean_origins():.2f} origins per sample on average over {int(self.samples)} samples"
+        if int(self.samples) and self.mean_origins() < 2:
+            used += " (one origin per sample: not comparable with leaderboard RayIoU, which casts from the sequence's LiDAR origins)"
+        lines = [self.describe(), used, f"{'class':<24}" + "".join(f"{h:>9}" for h in heads)]
         for c in self._semantic():
             lines.append(f"{self.class_names[c]:<24}" + "".join(f"{v:>9.2f}" for v in iou[:, c].tolist()))
         lines.append(f"{'mean':<24}" + "".join(f"{res[f'RayIoU_{t:g}m'].item():>9.2f}" for t in self.thresholds))

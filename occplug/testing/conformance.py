@@ -177,7 +177,9 @@ def _check_supervision(source: I.SupervisionSource, batch: Batch, grid: GridSpec
 
     model = OccModel(
         encoder={"type": "small_cnn", "out_channels": IN_CHANNELS, "width": 8, "stride": 4},
-        view_transform={"type": "backward_projection", "grid": grid.to_dict(), "out_channels": IN_CHANNELS, "hidden": 0},
+        # lss: it also predicts depth distributions, which depth supervision reads
+        view_transform={"type": "lss", "grid": grid.to_dict(), "out_channels": IN_CHANNELS, "hidden": 0,
+                        "depth_bins": [1.0, 41.0, 2.0]},
         scene={"type": "dense_voxels", "out_channels": IN_CHANNELS, "num_blocks": 0},
         heads={"occupancy": {"type": "voxel_classifier", "hidden": 8}},
         supervision={},

@@ -30,10 +30,15 @@ def test_ssc_run_reports_completion_and_semantic_scores(tmp_path, capsys):
     assert "SemanticKITTI SSC (semantic-kitti-api scorer; empty = free (17)" in capsys.readouterr().out
 
 
-def test_grid_is_filled_only_into_metrics_that_take_one():
+def test_grid_and_mask_are_filled_only_into_metrics_that_take_them():
     grid = {"range": [-8.0, -8.0, -1.0, 8.0, 8.0, 2.2], "voxel_size": 0.8}
     own = {"range": [0, 0, 0, 4, 4, 4], "voxel_size": 1.0}
-    nodes = metric_nodes(["occ3d_miou", "rayiou", {"type": "rayiou", "grid": own}], grid)
-    assert nodes == [{"type": "occ3d_miou"}, {"type": "rayiou", "grid": grid}, {"type": "rayiou", "grid": own}]
+    nodes = metric_nodes(["occ3d_miou", "rayiou", {"type": "rayiou", "grid": own}, "ssc"], grid, "lidar")
+    assert nodes == [
+        {"type": "occ3d_miou", "mask": "lidar"},
+        {"type": "rayiou", "grid": grid},
+        {"type": "rayiou", "grid": own},
+        {"type": "ssc"},
+    ]
     assert metric_nodes(None, grid) is None
     assert isinstance(Occ3DMIoU(), Occ3DMIoU) and RayIoU(grid=grid).grid == GridSpec.from_config(grid)

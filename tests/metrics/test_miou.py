@@ -85,3 +85,35 @@ def test_table_names_the_mask():
     m = Occ3DMIoU(num_classes=4, free_label=3, mask="none")
     m.update(gt, make_batch(gt))
     assert m.table().startswith("Occ3D mIoU (evaluation mask: none)")
+
+
+def test_each_evaluation_mask_gives_its_hand_computed_scores():
+    # four voxels along y, classes a, b, b, free; the prediction gets voxel 1 wrong (a) and voxel 3 wrong (b)
+    gt = torch.tensor([0, 1, 1, 3]).reshape(1, 1, 4, 1)
+    pred = torch.tensor([0, 0, 1, 1]).reshape(1, 1, 4, 1)
+    camera = torch.tensor([True, True, False, True]).reshape(1, 1, 4, 1)
+    lidar = torch.tensor([True, False, True, True]).reshape(1, 1, 4, 1)
+    batch = make_batch(gt, mask_camera=camera, mask_lidar=lidar)
+    expected = {
+        # voxels 0-3: a: TP 1, FP 1 (voxel 1) -> 1/2; b: TP 1, FN 1 (voxel 1), FP 1 (voxel 3) -> 1/3; c absent
+        "none": (100 * (1 / 2 + 1 / 3) / 2, 100 * 3 / 4),
+        # voxels 0, 1, 3: a: TP 1, FP 1 -> 1/2; b: FN 1, FP 1 -> 0; geometry: TP 2 (0, 1), FP 1 (3) -> 2/3
+        "camera": (100 * (1 / 2 + 0) / 2, 100 * 2 / 3),
+        # voxels 0, 2, 3: a: 1/1; b: TP 1, FP 1 -> 1/2; geometry: TP 2, FP 1 -> 2/3
+        "lidar": (100 * (1 + 1 / 2) / 2, 100 * 2 / 3),
+        # voxels 0, 3: a: 1/1; b: FP 1 -> 0; geometry: TP 1, FP 1 -> 1/2
+        "camera_and_lidar": (100 * (1 + 0) / 2, 100 * 1 / 2),
+    }
+    for mask, (miou, iou) in expected.items():
+        m = Occ3DMIoU(num_classes=4, free_label=3, mask=mask)
+        m.update(pred, batch)
+        res = m.compute()
+        assert res["mIoU"].item() == pytest.approx(miou, abs=1e-4), mask
+        assert res["IoU"].item() == pytest.approx(iou, abs=1e-4), mask
+        assert m.table().startswith(f"Occ3D mIoU (evaluation mask: {mask})")
+
+
+def test_a_predicted_id_outside_the_classes_is_an_error():
+    m = Occ3DMIoU(num_classes=4, free_label=3, mask="none")
+    with pytest.raises(ValueError, match="the prediction holds class id 255, outside 0..3"):
+        m.update(torch.full((1, 1, 2, 2), 255), make_batch(torch.zeros(1, 1, 2, 2, dtype=torch.long)))

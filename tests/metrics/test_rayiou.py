@@ -220,5 +220,12 @@ def test_grid_is_required_off_occ3d_and_the_table_names_the_settings():
     table = m.table()
     assert table.splitlines()[0].startswith("RayIoU (SparseOcc / Occ3D-nuScenes leaderboard; thresholds 1, 2, 4 m;")
     assert "grid 16x16x6 @ 0.5/0.5/0.5 m" in table and "|x|,|y| < 39 m" in table
-    assert [line.split()[0] for line in table.splitlines()[2:6]] == list("abcd")
+    n = len(select_origins(origins, 39.0, 8))
+    assert table.splitlines()[1].startswith(f"cast from {n:.2f} origins per sample on average over 1 samples")
+    assert [line.split()[0] for line in table.splitlines()[3:7]] == list("abcd")
+    one = RayIoU(num_classes=5, free_label=4, grid=SMALL_GRID)
+    one.update(labels[None], make_batch(labels[None], sequence_lidar_origins=[origins[:1]]))
+    assert "one origin per sample: not comparable with leaderboard RayIoU" in one.table()
+    with pytest.raises(ValueError, match="rayiou: the prediction holds class id 255, outside 0..4"):
+        one.update(torch.full_like(labels, 255)[None], make_batch(labels[None]))
     assert set(m.compute()) == {"RayIoU", "RayIoU_1m", "RayIoU_2m", "RayIoU_4m", *(f"RayIoU_{c}" for c in "abcd")}
