@@ -11,10 +11,12 @@ Ground truth (``--gt DIR``, layout detected):
 * **SemanticKITTI**: ``DIR/sequences/<XX>/voxels/<NNNNNN>.label`` with ``.invalid`` beside it;
   token ``<XX>_<NNNNNN>``; raw ids remapped to the 20 SSC classes (0 = empty, 255 ignored).
 
-RayIoU casts from per-sample LiDAR origins: ``--origins FILE.npz`` maps each token (an array name)
-to an ``(S, 3)`` float array of the sequence's LiDAR positions in that sample's ego frame, metres
-(``np.savez(FILE, **{token: origins})``); without it every sample uses the one origin ``--origin``
-(default: the nuScenes LiDAR position for Occ3D, the sensor origin for SemanticKITTI).
+RayIoU casts from per-sample LiDAR origins, as the leaderboard does: ``--index DIR`` takes them from
+a prepared nuScenes index (``occplug data prepare nuscenes``: the LiDAR positions of every sample of
+the token's scene in its ego frame), or ``--origins FILE.npz`` maps each token (an array name) to an
+``(S, 3)`` float array of those positions, metres (``np.savez(FILE, **{token: origins})``). Without
+either, every sample uses the one origin ``--origin`` (default: the nuScenes LiDAR position for
+Occ3D, the sensor origin for SemanticKITTI) and a notice says the score is not the leaderboard's.
 
 Every sample is checked before anything is written: a missing or mismatched file is one error line
 naming the first offending token and how many samples are affected (exit code 2).
@@ -26,6 +28,7 @@ import argparse
 import json
 import math
 import re
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,10 +58,13 @@ ground truth (--gt DIR, layout detected):
   SemanticKITTI  DIR/sequences/<XX>/voxels/<NNNNNN>.label + .invalid; token <XX>_<NNNNNN>;
                  raw ids remapped to the 20 SSC classes (0 = empty, 255 ignored)
 
-RayIoU origins: --origins FILE.npz maps each token to an (S, 3) float array, the LiDAR positions
-of the sample's sequence in the sample's ego frame (np.savez(FILE, **{token: origins})); without
-it every sample uses the single --origin (default: the nuScenes LiDAR position for Occ3D, the
-sensor origin for SemanticKITTI).
+RayIoU origins (the leaderboard casts from the LiDAR positions of the sample's sequence):
+  --index DIR      a prepared nuScenes index (occplug data prepare nuscenes) gives them per token
+  --origins FILE   .npz mapping each token to an (S, 3) float array of them, in the sample's ego
+                   frame (np.savez(FILE, **{token: origins}))
+  neither          every sample uses the single --origin (default: the nuScenes LiDAR position
+                   for Occ3D, the sensor origin for SemanticKITTI); a notice says the score is
+                   then not comparable with the leaderboard's
 
 A missing or mismatched file is one error line naming the first offending token and the number
 of samples affected (exit code 2); nothing is written then.
@@ -80,7 +86,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mask", choices=("none", "camera", "lidar", "camera_and_lidar"),
                    help="voxels miou evaluates (Occ3D default: camera)")
     p.add_argument("--format", choices=("auto", "occ3d", "semantickitti"), default="auto", help="ground-truth layout")
-    p.add_argument("--origins", metavar="FILE", help="RayIoU origins: .npz of token -> (S, 3) ego-frame LiDAR positions")
+    origins = p.add_mutually_exclusive_group()
+    origins.add_argument("--origins", metavar="FILE", help="RayIoU origins: .npz of token -> (S, 3) ego-frame LiDAR positions")
+    origins.add_argument("--index", metavar="DIR", help="RayIoU origins from a prepared nuScenes index (occplug data prepare)")
     p.add_argument("--origin", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="RayIoU's single origin when --origins is not given (ego frame, metres)")
     p.add_argument("--grid", nargs=6, type=float, metavar="R",
@@ -184,6 +192,20 @@ def _read_origins(path: Path, tokens: list[str]) -> dict[str, Tensor]:
     return {t: torch.from_numpy(arrays[t].astype(np.float64)) for t in tokens}
 
 
+def _index_origins(path: Path, tokens: list[str]) -> dict[str, Tensor]:
+    from occplug.data.nuscenes_index import read_index
+
+    try:
+        index = read_index(path)
+    except FormatError as exc:
+        raise UsageError(f"--index: {exc}") from None
+    position = {rec["token"]: i for i, rec in enumerate(index.samples)}
+    missing = [t for t in tokens if t not in position]
+    if missing:
+        raise UsageError(f"--index {path}: no sample with token {missing[0]} ({len(missing)} of {len(tokens)} samples affected)")
+    return {t: torch.from_numpy(index.sequence_lidar_origins(position[t])) for t in tokens}
+
+
 def _batch(token: str, fields: dict[str, Tensor], origins: Tensor, device: torch.device) -> Batch:
     """A one-sample Batch holding just what the metrics read."""
     eye3 = torch.eye(3)[None, None]
@@ -234,10 +256,16 @@ def evaluate_folder(args: argparse.Namespace) -> tuple[dict[str, dict[str, float
         raise UsageError(f"prediction {preds[extra[0]]} has no ground truth in {args.gt}; {len(extra)} predictions affected")
     names = list(dict.fromkeys(args.metric or layout.default_metrics))
     metrics = _metrics(names, layout, args, device)
+    notices: list[str] = []
     origins = {}
     if "rayiou" in metrics:
         if args.origins:
             origins = _read_origins(Path(args.origins), tokens)
+        elif args.index:
+            origins = _index_origins(Path(args.index), tokens)
+        else:
+            notices.append("notice: RayIoU casts from one fixed origin per sample; the leaderboard casts from the "
+                           "LiDAR positions of each sample's sequence (--index DIR or --origins FILE)")
         single = torch.tensor([args.origin or layout.origin], dtype=torch.float64)
         origins = {t: origins.get(t, single) for t in tokens}
     first_error, errors = None, 0
@@ -263,6 +291,8 @@ def evaluate_folder(args: argparse.Namespace) -> tuple[dict[str, dict[str, float
         raise UsageError(f"{first_error} ({errors} of {len(tokens)} samples affected)")
     results = {name: {k: float(v) for k, v in metric.compute().items()} for name, metric in metrics.items()}
     tables = {name: metric.table() for name, metric in metrics.items()}
+    for line in notices:  # after every check passed: an error stays the only line
+        print(line, file=sys.stderr)
     return results, tables, len(tokens)
 
 
@@ -296,5 +326,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
             "pred": str(args.pred),
             "metrics": {name: {k: (None if math.isnan(v) else v) for k, v in res.items()} for name, res in results.items()},
         }
+        if "miou" in results:
+            payload["eval_mask"] = args.mask or "camera"
         Path(args.json).write_text(json.dumps(payload, indent=2) + "\n")
     return 0

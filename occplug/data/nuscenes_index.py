@@ -336,6 +336,23 @@ class NuScenesIndex:
         split = "val" if split == "predict" else split
         return [i for i, s in enumerate(self.samples) if s["split"] == split]
 
+    def scene_members(self) -> dict[str, list[int]]:
+        """``{scene name: sample indices}`` in temporal order."""
+        if not hasattr(self, "_members"):
+            members: dict[str, list[int]] = {}
+            for i, rec in enumerate(self.samples):
+                members.setdefault(rec["scene"], []).append(i)
+            self._members = members
+        return self._members
+
+    def sequence_lidar_origins(self, sample: int) -> np.ndarray:
+        """``(S, 3)`` float64: the LiDAR positions of every sample of ``sample``'s scene, in ``sample``'s
+        ego frame (metres) -- the origins RayIoU casts its query rays from."""
+        scene = self.samples[sample]["scene"]
+        origins = self.arrays["lidar_origin"][self.scene_members()[scene]]
+        ego = self.arrays["ego_to_global"][sample]
+        return (origins - ego[:3, 3]) @ ego[:3, :3]
+
 
 def index_path(path: str | Path) -> Path:
     """The index file: ``path`` itself, or ``path / nuscenes_index.npz`` for a folder."""

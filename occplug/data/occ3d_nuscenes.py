@@ -108,10 +108,6 @@ class Occ3DNuScenesDataset(ReaderDataset):
         self.num_sweeps = num_sweeps
         self.load_points = load_points
         self.min_box_points = min_box_points
-        members: dict[str, list[int]] = {}
-        for i, s in enumerate(samples):
-            members.setdefault(s["scene"], []).append(i)
-        self._scene_members = members
         seg_names = index.meta.get("lidarseg_categories") or []
         self._seg_lut = np.full(256, 255, dtype=np.int64)
         for i, name in enumerate(seg_names[:256]):
@@ -180,9 +176,7 @@ class Occ3DNuScenesDataset(ReaderDataset):
         frame.boxes = torch.from_numpy(a["boxes"][keep]).float()
         frame.box_labels = torch.from_numpy(a["box_labels"][keep].astype(np.int64))
         frame.box_track_ids = torch.from_numpy(a["box_track_ids"][keep].astype(np.int64))
-        origins = a["lidar_origin"][self._scene_members[rec["scene"]]]
-        e = a["ego_to_global"][s]
-        frame.sequence_lidar_origins = torch.from_numpy((origins - e[:3, 3]) @ e[:3, :3]).float()
+        frame.sequence_lidar_origins = torch.from_numpy(self.index.sequence_lidar_origins(s)).float()
         return frame
 
     def _points(self, frame: Frame, s: int, rec: dict) -> None:

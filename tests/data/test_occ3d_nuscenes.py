@@ -316,3 +316,34 @@ def test_camera_only_runs_need_no_lidar_file_and_lidar_supervision_names_the_mis
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "LIDAR_TOP" in err and err.endswith(".pcd.bin: no such file"), err
     assert not lidar_run.exists()  # nothing written half-way
+
+
+def test_eval_takes_rayiou_origins_from_the_prepared_index(tree, tmp_path, capsys):
+    """``occplug eval --index`` casts from the same sequence origins the reader gives each frame."""
+    from occplug.data.formats.occ3d import find_label_files
+
+    labels = find_label_files(tree)
+    dm = module(tree)
+    frames = {f.token: f for split in ("train", "val") for f in (dm.dataset(split)[i] for i in range(len(dm.dataset(split))))}
+    assert set(labels) == set(frames)
+    preds = tmp_path / "preds"
+    preds.mkdir()
+    for token, frame in frames.items():
+        wrong = frame.voxel_labels.clone()
+        wrong[:, :, :2] = 4  # the two lowest layers all car: errors that depend on where rays start
+        np.savez(preds / f"{token}.npz", pred=wrong.numpy())
+    np.savez(tmp_path / "origins.npz", **{t: f.sequence_lidar_origins.double().numpy() for t, f in frames.items()})
+    grid = ["--grid", *map(str, TINY.grid.range), "--voxel-size", str(TINY.grid.voxel_size[0])]
+    common = ["eval", "--gt", str(tree), "--pred", str(preds), "--metric", "rayiou", *grid]
+
+    assert main([*common, "--index", str(tree / "index"), "--json", str(tmp_path / "index.json")]) == 0
+    assert "notice" not in capsys.readouterr().err
+    assert main([*common, "--origins", str(tmp_path / "origins.npz"), "--json", str(tmp_path / "file.json")]) == 0
+    by_index = json.loads((tmp_path / "index.json").read_text())["metrics"]["rayiou"]
+    by_file = json.loads((tmp_path / "file.json").read_text())["metrics"]["rayiou"]
+    assert by_index == pytest.approx(by_file, abs=1e-3)
+    capsys.readouterr()
+    assert main([*common, "--json", str(tmp_path / "one.json")]) == 0
+    assert "notice: RayIoU casts from one fixed origin per sample" in capsys.readouterr().err
+    single = json.loads((tmp_path / "one.json").read_text())["metrics"]["rayiou"]
+    assert single["RayIoU"] != pytest.approx(by_index["RayIoU"], abs=1e-3)

@@ -1,6 +1,7 @@
 """End to end: synthetic world -> SemanticKITTI-shaped tree (occplug data synth --format semantickitti) -> the
 SemanticKITTI reader gives back the generated frames in the velodyne frame, bit packing included."""
 
+import json
 import shutil
 
 import numpy as np
@@ -195,3 +196,15 @@ def test_decoded_frame_cache_is_not_stale_after_the_tree_is_rewritten(copy, tmp_
     after = module(copy, cache_dir=str(cache)).dataset("val")[1]
     assert bool((after.voxel_labels == 9).all()) and not torch.equal(after.voxel_labels, before.voxel_labels)
     assert len(list(cache.rglob("*.pt"))) == 2
+
+
+def test_baseline_trains_on_the_tree_and_reports_ssc_scores(tree, tmp_path, capsys):
+    run = tmp_path / "run"
+    args = ["fit", "-c", "configs/baseline.yaml", "-c", "occplug/trainer/debug", "-c", "occplug/data/semantickitti",
+            f"data.root={tree}", "data.image_size=null", "data.num_workers=0", f"grid.range={list(GRID.range)}",
+            f"grid.voxel_size={GRID.voxel_size[0]}", "model.supervision.voxel_labels.camera_mask=false", "--run-dir", str(run)]
+    assert main(args) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert {"IoU", "mIoU", "Precision", "Recall", "IoU_car"} <= set(metrics) and "RayIoU" not in metrics
+    assert metrics["eval_mask"] == "none" and metrics["train_masks"] == {"voxel_labels": "none"}
+    assert "SemanticKITTI SSC (semantic-kitti-api scorer" in capsys.readouterr().out
