@@ -32,7 +32,6 @@ from lightning.pytorch.loggers import CSVLogger
 from occplug.config import ConfigError, compose, validate
 from occplug.data.datamodule import OccDataModule
 from occplug.data.formats import FormatError
-from occplug.model import OccModel
 from occplug.plugins import get_registry, plugin_reports
 
 __all__ = [

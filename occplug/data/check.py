@@ -28,7 +28,6 @@ Nothing is written anywhere; every problem raises :class:`DataCheckError` (a
 
 from __future__ import annotations
 
-import json
 import re
 import stat
 from collections import Counter
@@ -39,7 +38,7 @@ from pathlib import Path
 from tqdm.auto import tqdm
 
 from .classes import OCC3D_CLASSES
-from .formats import FormatError
+from .formats import FormatError, read_split_file
 from .formats.occ3d import OCC3D_SHAPE, read_labels
 from .formats.semantickitti import SSC_SHAPE, VOXEL_EXTENSIONS, voxel_file_problem
 from .nuscenes_index import NuScenesIndex, collect_index, read_index, split_lists
@@ -298,19 +297,8 @@ def read_sequence_splits(path: str | Path) -> dict[str, tuple[str, ...]]:
     Raises:
         FormatError: a missing or malformed file (one line naming it).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FormatError(f"{path}: no such split file")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise FormatError(f"{path}: not valid JSON ({str(exc).splitlines()[0]})") from None
-    if not isinstance(data, dict) or not all(isinstance(v, list) for v in data.values()):
-        raise FormatError(f"{path}: a split file maps split names to lists of sequences, e.g. {{\"train\": [\"00\"], \"val\": [\"08\"]}}")
-    for split in data:
-        if split not in ("train", "val", "test"):
-            raise FormatError(f"{path}: unknown split '{split}' (valid: train, val, test)")
-    return {k: tuple(f"{int(s):02d}" if str(s).isdigit() else str(s) for s in v) for k, v in data.items()}
+    data = read_split_file(path, "sequences")
+    return {k: tuple(f"{int(s):02d}" if s.isdigit() else s for s in v) for k, v in data.items()}
 
 
 def check_semantickitti(root: str | Path, splits: str | Path | None = None, lidar: bool = True,

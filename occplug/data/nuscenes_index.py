@@ -55,7 +55,7 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from occplug.data.formats import FormatError
+from occplug.data.formats import FormatError, read_split_file
 
 __all__ = [
     "CAMERAS",
@@ -293,18 +293,7 @@ class _Tables:
 
 
 def _check_split_file(path: Path) -> dict[str, set[str]]:
-    if not path.is_file():
-        raise FormatError(f"{path}: no such split file")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise FormatError(f"{path}: not valid JSON ({str(exc).splitlines()[0]})") from None
-    if not isinstance(data, dict) or not all(isinstance(v, list) for v in data.values()):
-        raise FormatError(f"{path}: a split file maps split names to lists of scene names, e.g. {{\"train\": [...], \"val\": [...]}}")
-    for split in data:
-        if split not in ("train", "val", "test"):
-            raise FormatError(f"{path}: unknown split '{split}' (valid: train, val, test)")
-    return {k: {str(s) for s in v} for k, v in data.items()}
+    return {k: set(v) for k, v in read_split_file(path, "scene names").items()}
 
 
 @dataclass

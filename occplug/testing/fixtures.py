@@ -4,14 +4,17 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack
+from typing import Any
 
 import pytest
+import torch
+from torch import Tensor
 
 from occplug.data.frame import Batch, collate_frames
 from occplug.plugins import isolated
 from occplug.registry import Registry
 
-__all__ = ["isolated_registry", "make_tiny_batch", "tiny_batch"]
+__all__ = ["isolated_registry", "label_batch", "make_tiny_batch", "tiny_batch"]
 
 _TINY_CACHE: dict[tuple, Batch] = {}
 
@@ -26,6 +29,27 @@ def make_tiny_batch(batch_size: int = 2, split: str = "train", adjacent_offsets:
         ds = dm.dataset(split)
         _TINY_CACHE[key] = collate_frames([ds[i] for i in range(batch_size)])
     return _TINY_CACHE[key]
+
+
+def label_batch(labels: Tensor, image_hw: tuple[int, int] = (2, 2), **fields: Any) -> Batch:
+    """A Batch of ``labels`` ``(B, X, Y, Z)`` with one placeholder camera, plus any other fields given
+    (masks, ``has_voxel_labels``, origins ...): what a metric or supervision test needs, built by hand."""
+    b = labels.shape[0]
+    base: dict[str, Any] = dict(
+        images=torch.zeros(b, 1, 3, *image_hw),
+        intrinsics=torch.eye(3).expand(b, 1, 3, 3),
+        cam_to_ego=torch.eye(4).expand(b, 1, 4, 4),
+        img_aug=torch.eye(3).expand(b, 1, 3, 3),
+        ego_to_global=torch.eye(4, dtype=torch.float64).expand(b, 4, 4),
+        timestamp=torch.zeros(b, dtype=torch.float64),
+        frame_index=torch.zeros(b, dtype=torch.int64),
+        has_voxel_labels=torch.ones(b, dtype=torch.bool),
+        is_sequence_start=torch.ones(b, dtype=torch.bool),
+        scene=["s"] * b,
+        token=[f"t{i}" for i in range(b)],
+        voxel_labels=labels,
+    )
+    return Batch(**{**base, **fields})
 
 
 @pytest.fixture

@@ -11,28 +11,14 @@ from occplug.components import DenseVoxels, DenseVoxelScene, VoxelClassifier, Vo
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces import Lifted, ModelOutputs
+from occplug.testing import label_batch
 
 GRID = GridSpec(range=(0.0, 0.0, 0.0, 4.0, 3.0, 2.0), voxel_size=1.0)  # (4, 3, 2)
 K = 5
 
 
 def make_batch(labels: Tensor, has: list[bool], mask_camera: Tensor | None = None) -> Batch:
-    b = labels.shape[0]
-    return Batch(
-        images=torch.zeros(b, 1, 3, 8, 8),
-        intrinsics=torch.eye(3).expand(b, 1, 3, 3),
-        cam_to_ego=torch.eye(4).expand(b, 1, 4, 4),
-        img_aug=torch.eye(3).expand(b, 1, 3, 3),
-        ego_to_global=torch.eye(4, dtype=torch.float64).expand(b, 4, 4),
-        timestamp=torch.zeros(b, dtype=torch.float64),
-        frame_index=torch.zeros(b, dtype=torch.int64),
-        has_voxel_labels=torch.tensor(has),
-        is_sequence_start=torch.ones(b, dtype=torch.bool),
-        scene=["s"] * b,
-        token=[str(i) for i in range(b)],
-        voxel_labels=labels.to(torch.uint8),
-        mask_camera=mask_camera,
-    )
+    return label_batch(labels.to(torch.uint8), image_hw=(8, 8), has_voxel_labels=torch.tensor(has), mask_camera=mask_camera)
 
 
 def outputs_with(logits: Tensor, head: str = "occupancy") -> ModelOutputs:

@@ -6,26 +6,12 @@ import torch
 
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
+from occplug.testing import label_batch
 
 
 def make_batch(labels: torch.Tensor, **fields) -> Batch:
     """A Batch of ``labels`` ``(B, X, Y, Z)`` plus any metric-relevant fields (masks, origins...)."""
-    b = labels.shape[0]
-    return Batch(
-        images=torch.zeros(b, 1, 3, 2, 2),
-        intrinsics=torch.eye(3).expand(b, 1, 3, 3),
-        cam_to_ego=torch.eye(4).expand(b, 1, 4, 4),
-        img_aug=torch.eye(3).expand(b, 1, 3, 3),
-        ego_to_global=torch.eye(4, dtype=torch.float64).expand(b, 4, 4),
-        timestamp=torch.zeros(b, dtype=torch.float64),
-        frame_index=torch.zeros(b, dtype=torch.int64),
-        has_voxel_labels=torch.ones(b, dtype=torch.bool),
-        is_sequence_start=torch.ones(b, dtype=torch.bool),
-        scene=["s"] * b,
-        token=[f"t{i}" for i in range(b)],
-        voxel_labels=labels,
-        **fields,
-    )
+    return label_batch(labels, **fields)
 
 
 #: A small grid for RayIoU scenes: 16 x 16 x 6 voxels of 0.5 m around the ego.

@@ -3,28 +3,12 @@ import math
 import pytest
 import torch
 
-from occplug.data.frame import Batch
+from occplug.testing import label_batch
 from occplug.metrics import Occ3DMIoU, confusion_matrix
 
 
 def make_batch(labels, mask_camera=None, mask_lidar=None):
-    b = labels.shape[0]
-    return Batch(
-        images=torch.zeros(b, 1, 3, 2, 2),
-        intrinsics=torch.eye(3).expand(b, 1, 3, 3),
-        cam_to_ego=torch.eye(4).expand(b, 1, 4, 4),
-        img_aug=torch.eye(3).expand(b, 1, 3, 3),
-        ego_to_global=torch.eye(4, dtype=torch.float64).expand(b, 4, 4),
-        timestamp=torch.zeros(b, dtype=torch.float64),
-        frame_index=torch.zeros(b, dtype=torch.int64),
-        has_voxel_labels=torch.ones(b, dtype=torch.bool),
-        is_sequence_start=torch.ones(b, dtype=torch.bool),
-        scene=["s"] * b,
-        token=[f"t{i}" for i in range(b)],
-        voxel_labels=labels,
-        mask_camera=mask_camera,
-        mask_lidar=mask_lidar,
-    )
+    return label_batch(labels, mask_camera=mask_camera, mask_lidar=mask_lidar)
 
 
 def test_confusion_matrix_ignores_255_and_invalid():

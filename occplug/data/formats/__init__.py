@@ -15,6 +15,7 @@ integer dtype is read). Every reader raises :class:`FormatError` with one line n
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from pathlib import Path
@@ -30,6 +31,7 @@ __all__ = [
     "find_predictions",
     "load_npz",
     "read_prediction",
+    "read_split_file",
     "save_npz",
     "write_prediction",
 ]
@@ -109,3 +111,28 @@ def write_prediction(path: str | Path, pred: Tensor | np.ndarray) -> None:
 def find_predictions(folder: str | Path) -> dict[str, Path]:
     """``{token: path}`` of every ``<token>.npz`` directly in ``folder`` (hidden files skipped)."""
     return {p.stem: p for p in sorted(Path(folder).glob("*.npz")) if not p.name.startswith(".")}
+
+
+def read_split_file(path: str | Path, items: str = "scene names") -> dict[str, list[str]]:
+    """A JSON split file ``{split: [names]}`` with splits among ``train``, ``val``, ``test``.
+
+    Args:
+        path: the file.
+        items: what the lists hold, for the error text (``scene names``, ``sequences``).
+
+    Raises:
+        FormatError: a missing or malformed file (one line naming it).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"{path}: no such split file")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise FormatError(f"{path}: not valid JSON ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict) or not all(isinstance(v, list) for v in data.values()):
+        raise FormatError(f'{path}: a split file maps split names to lists of {items}, e.g. {{"train": [...], "val": [...]}}')
+    for split in data:
+        if split not in ("train", "val", "test"):
+            raise FormatError(f"{path}: unknown split '{split}' (valid: train, val, test)")
+    return {k: [str(s) for s in v] for k, v in data.items()}
