@@ -65,6 +65,18 @@ def _status_kb(field: str) -> int:
     return -1
 
 
+def peak_cuda_mb(fn: Callable[[], object]) -> float:
+    """Peak CUDA memory allocated above the current level while running ``fn`` (MB)."""
+    torch.cuda.synchronize()
+    base = torch.cuda.memory_allocated()
+    torch.cuda.reset_peak_memory_stats()
+    result = fn()
+    torch.cuda.synchronize()
+    peak = torch.cuda.max_memory_allocated()
+    del result
+    return (peak - base) / 2**20
+
+
 def peak_rss_mb(fn: Callable[[], object]) -> float:
     """Peak RSS above the current level while running ``fn`` (MB); NaN where Linux's counters are unavailable."""
     try:
@@ -161,8 +173,9 @@ def main() -> None:
     for name, fn in (("naive", naive), ("fast", fast), ("backward_projection", backward_projection)):
         fwd = time_ms(lambda fn=fn: (torch.no_grad()(fn))(), args.repeat)
         both = time_ms(with_backward(fn), args.repeat)
-        mem_fwd = peak_rss_mb(lambda fn=fn: torch.no_grad()(fn)()) if device.type == "cpu" else float("nan")
-        mem_both = peak_rss_mb(with_backward(fn)) if device.type == "cpu" else float("nan")
+        peak_mb = peak_cuda_mb if device.type == "cuda" else peak_rss_mb
+        mem_fwd = peak_mb(lambda fn=fn: torch.no_grad()(fn)())
+        mem_both = peak_mb(with_backward(fn))
         rows.append((name, fwd, both, mem_fwd, mem_both))
 
     # Equality with the reference, values and gradients.
@@ -184,8 +197,9 @@ def main() -> None:
     print(f"device={device} threads={torch.get_num_threads()} batch={b} cameras={n} depth_bins={d} "
           f"feature_map={h}x{w} channels={c} grid={x}x{y}x{z} frustum_points={b * n * d * h * w} "
           f"inside_grid={kept} voxel_cell_pairs={sum(p.nnz for p in plans)}")
-    print("peak memory = peak RSS above the level before the call (VmHWM after clear_refs), output volume "
-          f"{b * c * v * 4 / 2**20:.0f} MB included")
+    what = ("peak CUDA memory allocated above the level before the call" if device.type == "cuda"
+            else "peak RSS above the level before the call (VmHWM after clear_refs)")
+    print(f"peak memory = {what}, output volume {b * c * v * 4 / 2**20:.0f} MB included")
     print(f"{'method':<22}{'fwd ms (med/best)':>20}{'fwd+bwd ms (med/best)':>24}{'fwd peak MB':>13}{'fwd+bwd peak MB':>17}")
     for name, fwd, both, mem_fwd, mem_both in rows:
         print(f"{name:<22}{fwd[0]:>11.1f} /{fwd[1]:>7.1f}{both[0]:>15.1f} /{both[1]:>7.1f}{mem_fwd:>13.0f}{mem_both:>17.0f}")
