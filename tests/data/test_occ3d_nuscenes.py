@@ -189,6 +189,25 @@ def test_a_wrong_shape_met_after_the_first_label_file_fails_in_one_line_when_rea
         ds[1]
 
 
+@pytest.mark.parametrize("workers", [0, 1])
+def test_a_bad_label_file_met_during_fit_is_one_line_from_the_cli(copy, tmp_path, capsys, workers):
+    """Also from inside a loader worker, whose exception arrives wrapped with the worker's traceback."""
+    assert prepare(copy) == 0
+    index = read_index(copy / "index")
+    victim = copy / index.samples[index.split_indices("val")[1]]["occ"]
+    good = np.load(victim)
+    np.savez_compressed(victim, semantics=good["semantics"][:, :, :4], mask_lidar=good["mask_lidar"][:, :, :4],
+                        mask_camera=good["mask_camera"][:, :, :4])
+    capsys.readouterr()
+    code = main(["fit", "-c", "configs/baseline.yaml", "-c", "occplug/trainer/debug", "-c", "occplug/data/occ3d_nuscenes",
+                 f"data.root={copy}", f"data.index={copy / 'index'}", "data.image_size=null", f"data.num_workers={workers}",
+                 f"grid.range={list(TINY.grid.range)}", f"grid.voxel_size={TINY.grid.voxel_size[0]}", "metrics=[occ3d_miou]",
+                 "--run-dir", str(tmp_path / "run")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert err == f"error: {victim}: 'semantics' has shape (40, 40, 4); expected (40, 40, 8)"
+
+
 def test_pseudo_labels_from_the_tree(tree):
     p = tree / "pseudo"
     dm = module(tree, pseudo_labels={"depth": str(p / "depth"), "features": str(p / "features"),
