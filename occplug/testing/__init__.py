@@ -1,8 +1,8 @@
 """Test helpers for occplug and plugin authors (opt-in: ``pytest_plugins = ["occplug.testing"]``).
 
 Fixtures: ``tiny_batch`` (a collated batch of the tiny synthetic world), ``isolated_registry``
-(a registry with the built-ins plus only the plugins you name). Functions: :func:`label_batch`
-(a hand-built batch of labels and masks for metric and supervision tests), :func:`check_component`
+(a registry with the built-ins plus only the plugins you name). Functions: :func:`hand_batch` /
+:func:`label_batch` (batches built by hand: cameras, or labels and masks for metric and supervision tests), :func:`check_component`
 (the conformance check every registered component passes) and :func:`run_config` (a short fit of
 a config, through the same code the CLI runs).
 """
@@ -10,7 +10,13 @@ a config, through the same code the CLI runs).
 from __future__ import annotations
 
 from .conformance import check_component
-from .fixtures import isolated_registry, label_batch, make_tiny_batch, tiny_batch
+from .fixtures import (
+    hand_batch,
+    isolated_registry,
+    label_batch,
+    make_tiny_batch,
+    tiny_batch,
+)
 from .runs import run_config
 
-__all__ = ["check_component", "isolated_registry", "label_batch", "make_tiny_batch", "run_config", "tiny_batch"]
+__all__ = ["check_component", "hand_batch", "isolated_registry", "label_batch", "make_tiny_batch", "run_config", "tiny_batch"]

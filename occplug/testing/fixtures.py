@@ -14,7 +14,7 @@ from occplug.data.frame import Batch, collate_frames
 from occplug.plugins import isolated
 from occplug.registry import Registry
 
-__all__ = ["isolated_registry", "label_batch", "make_tiny_batch", "tiny_batch"]
+__all__ = ["hand_batch", "isolated_registry", "label_batch", "make_tiny_batch", "tiny_batch"]
 
 _TINY_CACHE: dict[tuple, Batch] = {}
 
@@ -31,15 +31,15 @@ def make_tiny_batch(batch_size: int = 2, split: str = "train", adjacent_offsets:
     return _TINY_CACHE[key]
 
 
-def label_batch(labels: Tensor, image_hw: tuple[int, int] = (2, 2), **fields: Any) -> Batch:
-    """A Batch of ``labels`` ``(B, X, Y, Z)`` with one placeholder camera, plus any other fields given
-    (masks, ``has_voxel_labels``, origins ...): what a metric or supervision test needs, built by hand."""
-    b = labels.shape[0]
+def hand_batch(batch_size: int, cameras: int = 1, image_hw: tuple[int, int] = (2, 2), **fields: Any) -> Batch:
+    """A Batch built by hand: ``cameras`` placeholder cameras (identity calibration, black images) and
+    empty sample fields, replaced by any ``fields`` given (``images``, ``intrinsics``, ``points`` ...)."""
+    b, n = batch_size, cameras
     base: dict[str, Any] = dict(
-        images=torch.zeros(b, 1, 3, *image_hw),
-        intrinsics=torch.eye(3).expand(b, 1, 3, 3),
-        cam_to_ego=torch.eye(4).expand(b, 1, 4, 4),
-        img_aug=torch.eye(3).expand(b, 1, 3, 3),
+        images=torch.zeros(b, n, 3, *image_hw),
+        intrinsics=torch.eye(3).expand(b, n, 3, 3),
+        cam_to_ego=torch.eye(4).expand(b, n, 4, 4),
+        img_aug=torch.eye(3).expand(b, n, 3, 3),
         ego_to_global=torch.eye(4, dtype=torch.float64).expand(b, 4, 4),
         timestamp=torch.zeros(b, dtype=torch.float64),
         frame_index=torch.zeros(b, dtype=torch.int64),
@@ -47,9 +47,14 @@ def label_batch(labels: Tensor, image_hw: tuple[int, int] = (2, 2), **fields: An
         is_sequence_start=torch.ones(b, dtype=torch.bool),
         scene=["s"] * b,
         token=[f"t{i}" for i in range(b)],
-        voxel_labels=labels,
     )
     return Batch(**{**base, **fields})
+
+
+def label_batch(labels: Tensor, image_hw: tuple[int, int] = (2, 2), **fields: Any) -> Batch:
+    """A Batch of ``labels`` ``(B, X, Y, Z)`` with one placeholder camera, plus any other fields given
+    (masks, ``has_voxel_labels``, origins ...): what a metric or supervision test needs, built by hand."""
+    return hand_batch(labels.shape[0], image_hw=image_hw, **{"voxel_labels": labels, **fields})
 
 
 @pytest.fixture

@@ -3,10 +3,13 @@
 import torch
 import torch.nn.functional as F
 
-from occplug.components.depth_supervision import LidarDepthSupervision, lidar_depth_targets
-from occplug.data.frame import Batch
+from occplug.components.depth_supervision import (
+    LidarDepthSupervision,
+    lidar_depth_targets,
+)
 from occplug.interfaces import Lifted, ModelOutputs
 from occplug.model import build_component
+from occplug.testing import hand_batch as build_batch
 from occplug.testing.fixtures import make_tiny_batch
 
 # One camera looking along ego +x: camera x = -ego y, camera y = -ego z, camera z = ego x.
@@ -17,18 +20,12 @@ CENTERS = torch.arange(9, dtype=torch.float32) + 1.5  # depth_bins [1, 10, 1]
 
 def hand_batch(points, img_aug=None):
     """B = 1, one 8 x 16 camera, LiDAR frame = ego frame."""
-    return Batch(
-        images=torch.zeros(1, 1, 3, 8, 16),
+    return build_batch(
+        1,
+        image_hw=(8, 16),
         intrinsics=K.view(1, 1, 3, 3),
         cam_to_ego=CAM_TO_EGO.view(1, 1, 4, 4),
         img_aug=(torch.eye(3) if img_aug is None else img_aug).view(1, 1, 3, 3),
-        ego_to_global=torch.eye(4, dtype=torch.float64).view(1, 4, 4),
-        timestamp=torch.zeros(1, dtype=torch.float64),
-        frame_index=torch.zeros(1, dtype=torch.int64),
-        has_voxel_labels=torch.ones(1, dtype=torch.bool),
-        is_sequence_start=torch.ones(1, dtype=torch.bool),
-        scene=["s"],
-        token=["t"],
         lidar_to_ego=torch.eye(4).view(1, 4, 4),
         points=[torch.tensor(points, dtype=torch.float32)],
     )

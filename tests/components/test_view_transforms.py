@@ -13,9 +13,14 @@ import torch
 from torch import Tensor, nn
 
 from occplug.components import BackwardProjection, LSSViewTransform, splat
-from occplug.components.view_transforms import depth_bin_centers, frustum_points, voxel_flat_index
+from occplug.components.view_transforms import (
+    depth_bin_centers,
+    frustum_points,
+    voxel_flat_index,
+)
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, make_pose, project_to_image, unproject_from_image
+from occplug.testing import hand_batch
 
 H, W, S, F = 32, 64, 8, 40.0
 CAM_TO_EGO_R = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -25,18 +30,12 @@ def make_batch(b: int = 1, n: int = 1, height: int = H, width: int = W, img_aug:
     k = torch.tensor([[F, 0.0, 35.5], [0.0, F, 19.5], [0.0, 0.0, 1.0]])
     pose = make_pose(CAM_TO_EGO_R, torch.tensor([0.0, 0.0, 1.5]))
     aug = torch.eye(3) if img_aug is None else img_aug
-    return Batch(
+    return hand_batch(
+        b,
         images=torch.rand(b, n, 3, height, width),
         intrinsics=k.expand(b, n, 3, 3).clone(),
         cam_to_ego=pose.expand(b, n, 4, 4).clone(),
         img_aug=aug.expand(b, n, 3, 3).clone(),
-        ego_to_global=torch.eye(4, dtype=torch.float64).expand(b, 4, 4).clone(),
-        timestamp=torch.zeros(b, dtype=torch.float64),
-        frame_index=torch.zeros(b, dtype=torch.int64),
-        has_voxel_labels=torch.ones(b, dtype=torch.bool),
-        is_sequence_start=torch.ones(b, dtype=torch.bool),
-        scene=["s"] * b,
-        token=[f"t{i}" for i in range(b)],
     )
 
 

@@ -16,6 +16,7 @@ from occplug.components import LSSViewTransform, splat
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, make_pose
 from occplug.ops import SplatPlanCache, build_splat_plan, geometry_key, splat_outer
+from occplug.testing import hand_batch
 
 H, W, S = 32, 64, 8  # images; stride -> 4 x 8 feature cells
 GRID = GridSpec(range=(-12.0, -12.0, -1.0, 12.0, 12.0, 4.6), voxel_size=0.8)
@@ -48,18 +49,12 @@ def random_batch(b: int, n: int, seed: int, augment: bool = True) -> Batch:
             if u(0, 1) < 0.5:
                 aug = torch.tensor([[-1.0, 0.0, W - 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) @ aug
         augs.append(aug)
-    return Batch(
+    return hand_batch(
+        b,
         images=torch.zeros(b, n, 3, H, W),
         intrinsics=torch.stack(ks).view(b, n, 3, 3),
         cam_to_ego=torch.stack(poses).view(b, n, 4, 4),
         img_aug=torch.stack(augs).view(b, n, 3, 3),
-        ego_to_global=torch.eye(4, dtype=torch.float64).expand(b, 4, 4).clone(),
-        timestamp=torch.zeros(b, dtype=torch.float64),
-        frame_index=torch.zeros(b, dtype=torch.int64),
-        has_voxel_labels=torch.ones(b, dtype=torch.bool),
-        is_sequence_start=torch.ones(b, dtype=torch.bool),
-        scene=["s"] * b,
-        token=[f"t{i}" for i in range(b)],
     )
 
 
