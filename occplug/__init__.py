@@ -16,12 +16,14 @@ from .interfaces import (
     Lifted,
     ModelOutputs,
     OccupancyHead,
+    PointEncoder,
     Scene,
     SceneRepresentation,
     SupervisionSource,
     ViewTransform,
 )
-from .registry import KINDS, Registry
+from .kinds import KINDS
+from .registry import Registry
 
 __version__ = "0.1.0"
 
@@ -38,6 +40,8 @@ __all__ = [
     "OccMetric",
     "OccModel",
     "OccupancyHead",
+    "OccupancyModel",
+    "PointEncoder",
     "Registry",
     "Scene",
     "SceneRepresentation",
@@ -50,6 +54,7 @@ __all__ = [
 
 _LAZY = {
     "OccModel": ("occplug.model", "OccModel"),
+    "OccupancyModel": ("occplug.interfaces.model", "OccupancyModel"),
     "OccDataModule": ("occplug.data.datamodule", "OccDataModule"),
     "OccMetric": ("occplug.metrics.base", "OccMetric"),
     "Slot": ("occplug.config.slots", "Slot"),

@@ -29,6 +29,7 @@ def occplug_register_components(registry: Registry) -> None:
 
     registry.add("encoder", "small_cnn", c.SmallCNN)
     registry.add("encoder", "timm", c.TimmEncoder)
+    registry.add("point_encoder", "voxel_points", c.VoxelPoints)
     registry.add("view_transform", "lss", c.LSSViewTransform)
     registry.add("view_transform", "backward_projection", c.BackwardProjection)
     registry.add("scene", "dense_voxels", c.DenseVoxels)

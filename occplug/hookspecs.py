@@ -28,7 +28,7 @@ def occplug_register_components(registry: Registry) -> None:
     """Add this plugin's components to ``registry``.
 
     Call ``registry.add(kind, name, factory)`` once per component. ``kind`` is one of
-    :data:`occplug.registry.KINDS`; ``name`` must be unique within its kind across all installed
+    :data:`occplug.kinds.KINDS`; ``name`` must be unique within its kind across all installed
     plugins: a clash stops start-up with an error naming both plugins.
 
     Example:

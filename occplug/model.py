@@ -14,46 +14,91 @@ from occplug import interfaces as I
 from occplug.config.slots import Slot
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
+from occplug.interfaces.encoder import feature_levels
+from occplug.interfaces.model import OccupancyModel
+from occplug.kinds import KINDS
 from occplug.metrics.base import OccMetric
 from occplug.plugins import get_registry
 from occplug.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
 
-__all__ = ["KIND_INTERFACES", "OccModel", "build_component"]
-
-#: The base class every component of a kind must subclass.
-KIND_INTERFACES: dict[str, type] = {
-    "encoder": I.ImageEncoder,
-    "view_transform": I.ViewTransform,
-    "scene": I.SceneRepresentation,
-    "head": I.Head,
-    "supervision": I.SupervisionSource,
-    "metric": OccMetric,
-}
+__all__ = ["OccModel", "build_component", "head_order"]
 
 
 def build_component(kind: str, spec: dict[str, Any] | str, **defaults: Any) -> Any:
-    """Build a registered component and check it implements its kind's interface."""
+    """Build a registered component and check it implements its kind's interface.
+
+    ``defaults`` fill the constructor arguments the node leaves out and the factory accepts (the
+    kind's ``given``: ``in_channels`` from the previous component, ...).
+    """
     node = {"type": spec} if isinstance(spec, str) else spec
     obj = get_registry().build(kind, node, **defaults)
-    base = KIND_INTERFACES.get(kind)
+    base = KINDS[kind].interface() if kind in KINDS else None
     if base is not None and not isinstance(obj, base):
         entry = get_registry().get(kind, node["type"])
         raise TypeError(f"{kind} '{entry.name}' (plugin {entry.plugin}) built a {type(obj).__name__}, not a {base.__name__}")
     return obj
 
 
-class OccModel(L.LightningModule):
-    """Encoder -> view transform -> scene -> heads, trained by the summed supervision losses.
+def head_order(heads: dict[str, Any], where: str = "model.heads") -> list[str]:
+    """Head names in an order where each head comes after every head it ``reads``.
 
-    Every method plugin either uses this class as is (with its own components) or subclasses it
-    (e.g. teacher-student training) and registers the subclass under kind ``model``.
+    At each step the earliest head in config order whose read heads have run comes next, so
+    heads that read nothing keep their config order.
+
+    Raises:
+        ValueError: a head reads a name that is no head, or the reads form a cycle (one line
+            naming the config key).
+    """
+    reads = {name: tuple(getattr(head, "reads", ()) or ()) for name, head in heads.items()}
+    for name, wanted in reads.items():
+        for other in wanted:
+            if other not in heads:
+                raise ValueError(f"{where}.{name}.reads: no head named '{other}'; heads are: {', '.join(heads)}")
+            if other == name:
+                raise ValueError(f"{where}.{name}.reads: a head cannot read its own outputs")
+    order: list[str] = []
+    done: set[str] = set()
+    while len(order) < len(heads):
+        ready = [n for n in heads if n not in done and all(o in done for o in reads[n])]
+        if not ready:
+            stuck = [n for n in heads if n not in done]
+            raise ValueError(f"{where}: heads {', '.join(stuck)} read each other in a cycle")
+        order.append(ready[0])
+        done.add(ready[0])
+    return order
+
+
+def _call(component: nn.Module, outputs: I.ModelOutputs, *args: Any) -> Any:
+    """``component(*args)``, plus the outputs so far where the component reads them."""
+    if getattr(component, "reads_outputs", False) or getattr(component, "reads", ()):
+        return component(*args, outputs)
+    return component(*args)
+
+
+class OccModel(OccupancyModel):
+    """Encoders -> view transform -> scene -> heads, trained by the summed supervision losses.
+
+    The flow of one forward pass (:class:`~occplug.interfaces.ModelOutputs` collects it):
+
+    1. the image ``encoder`` (one level or several) and every named ``point_encoders`` entry;
+    2. the ``view_transform`` lifts the image encoder's primary level;
+    3. the ``scene`` builds the representation;
+    4. the ``heads`` run in an order where each comes after the heads it ``reads``.
+
+    A view transform, scene or head that declares ``reads_outputs`` (or a head with ``reads``)
+    also receives the outputs so far, so a LiDAR branch, multi-scale image features or another
+    head's predictions reach it without a custom model. Training, evaluation, prediction,
+    metrics and checkpoints are this class's (and the runner's): a method composes components
+    instead of overriding steps.
 
     Args:
-        encoder: the ``encoder`` node.
+        encoder: the image ``encoder`` node.
         view_transform: the ``view_transform`` node (``in_channels``/``image_stride`` default to
-            the encoder's).
+            the encoder's primary level; ``level_channels``/``level_strides`` where it takes them).
         scene: the ``scene`` node (``in_channels`` defaults to the view transform's).
         heads: named ``head`` nodes; a ``null`` entry is switched off.
+        point_encoders: named ``point_encoder`` nodes (a LiDAR branch); ``grid`` defaults to the
+            evaluation grid; a ``null`` entry is switched off.
         supervision: named ``supervision`` nodes; each returns losses scaled by its ``weight``.
         grid: the evaluation grid (filled from the config's top-level ``grid``).
         class_names: names of the label ids (filled from the data module).
@@ -80,6 +125,7 @@ class OccModel(L.LightningModule):
         optimizer: dict | None = None,
         scheduler: dict | None = None,
         metrics: list | None = None,
+        point_encoders: Annotated[dict, Slot("point_encoder", mapping=True)] | None = None,
     ) -> None:
         super().__init__()
         self.grid = GridSpec.from_config(grid)
@@ -91,8 +137,20 @@ class OccModel(L.LightningModule):
         self.free_label = free_label
         self.occupancy_head = occupancy_head
         self.encoder = build_component("encoder", encoder)
+        self.point_encoders = nn.ModuleDict(
+            {
+                name: build_component("point_encoder", spec, grid=self.grid.to_dict())
+                for name, spec in (point_encoders or {}).items()
+                if spec is not None
+            }
+        )
         self.view_transform = build_component(
-            "view_transform", view_transform, in_channels=self.encoder.out_channels, image_stride=self.encoder.stride
+            "view_transform",
+            view_transform,
+            in_channels=self.encoder.out_channels,
+            image_stride=self.encoder.stride,
+            level_channels=list(self.encoder.level_channels),
+            level_strides=list(self.encoder.level_strides),
         )
         self.scene = build_component("scene", scene, in_channels=self.view_transform.out_channels)
         self.heads = nn.ModuleDict(
@@ -102,6 +160,7 @@ class OccModel(L.LightningModule):
                 if spec is not None
             }
         )
+        self.head_order = head_order(dict(self.heads))
         if occupancy_head not in self.heads or not isinstance(self.heads[occupancy_head], I.OccupancyHead):
             raise ValueError(
                 f"model.heads.{occupancy_head}: the model evaluates through an occupancy head named "
@@ -121,17 +180,6 @@ class OccModel(L.LightningModule):
         #: samples per optimizer step and the learning rate used (set when training starts).
         self.effective_batch: EffectiveBatch | None = None
         self.effective_lr: float | None = None
-
-    def required_fields(self) -> frozenset[str]:
-        """Optional :class:`~occplug.data.Frame` fields some component or metric reads (their ``requires``).
-
-        The runner tells the data module (``require_fields``), so a camera-only model never opens
-        a LiDAR file.
-        """
-        out: set[str] = set()
-        for module in self.modules():
-            out |= set(getattr(module, "requires", ()))
-        return frozenset(out)
 
     def training_masks(self) -> dict[str, str]:
         """``{supervision name: its training_mask}`` (``none``, ``camera``, ``lidar``, ...)."""
@@ -156,19 +204,34 @@ class OccModel(L.LightningModule):
     # ---------------------------------------------------------------- forward
     def forward(self, batch: Batch) -> I.ModelOutputs:
         """Run every component on ``batch``; see :class:`~occplug.interfaces.ModelOutputs`."""
-        features = self.encoder(batch.images)
-        lifted = self.view_transform(features, batch)
-        scene = self.scene(lifted, batch)
-        heads = {name: head(scene, batch) for name, head in self.heads.items()}
 
-        def query(head_name: str, points: Tensor) -> Tensor:
-            return self.heads[head_name].query(scene, points)
+        def query(head_name: str, points: Tensor, *args: Any, **kwargs: Any) -> Any:
+            return self.heads[head_name].query(outputs.scene, points, *args, **kwargs)
 
-        return I.ModelOutputs(image_features=features, lifted=lifted, scene=scene, heads=heads, query=query)
+        outputs = I.ModelOutputs(image_features=None, lifted=None, scene=None, heads={}, query=query)
+        levels = feature_levels(self.encoder(batch.images))
+        outputs.image_levels = levels
+        outputs.image_features = levels[self.encoder.primary_level]
+        for name, point_encoder in self.point_encoders.items():
+            outputs.encoded[name] = point_encoder(batch)
+        outputs.lifted = _call(self.view_transform, outputs, outputs.image_features, batch)
+        outputs.scene = _call(self.scene, outputs, outputs.lifted, batch)
+        for name in self.head_order:
+            outputs.heads[name] = _call(self.heads[name], outputs, outputs.scene, batch)
+        return outputs
 
     def occupancy_from(self, outputs: I.ModelOutputs) -> Tensor:
-        """``(B, X, Y, Z)`` int64 class ids on the evaluation grid from a forward pass's outputs."""
+        """``(B, X, Y, Z)`` int64 class ids on the evaluation grid from a forward pass's outputs.
+
+        An occupancy head's forward ``logits`` live on the scene's grid: where that is the
+        evaluation grid they are used as they are (no second pass, and a head that reads other
+        heads is evaluated exactly as it trained); otherwise the head answers
+        ``occupancy_logits`` at the evaluation grid's voxel centres.
+        """
         head = self.heads[self.occupancy_head]
+        logits = outputs.heads[self.occupancy_head].get("logits")
+        if logits is not None and getattr(outputs.scene, "grid", None) == self.grid and tuple(logits.shape[2:]) == self.grid.shape:
+            return logits.argmax(dim=1)
         return head.occupancy_logits(outputs.scene, self.grid).argmax(dim=1)
 
     @torch.no_grad()

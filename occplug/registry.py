@@ -9,21 +9,9 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from .kinds import KINDS
+
 __all__ = ["KINDS", "ComponentClashError", "Entry", "Registry", "UnknownComponentError"]
-
-#: The kinds a component can be registered under, with what each kind is for.
-KINDS: dict[str, str] = {
-    "encoder": "image encoder: (B, N, 3, H, W) images -> per-view feature maps",
-    "view_transform": "lifts per-view features into an ego-frame volume",
-    "scene": "scene representation read by heads and queried by supervision",
-    "head": "prediction head (occupancy heads answer predict_occupancy)",
-    "supervision": "turns a batch and model outputs into losses",
-    "model": "the LightningModule composing the components",
-    "data": "a LightningDataModule yielding occplug Frames",
-    "metric": "a torchmetrics Metric over predicted and true occupancy",
-    "callback": "a Lightning Callback added to the Trainer (config section 'callbacks')",
-}
-
 
 class UnknownComponentError(LookupError):
     """No component of that kind has that name."""
@@ -84,12 +72,23 @@ class Registry:
     def add(self, kind: str, name: str, factory: Callable[..., Any]) -> None:
         """Register ``factory`` as ``name`` of ``kind``.
 
+        A class must subclass its kind's interface (:data:`occplug.kinds.KINDS`); a factory
+        function is checked when it builds.
+
         Raises:
-            ValueError: unknown kind or a name that is not snake_case.
+            ValueError: unknown kind, a name that is not snake_case, or a class that does not
+                subclass its kind's interface.
             ComponentClashError: the name is taken in that kind (the message names both plugins).
         """
         if kind not in KINDS:
             raise ValueError(f"unknown component kind '{kind}'; kinds are: {', '.join(KINDS)}")
+        if inspect.isclass(factory):
+            base = KINDS[kind].interface()
+            if not issubclass(factory, base):
+                raise ValueError(
+                    f"{kind} '{name}' (plugin {self.current_plugin}): {factory.__module__}.{factory.__qualname__} "
+                    f"must subclass {base.__module__}.{base.__qualname__}"
+                )
         if not name or not name.replace("_", "a").isalnum() or name.lower() != name:
             raise ValueError(f"component name '{name}' must be snake_case (lowercase letters, digits, _)")
         key = (kind, name)

@@ -32,6 +32,7 @@ from lightning.pytorch.loggers import CSVLogger
 from occplug.config import ConfigError, compose, validate
 from occplug.data.datamodule import OccDataModule
 from occplug.data.formats import FormatError
+from occplug.interfaces.model import OccupancyModel
 from occplug.plugins import get_registry, plugin_reports
 
 __all__ = [
@@ -104,10 +105,16 @@ def build_datamodule(cfg: dict[str, Any]) -> OccDataModule:
     return dm
 
 
-def build_model(cfg: dict[str, Any], dm: OccDataModule) -> L.LightningModule:
-    """The model of ``cfg['model']``, given the data module's classes and the config's grid."""
+def build_model(cfg: dict[str, Any], dm: OccDataModule) -> OccupancyModel:
+    """The model of ``cfg['model']``, given the data module's classes and the config's grid.
+
+    The runner reads a model only through :class:`~occplug.interfaces.model.OccupancyModel`, so a
+    plugin's own model class (kind ``model``) fits, validates, predicts and checkpoints the same way.
+    """
+    from occplug.model import build_component  # the model module pulls in every interface
+
     grid = cfg.get("grid") or dm.grid.to_dict()
-    model = get_registry().build(
+    model = build_component(
         "model",
         cfg["model"],
         grid=grid,
@@ -139,9 +146,9 @@ def metric_nodes(specs: list | None, grid: dict[str, Any], eval_mask: str = DEFA
     return out
 
 
-def mask_settings(cfg: dict[str, Any], model: L.LightningModule) -> dict[str, Any]:
+def mask_settings(cfg: dict[str, Any], model: OccupancyModel) -> dict[str, Any]:
     """``{"eval_mask": ..., "train_masks": {supervision name: mask}}`` of a run (see README, Metrics)."""
-    train = model.training_masks() if hasattr(model, "training_masks") else {}
+    train = model.training_masks()
     return {"eval_mask": cfg.get("eval_mask") or DEFAULT_EVAL_MASK, "train_masks": train}
 
 
@@ -151,7 +158,7 @@ def describe_masks(masks: dict[str, Any]) -> str:
     return f"evaluation mask: {masks['eval_mask']} | training masks: {train}"
 
 
-def run_info(cfg: dict[str, Any], model: L.LightningModule, dm: OccDataModule) -> dict[str, Any]:
+def run_info(cfg: dict[str, Any], model: OccupancyModel, dm: OccDataModule) -> dict[str, Any]:
     """What a checkpoint carries besides the weights, so it rebuilds and explains itself alone.
 
     ``config`` (resolved), ``class_names``, ``grid``, ``masks`` (:func:`mask_settings`), ``plugins``
@@ -390,7 +397,7 @@ def check_checkpoint_plugins(info: dict[str, Any], path: Path) -> None:
             )
 
 
-def _build(cfg: dict[str, Any]) -> tuple[OccDataModule, L.LightningModule]:
+def _build(cfg: dict[str, Any]) -> tuple[OccDataModule, OccupancyModel]:
     """Data module and model, the data module told which optional fields the model reads.
 
     A component rejecting its arguments, or a data file the model needs being missing, is a
@@ -416,7 +423,7 @@ def callback_requirements(cfg: dict[str, Any]) -> set[str]:
     return out
 
 
-def _restore(cfg: dict[str, Any], ckpt: dict[str, Any], path: Path) -> tuple[OccDataModule, L.LightningModule]:
+def _restore(cfg: dict[str, Any], ckpt: dict[str, Any], path: Path) -> tuple[OccDataModule, OccupancyModel]:
     dm, model = _build(cfg)
     try:
         model.load_state_dict(ckpt["state_dict"])

@@ -4,17 +4,17 @@ import pytest
 
 from occplug.plugins import get_registry
 from occplug.testing import check_component, make_tiny_batch
+from occplug.testing.conformance import CHECKED_KINDS
 
 # (kind, name) -> why it is not swept here
 EXCLUDED = {
     ("encoder", "timm"): "needs the optional timm package; covered by tests/components/test_encoders.py",
 }
-KINDS = ("encoder", "view_transform", "scene", "head", "supervision", "metric")
 
 
 def entries():
     reg = get_registry()
-    return [(e.kind, e.name) for kind in KINDS for e in reg.entries(kind) if (e.kind, e.name) not in EXCLUDED]
+    return [(e.kind, e.name) for kind in CHECKED_KINDS for e in reg.entries(kind) if (e.kind, e.name) not in EXCLUDED]
 
 
 @pytest.mark.parametrize(("kind", "name"), entries())

@@ -6,7 +6,7 @@ import argparse
 import json
 
 from occplug.plugins import get_registry, plugin_reports
-from occplug.registry import KINDS
+from occplug.kinds import KINDS
 
 from .errors import UsageError
 

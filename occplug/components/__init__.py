@@ -7,6 +7,7 @@ registry name             kind                class
 ``timm``                  encoder             :class:`TimmEncoder`
 ``lss``                   view_transform      :class:`LSSViewTransform`
 ``backward_projection``   view_transform      :class:`BackwardProjection`
+``voxel_points``          point_encoder       :class:`VoxelPoints`
 ``dense_voxels``          scene               :class:`DenseVoxels`
 ``voxel_classifier``      head                :class:`VoxelClassifier`
 ``voxel_ce``              supervision         :class:`VoxelCrossEntropy`
@@ -17,6 +18,7 @@ registry name             kind                class
 from .depth_supervision import LidarDepthSupervision
 from .encoders import SmallCNN, TimmEncoder
 from .heads import VoxelClassifier
+from .point_encoders import VoxelPoints
 from .scenes import DenseVoxels, DenseVoxelScene
 from .supervision import VoxelCrossEntropy
 from .view_transforms import BackwardProjection, LSSViewTransform, splat
@@ -31,5 +33,6 @@ __all__ = [
     "TimmEncoder",
     "VoxelClassifier",
     "VoxelCrossEntropy",
+    "VoxelPoints",
     "splat",
 ]

@@ -57,10 +57,16 @@ class SmallCNN(ImageEncoder):
             (a ``ValueError`` says so otherwise).
         num_blocks: residual blocks per stage (>= 1).
         norm: ``"batch"`` (BatchNorm) or ``"group"`` (GroupNorm, batch-size independent).
+        levels: feature levels to output (>= 1). With more than one, each further level is a
+            stride-2 :class:`~occplug.components.layers.BasicBlock2d` on the previous stage with
+            its own 1x1 neck to ``out_channels``, so level ``i`` has stride ``stride * 2**i``;
+            the first (finest) level is the primary one the view transform reads.
 
     Shapes:
         input ``(B, N, 3, H, W)`` float RGB in [0, 1] (standardised inside with ImageNet
-        statistics); output ``(B, N, out_channels, H // stride, W // stride)``.
+        statistics); output ``(B, N, out_channels, H // stride, W // stride)``, or with
+        ``levels > 1`` a list of ``(B, N, out_channels, H // s_i, W // s_i)``, ``s_i = stride * 2**i``
+        (``H`` and ``W`` must then be divisible by the coarsest ``s_i``).
     """
 
     def __init__(
@@ -70,8 +76,11 @@ class SmallCNN(ImageEncoder):
         stride: Literal[4, 8, 16] = 8,
         num_blocks: int = 1,
         norm: Literal["batch", "group"] = "batch",
+        levels: int = 1,
     ) -> None:
         super().__init__()
+        if levels < 1:
+            raise ValueError(f"small_cnn levels must be >= 1, got {levels}")
         if stride not in (4, 8, 16):
             raise ValueError(f"small_cnn stride must be 4, 8 or 16, got {stride}")
         if num_blocks < 1:
@@ -88,13 +97,24 @@ class SmallCNN(ImageEncoder):
             channels = out
         self.body = nn.Sequential(*layers)
         self.neck = nn.Conv2d(channels, self.out_channels, 1)
+        # coarser levels (multi-scale consumers such as image-to-query detectors); none by default
+        self.down = nn.ModuleList(BasicBlock2d(channels, channels, stride=2, norm=norm) for _ in range(levels - 1))
+        self.level_necks = nn.ModuleList(nn.Conv2d(channels, self.out_channels, 1) for _ in range(levels - 1))
+        if levels > 1:
+            self._level_channels = (self.out_channels,) * levels
+            self._level_strides = tuple(self.stride * 2**i for i in range(levels))
 
-    def forward(self, images: Tensor) -> Tensor:
-        """``(B, N, 3, H, W)`` in [0, 1] -> ``(B, N, C, H / stride, W / stride)``."""
-        _check_divisible(images, self.stride, "small_cnn")
+    def forward(self, images: Tensor) -> Tensor | list[Tensor]:
+        """``(B, N, 3, H, W)`` in [0, 1] -> ``(B, N, C, H / stride, W / stride)`` (or a list of levels)."""
+        _check_divisible(images, self.level_strides[-1], "small_cnn")
         b, n = images.shape[:2]
-        x = self.neck(self.body(self.standardise(images.flatten(0, 1))))
-        return x.view(b, n, *x.shape[1:])
+        x = self.body(self.standardise(images.flatten(0, 1)))
+        out = [self.neck(x)]
+        for down, neck in zip(self.down, self.level_necks, strict=True):
+            x = down(x)
+            out.append(neck(x))
+        out = [level.view(b, n, *level.shape[1:]) for level in out]
+        return out[0] if len(out) == 1 else out
 
 
 def load_state_dict_file(path: str) -> dict[str, Tensor]:

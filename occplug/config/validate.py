@@ -14,25 +14,13 @@ from dataclasses import dataclass
 from typing import Any
 
 from occplug.geometry import GridSpec
+from occplug.kinds import given_arguments
 from occplug.registry import Registry, closest
 
 from .errors import ConfigError
 from .slots import TOP_LEVEL, Slot, component_params, slot_of
 
-__all__ = ["INJECTED", "OPTIMIZERS", "SCHEDULERS", "UsedComponent", "check_type", "validate"]
-
-#: Arguments the builder passes to a kind from elsewhere, so a config may leave them out.
-INJECTED: dict[str, set[str]] = {
-    "model": {"grid", "class_names", "free_label", "ignore_label", "optimizer", "scheduler", "metrics"},
-    "encoder": set(),
-    "view_transform": {"in_channels", "image_stride"},
-    "scene": {"in_channels"},
-    "head": {"in_channels", "num_classes"},
-    "supervision": {"free_label", "ignore_label"},
-    "data": set(),
-    "metric": {"num_classes", "class_names", "free_label", "ignore_label"},
-    "callback": set(),
-}
+__all__ = ["OPTIMIZERS", "SCHEDULERS", "UsedComponent", "check_type", "validate"]
 
 #: Optimizer names a config may use (``optimizer.type``); never an import path.
 OPTIMIZERS = ("adamw", "adam", "sgd")
@@ -152,7 +140,7 @@ class _Validator:
         missing = [
             k
             for k, (p, _) in params.items()
-            if p.default is inspect.Parameter.empty and k not in node and k not in INJECTED.get(kind, set())
+            if p.default is inspect.Parameter.empty and k not in node and k not in given_arguments(kind, entry.factory)
         ]
         if missing:
             raise ConfigError(f"{path}: {label} is missing required argument(s): {', '.join(missing)}")

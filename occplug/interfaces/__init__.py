@@ -1,6 +1,6 @@
 """The component kinds: small abstract classes every registered component subclasses."""
 
-from .encoder import ImageEncoder
+from .encoder import ImageEncoder, PointEncoder, feature_levels
 from .head import Head, OccupancyHead
 from .scene import Scene, SceneRepresentation
 from .supervision import ModelOutputs, SupervisionSource
@@ -12,8 +12,10 @@ __all__ = [
     "Lifted",
     "ModelOutputs",
     "OccupancyHead",
+    "PointEncoder",
     "Scene",
     "SceneRepresentation",
     "SupervisionSource",
     "ViewTransform",
+    "feature_levels",
 ]

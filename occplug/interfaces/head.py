@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from typing import Any, ClassVar
 
+import torch
 from torch import Tensor, nn
 
 from occplug.data.frame import Batch
@@ -15,10 +17,29 @@ __all__ = ["Head", "OccupancyHead"]
 
 
 class Head(nn.Module, ABC):
-    """Any prediction head. Constructors take ``in_channels`` (filled in from the scene).
+    """Any prediction head.
+
+    Contract:
+        given: ``in_channels`` (the scene's ``out_channels``) and ``num_classes`` (the data set's).
+        declares: ``reads`` -- the config names of other heads whose outputs this head consumes.
+        The model runs heads in an order where every head comes after the heads it reads (a
+        cycle or an unknown name is a config error) and calls a head that reads anything, or
+        that sets ``reads_outputs = True``, as ``forward(scene, batch, outputs)`` with the
+        :class:`~occplug.interfaces.ModelOutputs` so far (earlier heads in ``outputs.heads``,
+        every image level, point-encoder volumes; it may add to ``outputs.extras``).
+        conformance: :meth:`conformance_inputs` gives a dense voxel scene; a head that needs
+        another scene (a BEV plane, a query set) overrides it.
 
     .. versionadded:: 0.1
+    .. versionchanged:: 0.2 ``reads`` / ``reads_outputs``: heads that consume other heads.
     """
+
+    #: Constructor arguments the model fills in when the config leaves them out.
+    given: ClassVar[tuple[str, ...]] = ("in_channels", "num_classes")
+    #: Config names of the heads whose outputs this head reads (an instance may set its own).
+    reads: tuple[str, ...] = ()
+    #: Whether ``forward`` takes a third argument, the :class:`~occplug.interfaces.ModelOutputs` so far.
+    reads_outputs: ClassVar[bool] = False
 
     #: Optional :class:`~occplug.data.Frame` fields this component reads (e.g. ``{"points"}``):
     #: data modules skip loading what no component requires (a camera-only model opens no LiDAR file).
@@ -26,7 +47,20 @@ class Head(nn.Module, ABC):
 
     @abstractmethod
     def forward(self, scene: Scene, batch: Batch) -> dict[str, Tensor]:
-        """Named predictions for the batch (training and validation outputs)."""
+        """Named predictions for the batch (training and validation outputs).
+
+        A head with ``reads`` (or ``reads_outputs``) is called with a third argument ``outputs``.
+        """
+
+    @classmethod
+    def conformance_inputs(cls, batch: Batch, grid: GridSpec, channels: int) -> tuple[Any, ...]:
+        """Positional ``forward`` inputs for the conformance check: a random dense voxel scene on
+        ``grid`` and the batch."""
+        from occplug.components.scenes import DenseVoxelScene
+
+        gen = torch.Generator().manual_seed(0)
+        volume = torch.randn(len(batch), channels, *grid.shape, generator=gen)
+        return (DenseVoxelScene(volume, grid), batch)
 
 
 class OccupancyHead(Head):

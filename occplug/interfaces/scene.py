@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from typing import Any, ClassVar
 
+import torch
 from torch import Tensor, nn
 
 from occplug.data.frame import Batch
@@ -42,11 +44,23 @@ class Scene(ABC):
 class SceneRepresentation(nn.Module, ABC):
     """Builds a :class:`Scene` from lifted features (and may hold state across a stream).
 
-    Constructors take ``in_channels`` (filled in from the view transform when left out).
+    Contract:
+        given: ``in_channels`` (the view transform's ``out_channels`` when the config leaves it out).
+        declares: ``out_channels``; ``reads_outputs = True`` to be called as
+        ``forward(lifted, batch, outputs)`` with the model's outputs so far (e.g. a scene fusing
+        the camera volume with a point encoder's volume from ``outputs.encoded``).
+        conformance: :meth:`conformance_inputs` gives a dense ``(B, C, X, Y, Z)`` volume; a
+        representation that needs another input (a BEV plane) overrides it.
+
     A stateful representation resets its state where ``batch.is_sequence_start`` is True.
 
     .. versionadded:: 0.1
     """
+
+    #: Constructor arguments the model fills in when the config leaves them out.
+    given: ClassVar[tuple[str, ...]] = ("in_channels",)
+    #: Whether ``forward`` takes a third argument, the :class:`~occplug.interfaces.ModelOutputs` so far.
+    reads_outputs: ClassVar[bool] = False
 
     #: Optional :class:`~occplug.data.Frame` fields this component reads (e.g. ``{"points"}``):
     #: data modules skip loading what no component requires (a camera-only model opens no LiDAR file).
@@ -57,3 +71,11 @@ class SceneRepresentation(nn.Module, ABC):
     @abstractmethod
     def forward(self, lifted: Lifted, batch: Batch) -> Scene:
         """Build the scene for ``batch``."""
+
+    @classmethod
+    def conformance_inputs(cls, batch: Batch, grid: GridSpec, channels: int) -> tuple[Any, ...]:
+        """Positional ``forward`` inputs for the conformance check: a random dense volume on ``grid``
+        wrapped as :class:`Lifted`, and the batch."""
+        gen = torch.Generator().manual_seed(0)
+        volume = torch.randn(len(batch), channels, *grid.shape, generator=gen)
+        return (Lifted(volume=volume, grid=grid), batch)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 from torch import Tensor, nn
 
@@ -20,29 +21,48 @@ __all__ = ["ModelOutputs", "SupervisionSource"]
 class ModelOutputs:
     """Everything a forward pass produced, for supervision sources to read.
 
+    The model fills it in forward order; a component that reads outputs (``reads_outputs`` or a
+    head's ``reads``) receives it partly filled: what comes before it in the flow, plus the heads it
+    reads.
+
     Attributes:
-        image_features: ``(B, N, C, h, w)`` encoder output.
+        image_features: ``(B, N, C, h, w)`` the image encoder's primary level (what the view
+            transform read).
         lifted: the view transform's output (volume, optional depth distributions).
         scene: the scene representation.
         heads: each head's named outputs, keyed by the head's config name.
         query: ``query(head_name, points (B, P, 3)) -> (B, P, K)`` asks an occupancy head
             for logits at continuous points (4D query supervision uses this).
-        extras: model-specific additions (e.g. a teacher's predictions).
+        image_levels: every level of the image encoder, finest first (``[image_features]`` for
+            a single-scale encoder).
+        encoded: each point encoder's ``(B, C, X, Y, Z)`` volume, keyed by its config name.
+        extras: intermediate outputs components publish for supervision sources (a head's
+            queries, masks); keys are ``<component>/<name>`` by convention.
     """
 
-    image_features: Tensor
-    lifted: Lifted
-    scene: Scene
+    image_features: Tensor | None
+    lifted: Lifted | None
+    scene: Scene | None
     heads: dict[str, dict[str, Tensor]]
     query: Callable[[str, Tensor], Tensor]
+    image_levels: list[Tensor] = field(default_factory=list)
+    encoded: dict[str, Tensor] = field(default_factory=dict)
     extras: dict[str, object] = field(default_factory=dict)
 
 
 class SupervisionSource(nn.Module, ABC):
     """A loss term family. ``weight`` scales every loss it returns.
 
+    Contract:
+        given: ``free_label`` and ``ignore_label`` (the data set's).
+        declares: ``weight``, ``training_mask``, ``requires`` (Frame fields it reads).
+        conformance: trained on a small LSS model's outputs for a tiny-world batch.
+
     .. versionadded:: 0.1
     """
+
+    #: Constructor arguments the model fills in when the config leaves them out.
+    given: ClassVar[tuple[str, ...]] = ("free_label", "ignore_label")
 
     #: Optional :class:`~occplug.data.Frame` fields this component reads (e.g. ``{"points"}``):
     #: data modules skip loading what no component requires (a camera-only model opens no LiDAR file).

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
+import torch
 from torch import Tensor, nn
 
 from occplug.data.frame import Batch
@@ -39,11 +41,21 @@ class Lifted:
 class ViewTransform(nn.Module, ABC):
     """Lifts image features into the ego frame using the batch's calibration.
 
-    Constructors take ``in_channels`` (the encoder's ``out_channels``, filled in by the model
-    when the config leaves it out), ``image_stride`` (likewise from the encoder) and ``grid``.
+    Contract:
+        given: ``in_channels`` and ``image_stride`` (the encoder's primary level; filled in by the
+        model when the config leaves them out). A transform whose constructor also takes
+        ``level_channels`` / ``level_strides`` receives the encoder's multi-scale layout.
+        declares: ``out_channels`` and ``grid``; ``reads_outputs = True`` to be called as
+        ``forward(features, batch, outputs)`` with the model's outputs so far (every image level,
+        the point encoders' volumes) -- e.g. a camera-LiDAR fusion transform.
 
     .. versionadded:: 0.1
     """
+
+    #: Constructor arguments the model fills in when the config leaves them out.
+    given: ClassVar[tuple[str, ...]] = ("in_channels", "image_stride")
+    #: Whether ``forward`` takes a third argument, the :class:`~occplug.interfaces.ModelOutputs` so far.
+    reads_outputs: ClassVar[bool] = False
 
     #: Optional :class:`~occplug.data.Frame` fields this component reads (e.g. ``{"points"}``):
     #: data modules skip loading what no component requires (a camera-only model opens no LiDAR file).
@@ -64,3 +76,11 @@ class ViewTransform(nn.Module, ABC):
         Returns:
             A :class:`Lifted` volume in the ego frame.
         """
+
+    @classmethod
+    def conformance_inputs(cls, batch: Batch, grid: GridSpec, channels: int) -> tuple[Any, ...]:
+        """Positional ``forward`` inputs for the conformance check: random stride-4 features
+        ``(B, N, channels, H // 4, W // 4)`` (requiring grad) and the batch."""
+        b, n, _, h, w = batch.images.shape
+        gen = torch.Generator().manual_seed(0)
+        return (torch.randn(b, n, channels, h // 4, w // 4, generator=gen, requires_grad=True), batch)

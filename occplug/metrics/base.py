@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from abc import abstractmethod
-from typing import Literal
+from typing import ClassVar, Literal
 
 import torch
 from torch import Tensor
@@ -28,6 +28,9 @@ class OccMetric(Metric):
     """
 
     full_state_update = False
+    #: Constructor arguments the model fills in when the config leaves them out (its ``grid`` and
+    #: ``mask`` come from the run's config: see ``occplug.runner.metric_nodes``).
+    given: ClassVar[tuple[str, ...]] = ("num_classes", "class_names", "free_label", "ignore_label")
     #: Optional Frame fields the metric reads beyond the labels (see ``SupervisionSource.requires``).
     requires: frozenset[str] = frozenset()
 

@@ -14,10 +14,11 @@ from occplug.config.slots import component_params
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 from occplug.metrics.base import OccMetric
-from occplug.model import KIND_INTERFACES, build_component
+from occplug.kinds import KINDS, given_arguments
+from occplug.model import build_component
 from occplug.plugins import get_registry
 
-__all__ = ["check_component", "label_grid"]
+__all__ = ["CHECKED_KINDS", "check_component", "label_grid"]
 
 #: Channels of the synthetic inputs fed to view transforms, scenes and heads.
 IN_CHANNELS = 8
@@ -63,27 +64,17 @@ def check_component(kind: str, name: str, spec: dict[str, Any] | None = None, *,
     if "grid" in component_params(entry.factory):
         node["grid"] = grid.to_dict()
     node.update(spec or {})
-    defaults = {
-        "view_transform": {"in_channels": IN_CHANNELS, "image_stride": 4},
-        "scene": {"in_channels": IN_CHANNELS},
-        "head": {"in_channels": IN_CHANNELS, "num_classes": 18},
-        "metric": {"num_classes": 18},
-    }.get(kind, {})
+    # what a parent would pass: the kind's contract names the arguments, this table their test values
+    values = {"in_channels": IN_CHANNELS, "image_stride": 4, "num_classes": 18, "grid": grid.to_dict(),
+              "level_channels": [IN_CHANNELS], "level_strides": [4]}
+    defaults = {k: values[k] for k in given_arguments(kind, entry.factory) if k in values}
     torch.manual_seed(0)
     comp = build_component(kind, node, **defaults)
-    if kind in KIND_INTERFACES:
-        assert isinstance(comp, KIND_INTERFACES[kind]), f"{kind} '{name}' is not a {KIND_INTERFACES[kind].__name__}"
+    base = KINDS[kind].interface()
+    assert isinstance(comp, base), f"{kind} '{name}' is not a {base.__name__}"
     pickle.loads(pickle.dumps(comp))
-    checks = {
-        "encoder": _check_encoder,
-        "view_transform": _check_view_transform,
-        "scene": _check_scene,
-        "head": _check_head,
-        "supervision": _check_supervision,
-        "metric": _check_metric,
-    }
-    if kind in checks:
-        checks[kind](comp, batch, grid)
+    if kind in _CHECKS:
+        _CHECKS[kind](comp, batch, grid)
     return comp
 
 
@@ -95,23 +86,47 @@ def _deterministic(module: nn.Module, fn: Any) -> Any:
     return first, second
 
 
+def _inputs(component: nn.Module, batch: Batch, grid: GridSpec) -> tuple[Any, ...]:
+    """The component's own conformance inputs (its interface's, unless it supplies its own)."""
+    return type(component).conformance_inputs(batch, grid, IN_CHANNELS)
+
+
 def _check_encoder(enc: I.ImageEncoder, batch: Batch, grid: GridSpec) -> None:
     assert isinstance(enc.out_channels, int) and isinstance(enc.stride, int), "encoder must set out_channels and stride"
     b, n, _, h, w = batch.images.shape
-    first, second = _deterministic(enc, lambda m: m(batch.images))
-    assert first.shape == (b, n, enc.out_channels, h // enc.stride, w // enc.stride), f"encoder output {tuple(first.shape)}"
-    assert torch.equal(first, second), "encoder is not deterministic in eval mode"
-    _finite(first, "encoder output")
-    enc(batch.images).square().mean().backward()
+    inputs = _inputs(enc, batch, grid)
+    first, second = _deterministic(enc, lambda m: I.feature_levels(m(*inputs)))
+    channels, strides = enc.level_channels, enc.level_strides
+    assert len(first) == len(channels) == len(strides), f"encoder gave {len(first)} levels, declares {len(channels)}"
+    assert 0 <= enc.primary_level < len(first), f"primary_level {enc.primary_level} outside {len(first)} levels"
+    assert (channels[enc.primary_level], strides[enc.primary_level]) == (enc.out_channels, enc.stride), \
+        "the primary level must have out_channels and stride"
+    for level, (a, c, s) in enumerate(zip(first, channels, strides, strict=True)):
+        assert a.shape == (b, n, c, h // s, w // s), f"encoder level {level}: {tuple(a.shape)}"
+    for a, c in zip(first, second, strict=True):
+        assert torch.equal(a, c), "encoder is not deterministic in eval mode"
+        _finite(a, "encoder output")
+    torch.stack([x.square().mean() for x in I.feature_levels(enc(*inputs))]).sum().backward()
     _has_grad(enc, "encoder")
 
 
+def _check_point_encoder(enc: I.PointEncoder, batch: Batch, grid: GridSpec) -> None:
+    assert isinstance(enc.out_channels, int) and isinstance(enc.grid, GridSpec), "point encoder sets out_channels, grid"
+    inputs = _inputs(enc, batch, grid)
+    first, second = _deterministic(enc, lambda m: m(*inputs))
+    assert first.shape == (len(batch), enc.out_channels, *enc.grid.shape), f"point encoder output {tuple(first.shape)}"
+    assert torch.equal(first, second), "point encoder is not deterministic in eval mode"
+    _finite(first, "point encoder output")
+    enc(*inputs).square().mean().backward()
+    _has_grad(enc, "point encoder")
+
+
 def _check_view_transform(vt: I.ViewTransform, batch: Batch, grid: GridSpec) -> None:
-    b, n, _, h, w = batch.images.shape
-    feats = torch.randn(b, n, IN_CHANNELS, h // 4, w // 4, generator=torch.Generator().manual_seed(0), requires_grad=True)
-    first, second = _deterministic(vt, lambda m: m(feats, batch).volume)
+    inputs = _inputs(vt, batch, grid)
+    first, second = _deterministic(vt, lambda m: m(*inputs).volume)
     assert torch.equal(first, second), "view transform is not deterministic in eval mode"
-    lifted = vt(feats, batch)
+    lifted = vt(*inputs)
+    b = len(batch)
     assert isinstance(lifted, I.Lifted), "a view transform returns Lifted"
     assert lifted.volume.shape[:2] == (b, vt.out_channels), f"volume shape {tuple(lifted.volume.shape)}"
     assert tuple(lifted.volume.shape[2:]) in (lifted.grid.shape, lifted.grid.shape[:2])
@@ -120,20 +135,17 @@ def _check_view_transform(vt: I.ViewTransform, batch: Batch, grid: GridSpec) -> 
         assert torch.allclose(lifted.depth_probs.sum(2), torch.ones(()), atol=1e-4), "depth_probs must sum to 1"
     _finite(lifted.volume, "lifted volume")
     lifted.volume.square().mean().backward()
-    assert feats.grad is not None and feats.grad.abs().sum() > 0, "no gradient reaches the image features"
+    feats = inputs[0]
+    if isinstance(feats, Tensor) and feats.requires_grad:
+        assert feats.grad is not None and feats.grad.abs().sum() > 0, "no gradient reaches the image features"
     _has_grad(vt, "view transform")
 
 
-def _lifted(grid: GridSpec, batch: Batch) -> I.Lifted:
-    vol = torch.randn(len(batch), IN_CHANNELS, *grid.shape, generator=torch.Generator().manual_seed(0))
-    return I.Lifted(volume=vol, grid=grid)
-
-
 def _check_scene(rep: I.SceneRepresentation, batch: Batch, grid: GridSpec) -> None:
-    lifted = _lifted(grid, batch)
-    first, second = _deterministic(rep, lambda m: m(lifted, batch).features)
+    inputs = _inputs(rep, batch, grid)
+    first, second = _deterministic(rep, lambda m: m(*inputs).features)
     assert torch.equal(first, second), "scene is not deterministic in eval mode"
-    scene = rep(lifted, batch)
+    scene = rep(*inputs)
     assert isinstance(scene, I.Scene), "a scene representation returns a Scene"
     points = grid.centers()[::3, ::3, ::2].reshape(1, -1, 3).expand(len(batch), -1, -1)
     out = scene.sample(points)
@@ -144,10 +156,9 @@ def _check_scene(rep: I.SceneRepresentation, batch: Batch, grid: GridSpec) -> No
 
 
 def _check_head(head: I.Head, batch: Batch, grid: GridSpec) -> None:
-    from occplug.components import DenseVoxelScene
-
-    scene = DenseVoxelScene(_lifted(grid, batch).volume, grid)
-    first, second = _deterministic(head, lambda m: m(scene, batch))
+    inputs = _inputs(head, batch, grid)
+    scene = inputs[0]
+    first, second = _deterministic(head, lambda m: m(*inputs))
     assert isinstance(first, dict) and all(isinstance(v, Tensor) for v in first.values()), "a head returns dict[str, Tensor]"
     for key in first:
         assert torch.equal(first[key], second[key]), f"head output '{key}' is not deterministic in eval mode"
@@ -156,7 +167,7 @@ def _check_head(head: I.Head, batch: Batch, grid: GridSpec) -> None:
         head.eval()
         logits = head.occupancy_logits(scene, grid)
         assert logits.shape == (len(batch), head.num_classes, *grid.shape), f"occupancy_logits {tuple(logits.shape)}"
-        assert torch.allclose(logits, head(scene, batch)["logits"], atol=1e-5), "occupancy_logits != forward logits"
+        assert torch.allclose(logits, head(*inputs)["logits"], atol=1e-5), "occupancy_logits != forward logits"
         idx = torch.tensor([[1, 2, 3], [5, 0, 1]])
         pts = grid.index_to_coord(idx)[None].expand(len(batch), -1, -1)
         try:
@@ -167,7 +178,7 @@ def _check_head(head: I.Head, batch: Batch, grid: GridSpec) -> None:
             expected = logits[:, :, idx[:, 0], idx[:, 1], idx[:, 2]].transpose(1, 2)
             assert torch.allclose(queried, expected, atol=1e-4), "query at voxel centres != occupancy logits"
         head.train()
-    out = head(scene, batch)
+    out = head(*inputs)
     torch.stack([v.float().square().mean() for v in out.values() if v.is_floating_point()]).sum().backward()
     _has_grad(head, "head")
 
@@ -203,3 +214,17 @@ def _check_metric(metric: OccMetric, batch: Batch, grid: GridSpec) -> None:
     for key, value in perfect.items():
         assert value.dim() == 0, f"metric result '{key}' must be a scalar"
     metric.reset()
+
+
+_CHECKS = {
+    "encoder": _check_encoder,
+    "point_encoder": _check_point_encoder,
+    "view_transform": _check_view_transform,
+    "scene": _check_scene,
+    "head": _check_head,
+    "supervision": _check_supervision,
+    "metric": _check_metric,
+}
+#: Kinds whose components the conformance check runs (the others: data, model, callback, are
+#: exercised by the config sweep, which fits every shipped recipe).
+CHECKED_KINDS: tuple[str, ...] = tuple(k for k in KINDS if k in _CHECKS)

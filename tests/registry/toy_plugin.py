@@ -8,6 +8,7 @@ from torch import Tensor, nn
 
 import occplug
 from occplug.config.slots import Slot
+from occplug.interfaces.model import OccupancyModel
 
 
 class ToyEncoder(occplug.ImageEncoder):
@@ -35,7 +36,7 @@ class OtherEncoder(occplug.ImageEncoder):
         return images
 
 
-class ToyModel(nn.Module):
+class ToyModel(OccupancyModel):
     """A toy 'model' with a nested encoder slot and a mapping of heads."""
 
     def __init__(
@@ -45,6 +46,9 @@ class ToyModel(nn.Module):
         lr: float = 0.1,
     ) -> None:
         super().__init__()
+
+    def predict_occupancy(self, batch: object) -> Tensor:
+        raise NotImplementedError  # never evaluated: the config tests only validate and build
 
 
 class ToyPlugin:

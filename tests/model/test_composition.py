@@ -1,0 +1,233 @@
+"""Models beyond one chain: two encoders, multi-scale features, heads that read heads, extras.
+
+The end-to-end test builds a model from registered parts only (a LiDAR branch, a two-level image
+encoder, a head reading another head and the LiDAR volume, a supervision source reading an
+``extras`` entry) and fits, validates and predicts it through the runner: no step, metric,
+checkpoint or predict code outside the core.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+import pytest
+import torch
+from torch import Tensor, nn
+
+import occplug
+from occplug import runner
+from occplug.components import SmallCNN, VoxelPoints
+from occplug.components.point_encoders import voxel_point_statistics
+from occplug.config import ConfigError, validate
+from occplug.config.slots import Slot
+from occplug.geometry import GridSpec, sample_volume
+from occplug.interfaces import ModelOutputs, OccupancyHead, Scene, SupervisionSource
+from occplug.interfaces.model import OccupancyModel
+from occplug.kinds import KINDS, given_arguments
+from occplug.model import OccModel, head_order
+from occplug.plugins import isolated
+from occplug.testing import make_tiny_batch
+
+
+class RefineHead(OccupancyHead):
+    """Occupancy logits of the head it reads, plus a correction from the LiDAR volume."""
+
+    def __init__(self, in_channels: int, num_classes: int = 18, reads: list[str] = ("occupancy",),
+                 lidar: str = "lidar", lidar_channels: int = 8) -> None:
+        super().__init__()
+        self.reads = tuple(reads)
+        self.num_classes, self.lidar = num_classes, lidar
+        self.delta = nn.Conv3d(lidar_channels, num_classes, 1)
+        self.seen_levels: list[tuple[int, ...]] = []
+
+    def forward(self, scene: Scene, batch, outputs: ModelOutputs) -> dict[str, Tensor]:
+        base = outputs.heads[self.reads[0]]["logits"]
+        delta = self.delta(outputs.encoded[self.lidar])
+        self.seen_levels = [tuple(level.shape) for level in outputs.image_levels]
+        outputs.extras["refine/delta"] = delta
+        return {"logits": base + delta}
+
+    def occupancy_logits(self, scene: Scene, grid: GridSpec) -> Tensor:  # evaluation reuses forward's logits
+        raise TypeError("refine reads another head: evaluate through forward")
+
+
+class DeltaPenalty(SupervisionSource):
+    """Reads a model-level extra: an L2 penalty on the refine head's correction."""
+
+    def __init__(self, weight: float = 0.01, free_label: int = 17, ignore_label: int | None = 255) -> None:
+        super().__init__()
+        self.weight = weight
+
+    def forward(self, batch, outputs: ModelOutputs) -> dict[str, Tensor]:
+        return {"l2": outputs.extras["refine/delta"].square().mean()}
+
+
+class ComposedPlugin:
+    @occplug.hookimpl
+    def occplug_register_components(self, registry: occplug.Registry) -> None:
+        registry.add("head", "toy_refine", RefineHead)
+        registry.add("supervision", "toy_delta_penalty", DeltaPenalty)
+
+
+# ------------------------------------------------------------------ head order
+
+
+class _Stub(nn.Module):
+    def __init__(self, reads=()):
+        super().__init__()
+        self.reads = tuple(reads)
+
+
+def test_head_order_puts_each_head_after_what_it_reads():
+    heads = {"decoder": _Stub(["agg"]), "agg": _Stub(["det"]), "det": _Stub(), "aux": _Stub()}
+    assert head_order(heads) == ["det", "agg", "decoder", "aux"]  # earliest ready head in config order next
+    assert head_order({"a": _Stub(), "b": _Stub()}) == ["a", "b"]  # config order kept
+
+
+def test_head_order_rejects_unknown_names_and_cycles():
+    with pytest.raises(ValueError, match=r"^model\.heads\.agg\.reads: no head named 'dett'; heads are: agg, det$"):
+        head_order({"agg": _Stub(["dett"]), "det": _Stub()})
+    with pytest.raises(ValueError, match="read each other in a cycle"):
+        head_order({"a": _Stub(["b"]), "b": _Stub(["a"])})
+    with pytest.raises(ValueError, match="cannot read its own outputs"):
+        head_order({"a": _Stub(["a"])})
+
+
+# ------------------------------------------------------------------ multi-scale encoder
+
+
+def test_small_cnn_levels_share_the_primary_level_bit_for_bit():
+    images = torch.rand(1, 2, 3, 32, 64)
+    torch.manual_seed(0)
+    one = SmallCNN(out_channels=8, width=8, stride=4).eval()
+    torch.manual_seed(0)
+    three = SmallCNN(out_channels=8, width=8, stride=4, levels=3).eval()
+    levels = three(images)
+    assert three.level_strides == (4, 8, 16) and three.level_channels == (8, 8, 8) and three.primary_level == 0
+    assert [tuple(x.shape) for x in levels] == [(1, 2, 8, 8, 16), (1, 2, 8, 4, 8), (1, 2, 8, 2, 4)]
+    assert torch.equal(levels[0], one(images))
+    assert one.level_strides == (4,) and isinstance(one(images), Tensor)
+
+
+def test_small_cnn_rejects_images_the_coarsest_level_does_not_divide():
+    with pytest.raises(ValueError, match="not divisible by the encoder stride 16"):
+        SmallCNN(out_channels=4, width=4, stride=4, levels=3)(torch.rand(1, 1, 3, 24, 24))
+
+
+# ------------------------------------------------------------------ point encoder
+
+
+def test_voxel_point_statistics_known_values():
+    grid = GridSpec.from_config({"range": [0, 0, 0, 2, 2, 1], "voxel_size": 1.0})
+    pts = torch.tensor([[0.25, 0.5, 0.5], [0.75, 0.5, 0.5], [1.5, 1.5, 0.9], [5.0, 0.0, 0.0]])
+    out = voxel_point_statistics(pts, torch.tensor([0.2, 0.4, 1.0, 0.7]), grid)
+    assert out.shape == (5, 2, 2, 1)
+    torch.testing.assert_close(out[:, 0, 0, 0], torch.tensor([np.log(3.0), 0.0, 0.0, 0.0, 0.3], dtype=torch.float32), rtol=0, atol=1e-6)
+    torch.testing.assert_close(out[:, 1, 1, 0], torch.tensor([np.log(2.0), 0.0, 0.0, 0.4, 1.0], dtype=torch.float32), rtol=0, atol=1e-6)
+    assert out[:, 0, 1].abs().sum() == 0 and out[:, 1, 0].abs().sum() == 0  # empty voxels; the far point dropped
+
+
+def test_voxel_points_declares_points_and_runs_on_a_tiny_batch():
+    batch = make_tiny_batch()
+    grid = GridSpec.from_config({"range": [-16, -16, -1, 16, 16, 3], "voxel_size": 2.0})
+    enc = VoxelPoints(grid.to_dict(), out_channels=4)
+    assert "points" in enc.requires
+    assert enc(batch).shape == (len(batch), 4, *grid.shape)
+
+
+# ------------------------------------------------------------------ contracts
+
+
+def test_every_kind_names_an_interface_and_its_given_arguments():
+    assert set(KINDS) >= {"encoder", "point_encoder", "view_transform", "scene", "head", "supervision", "model",
+                          "data", "metric", "callback"}
+    for kind in KINDS.values():
+        assert isinstance(kind.interface(), type)
+    assert given_arguments("head") == {"in_channels", "num_classes"}
+    assert given_arguments("view_transform") == {"in_channels", "image_stride"}
+    assert "grid" in given_arguments("model") and "metrics" in given_arguments("model")
+
+
+def test_registration_checks_the_base_class():
+    class NotAHead(nn.Module):
+        """Not a head."""
+
+    reg = occplug.Registry()
+    with pytest.raises(ValueError, match=r"head 'bad'.*must subclass occplug\.interfaces\.head\.Head"):
+        reg.add("head", "bad", NotAHead)
+    reg.add("head", "fine", RefineHead)  # a proper head registers
+
+
+class WiderModel(OccModel):
+    """A plugin model that injects one more argument into itself (``given`` widened)."""
+
+    given = (*OccupancyModel.given, "teacher_grid")
+
+    def __init__(self, teacher_grid: dict, **kwargs) -> None:
+        super().__init__(**kwargs)
+
+
+def test_validation_accepts_what_a_plugin_model_declares_given():
+    class P:
+        @occplug.hookimpl
+        def occplug_register_components(self, registry):
+            registry.add("model", "wider", WiderModel)
+
+    with isolated(plugins=[("wider", P())]) as reg:
+        cfg = runner.load_config(["configs/baseline.yaml"], ["data.preset=tiny", "model.type=wider"])
+        validate(cfg, reg)  # teacher_grid is required but given: no error
+        cfg["model"]["type"] = "occ_model"
+        cfg["model"]["teacher_grid"] = {}
+        with pytest.raises(ConfigError, match="has no parameter 'teacher_grid'"):
+            validate(cfg, reg)
+
+
+# ------------------------------------------------------------------ end to end
+
+
+def composed_overrides() -> list[str]:
+    return [
+        "data.preset=tiny",
+        "model.encoder.levels=2",
+        "model.point_encoders={lidar: {type: voxel_points, out_channels: 8}}",
+        "model.heads.refined={type: toy_refine, reads: [occupancy], lidar_channels: 8}",
+        "model.occupancy_head=refined",
+        "model.supervision.voxel_labels.head=refined",
+        "model.supervision.delta={type: toy_delta_penalty, weight: 0.01}",
+        "trainer.max_steps=3",
+        "trainer.limit_val_batches=2",
+    ]
+
+
+def test_heads_reading_heads_see_their_outputs_exactly():
+    with isolated(plugins=[("composed", ComposedPlugin())]):
+        cfg = runner.load_config(["configs/baseline.yaml", "occplug/trainer/debug"], composed_overrides())
+        dm = runner.build_datamodule(cfg)
+        model = runner.build_model(cfg, dm)
+        assert model.head_order == ["occupancy", "refined"]
+        with torch.no_grad():
+            model.heads["refined"].delta.weight.zero_()
+            model.heads["refined"].delta.bias.zero_()
+        model.eval()
+        batch = make_tiny_batch()
+        out = model(batch)
+        assert torch.equal(out.heads["refined"]["logits"], out.heads["occupancy"]["logits"])
+        assert [lvl[3:] for lvl in model.heads["refined"].seen_levels] == [tuple(out.image_features.shape[3:]),
+                                                                           tuple(s // 2 for s in out.image_features.shape[3:])]
+        assert set(out.encoded) == {"lidar"} and "refine/delta" in out.extras
+        assert "points" in model.required_fields()
+
+
+def test_two_encoders_and_a_reading_head_fit_validate_and_predict(tmp_path):
+    with isolated(plugins=[("composed", ComposedPlugin())]):
+        cfg = runner.load_config(["configs/baseline.yaml", "occplug/trainer/debug"], composed_overrides())
+        results = runner.fit(cfg, tmp_path / "run")
+        assert 0.0 <= results["mIoU"] <= 100.0
+        ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
+        again = runner.evaluate(runner.resolve_run_config([], [], ckpt), ckpt)
+        assert again.results["mIoU"] == pytest.approx(results["mIoU"], abs=1e-6)
+        n = runner.predict(runner.resolve_run_config([], [], ckpt), ckpt, tmp_path / "preds")
+        assert n > 0
+        pred = np.load(next((tmp_path / "preds").glob("*.npz")))["pred"]
+        assert pred.shape == tuple(GridSpec.from_config(cfg["grid"]).shape)
