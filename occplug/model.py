@@ -239,6 +239,16 @@ class OccModel(OccupancyModel):
         """``(B, X, Y, Z)`` int64 class ids on the evaluation grid; every metric uses this."""
         return self.occupancy_from(self(batch))
 
+    def loss_weights(self) -> dict[str, float]:
+        """``{supervision name: weight}``."""
+        return {name: float(source.weight) for name, source in self.supervision.items()}
+
+    def dry_run(self, batch: Batch) -> None:
+        """Forward, every loss and the evaluation path on ``batch`` (the runner's first-batch check)."""
+        outputs = self(batch)
+        self.losses(batch, outputs)
+        self.occupancy_from(outputs)
+
     def losses(self, batch: Batch, outputs: I.ModelOutputs) -> dict[str, Tensor]:
         """Weighted losses named ``<supervision name>/<term>``."""
         out: dict[str, Tensor] = {}

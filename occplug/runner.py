@@ -28,10 +28,13 @@ import torch
 import yaml
 from lightning.pytorch.callbacks import BasePredictionWriter, Callback, ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger
+from lightning.fabric.utilities.exceptions import MisconfigurationException
 
 from occplug.config import ConfigError, compose, validate
 from occplug.data.datamodule import OccDataModule
 from occplug.data.formats import FormatError
+from occplug.data.frame import collate_frames
+from occplug.errors import UserError
 from occplug.interfaces.model import OccupancyModel
 from occplug.plugins import get_registry, plugin_reports
 
@@ -228,9 +231,34 @@ def _trainer(cfg: dict[str, Any], root: Path | None, callbacks: list[Callback], 
     except (ValueError, TypeError) as exc:
         raise RunError(str(exc).splitlines()[0]) from None
     kwargs.setdefault("enable_model_summary", False)
+    user_keys = list(kwargs)
     if root is not None:
         kwargs["default_root_dir"] = str(root)
-    return L.Trainer(callbacks=callbacks, logger=logger, **kwargs)
+    try:
+        return L.Trainer(callbacks=callbacks, logger=logger, **kwargs)
+    except (MisconfigurationException, ValueError, TypeError, RuntimeError) as exc:
+        raise RunError(trainer_error(exc, {k: kwargs[k] for k in user_keys})) from None
+
+
+#: Trainer arguments blamed, in this order, when Lightning's message names none of the set keys.
+_HARDWARE_KEYS = ("accelerator", "devices", "strategy", "precision", "num_nodes")
+
+
+def trainer_error(exc: BaseException, settings: dict[str, Any]) -> str:
+    """Lightning's complaint about the ``trainer`` settings as one line naming the ``trainer.*`` key.
+
+    The key is the first set argument whose name (or value) the message mentions, else the first
+    set hardware argument (an accelerator this machine lacks is reported by the accelerator class).
+    """
+    message = " ".join(str(exc).split()) or type(exc).__name__
+    lower = message.lower()
+    named = [k for k in settings if k.lower() in lower]
+    valued = [k for k, v in settings.items() if isinstance(v, str) and v and v.lower() in lower]
+    hardware = [k for k in _HARDWARE_KEYS if k in settings]
+    blamed = (named or valued or hardware or [None])[0]
+    where = f"trainer.{blamed}" if blamed else "trainer"
+    value = f" = {settings[blamed]!r}" if blamed else ""
+    return f"{where}{value}: {message}"
 
 
 #: Rank 0's run directory, for the processes a DDP launcher re-runs with the same command line
@@ -279,6 +307,8 @@ def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, f
         os.environ[RUN_DIR_ENV] = str(run_dir.absolute())  # inherited by the ranks a DDP launcher starts
     L.seed_everything(int(cfg.get("seed", 0)), workers=True, verbose=False)
     dm, model = _build(cfg)
+    check_trainable(model)
+    first_batch_check(model, dm)
     info = _RunInfoCallback(run_info(cfg, model, dm))
     checkpoint = ModelCheckpoint(dirpath=str(ckpt_dir), **{"save_last": True, **(cfg.get("checkpoint") or {})})
     logger = CSVLogger(save_dir=str(run_dir), name="logs")  # logs/version_<n>/: a resume never overwrites
@@ -344,6 +374,8 @@ def _data_errors() -> Iterator[None]:
         yield
     except FormatError as exc:
         raise RunError(_original_message(exc)) from None
+    except UserError as exc:
+        raise RunError(_first_line(exc)) from None
     except Exception as exc:
         # DataLoader workers re-raise the worker's exception type with the worker traceback in the message
         if type(exc).__name__ == "FormatError" or "FormatError: " in str(exc):
@@ -412,6 +444,51 @@ def _build(cfg: dict[str, Any]) -> tuple[OccDataModule, OccupancyModel]:
         raise RunError(str(exc).splitlines()[0]) from None
     except (ValueError, TypeError, FileNotFoundError, ImportError) as exc:
         raise RunError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
+
+
+def check_trainable(model: OccupancyModel) -> None:
+    """Refuse to fit a model that would learn nothing: no supervision, or every weight <= 0."""
+    weights = model.loss_weights()
+    if not weights:
+        raise RunError("model.supervision: the model has no supervision source, so fit would train nothing; "
+                       "add one (e.g. model.supervision.voxel_labels={type: voxel_ce})")
+    if all(w <= 0 for w in weights.values()):
+        shown = ", ".join(f"{name}: {w:g}" for name, w in weights.items())
+        raise RunError(f"model.supervision: every loss weight is <= 0 ({shown}), so fit would train nothing")
+
+
+def first_batch_check(model: OccupancyModel, dm: OccDataModule) -> None:
+    """Run one training batch through a copy of the model before anything is written.
+
+    A component's :class:`~occplug.errors.UserError` (or ``ValueError``) on real data -- an image
+    size its stride does not divide, a label grid that does not fit -- then costs seconds and leaves
+    no run directory. The check changes nothing about the run: it works on a deep copy (BatchNorm
+    statistics, stream state), reads the dataset directly (not the trainer's loader) and restores
+    every random-number generator afterwards.
+    """
+    import copy
+    import random
+
+    dataset = dm.dataset("train")
+    count = min(int(dm.batch_size), len(dataset))  # type: ignore[arg-type]
+    if count == 0:
+        raise RunError("data: the training split is empty")
+    py_state, np_state = random.getstate(), np.random.get_state()
+    try:
+        with torch.random.fork_rng(devices=[]), torch.no_grad(), _data_errors():
+            batch = collate_frames([dataset[i] for i in range(count)])
+            probe = copy.deepcopy(model)
+            probe.train()
+            probe.dry_run(batch)
+    except ValueError as exc:  # UserError, and the ValueErrors components raised before it existed
+        raise RunError(_first_line(exc)) from None
+    finally:
+        random.setstate(py_state)
+        np.random.set_state(np_state)
+
+
+def _first_line(exc: BaseException) -> str:
+    return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
 
 
 def callback_requirements(cfg: dict[str, Any]) -> set[str]:

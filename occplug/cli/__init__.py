@@ -12,6 +12,7 @@ import sys
 from collections.abc import Sequence
 
 from occplug.config.errors import ConfigError
+from occplug.errors import UserError
 from occplug.registry import ComponentClashError, UnknownComponentError
 
 from .errors import UsageError
@@ -54,7 +55,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         result = args.func(args)
-    except (ConfigError, UsageError, UnknownComponentError, ComponentClashError) as exc:
+    except (UserError, UsageError, UnknownComponentError, ComponentClashError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

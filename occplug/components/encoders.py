@@ -9,6 +9,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor, nn
 
+from occplug.errors import UserError
 from occplug.interfaces import ImageEncoder
 
 from .layers import BasicBlock2d, ConvNormAct2d
@@ -23,7 +24,7 @@ _STD = (0.229, 0.224, 0.225)
 def _check_divisible(images: Tensor, stride: int, who: str) -> None:
     h, w = images.shape[-2:]
     if h % stride or w % stride:
-        raise ValueError(
+        raise UserError(
             f"{who}: image size {h}x{w} is not divisible by the encoder stride {stride}; "
             f"resize or crop the images (img_aug records it) to a multiple of {stride}"
         )

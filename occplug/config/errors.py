@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from occplug.errors import UserError
+
 __all__ = ["ConfigError"]
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError):
     """A user mistake in a config file or override. ``str(err)`` is the one-line message."""

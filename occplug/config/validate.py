@@ -17,10 +17,12 @@ from occplug.geometry import GridSpec
 from occplug.kinds import given_arguments
 from occplug.registry import Registry, closest
 
+from .constraints import NonNegative, Positive, Range, UnitInterval, violated
 from .errors import ConfigError
 from .slots import TOP_LEVEL, Slot, component_params, slot_of
 
-__all__ = ["OPTIMIZERS", "SCHEDULERS", "UsedComponent", "check_type", "validate"]
+__all__ = [
+    "RUN_CONSTRAINTS","OPTIMIZERS", "SCHEDULERS", "UsedComponent", "check_type", "validate"]
 
 #: Optimizer names a config may use (``optimizer.type``); never an import path.
 OPTIMIZERS = ("adamw", "adam", "sgd")
@@ -137,6 +139,8 @@ class _Validator:
                 self.slot(value, slot, f"{path}.{key}")
             elif not check_type(value, annotation):
                 raise ConfigError(f"{path}.{key}: expected {_type_name(annotation)}, got {_describe(value)}")
+            elif (problem := violated(value, annotation)) is not None:
+                raise ConfigError(f"{path}.{key}: expected {problem}, got {_describe(value)}")
         missing = [
             k
             for k, (p, _) in params.items()
@@ -182,6 +186,52 @@ def _validate_grid(value: Any) -> None:
         raise ConfigError(f"grid: {exc}") from None
 
 
+#: Rules on the run's own numbers (optimizer, scheduler, trainer, checkpoint arguments), whose
+#: signatures belong to PyTorch and Lightning and declare none. Keys not listed are type-checked only.
+RUN_CONSTRAINTS: dict[str, Any] = {
+    "optimizer.lr": Positive,
+    "optimizer.weight_decay": NonNegative,
+    "optimizer.momentum": UnitInterval,
+    "optimizer.dampening": UnitInterval,
+    "optimizer.eps": Positive,
+    "optimizer.betas": UnitInterval,  # each of the two
+    "scheduler.warmup_steps": NonNegative,
+    "scheduler.min_lr_ratio": UnitInterval,
+    "scheduler.step_size": Positive,
+    "scheduler.gamma": Positive,
+    "trainer.max_epochs": Range(low=-1),
+    "trainer.min_epochs": NonNegative,
+    "trainer.max_steps": Range(low=-1),
+    "trainer.min_steps": NonNegative,
+    "trainer.accumulate_grad_batches": Range(low=1),
+    "trainer.gradient_clip_val": NonNegative,
+    "trainer.log_every_n_steps": Range(low=1),
+    "trainer.check_val_every_n_epoch": Range(low=1),
+    "trainer.val_check_interval": Positive,
+    "trainer.num_sanity_val_steps": Range(low=-1),
+    "trainer.limit_train_batches": NonNegative,
+    "trainer.limit_val_batches": NonNegative,
+    "trainer.limit_test_batches": NonNegative,
+    "trainer.limit_predict_batches": NonNegative,
+    "trainer.num_nodes": Range(low=1),
+    "checkpoint.save_top_k": Range(low=-1),
+    "checkpoint.every_n_epochs": NonNegative,
+    "checkpoint.every_n_train_steps": NonNegative,
+}
+
+
+def _check_run_number(key: str, value: Any) -> None:
+    rule = RUN_CONSTRAINTS.get(key)
+    if rule is None or value is None or isinstance(value, bool):
+        return
+    values = value if isinstance(value, (list, tuple)) else [value]
+    for item in values:
+        if isinstance(item, (int, float)) and not rule.holds(item):
+            kind = "an int" if isinstance(item, int) else "a number"
+            every = "every element " if isinstance(value, (list, tuple)) else ""
+            raise ConfigError(f"{key}: expected {every}{kind} {rule.describe()}, got {_describe(value)}")
+
+
 def _validate_kwargs(value: Any, section: str, target: Any, skip: set[str]) -> None:
     if not isinstance(value, dict):
         raise ConfigError(f"{section}: expected a mapping, got {_describe(value)}")
@@ -192,6 +242,7 @@ def _validate_kwargs(value: Any, section: str, target: Any, skip: set[str]) -> N
             raise ConfigError(f"{section}.{key}: unknown {section} argument{f'; did you mean {hint!r}?' if hint else ''}")
         if not check_type(val, params[key][1]):
             raise ConfigError(f"{section}.{key}: expected {_type_name(params[key][1])}, got {_describe(val)}")
+        _check_run_number(f"{section}.{key}", val)
 
 
 def _validate_named_choice(value: Any, section: str, choices: tuple[str, ...]) -> dict[str, Any]:

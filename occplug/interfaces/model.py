@@ -69,3 +69,19 @@ class OccupancyModel(L.LightningModule, ABC):
     def training_masks(self) -> dict[str, str]:
         """``{supervision name: training mask}`` recorded beside the evaluation mask (empty: none)."""
         return {}
+
+    def loss_weights(self) -> dict[str, float]:
+        """``{supervision name: weight}`` of what trains this model (empty: nothing does).
+
+        ``occplug fit`` refuses a model whose weights are empty or all <= 0 (it would train
+        nothing); ``validate`` and ``predict`` accept it.
+        """
+        return {}
+
+    def dry_run(self, batch: Batch) -> None:
+        """One forward pass (and loss computation) on ``batch``, raising what the first training
+        step would raise. The runner calls it on a deep copy of the model before anything is
+        written, under ``torch.no_grad`` with the random-number state restored afterwards; the
+        default runs :meth:`forward` and :meth:`predict_occupancy`."""
+        self(batch)
+        self.predict_occupancy(batch)

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+from occplug.errors import UserError
 from torch import Tensor
 
 __all__ = [
@@ -40,7 +42,7 @@ __all__ = [
 PREDICTION_KEY = "pred"
 
 
-class FormatError(ValueError):
+class FormatError(UserError):
     """A data or prediction file is missing, unreadable or not of the expected layout (one line)."""
 
 
