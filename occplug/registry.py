@@ -15,6 +15,7 @@ __all__ = ["KINDS", "ComponentClashError", "Entry", "Registry", "UnknownComponen
 KINDS: dict[str, str] = {
     "encoder": "image encoder: (B, N, 3, H, W) images -> per-view feature maps",
     "view_transform": "lifts per-view features into an ego-frame volume",
+    "depth_net": "per-cell depth logits and context from image features and calibration (nested in lss)",
     "scene": "scene representation read by heads and queried by supervision",
     "head": "prediction head (occupancy heads answer predict_occupancy)",
     "supervision": "turns a batch and model outputs into losses",

@@ -7,6 +7,8 @@ registry name             kind                class
 ``timm``                  encoder             :class:`TimmEncoder`
 ``lss``                   view_transform      :class:`LSSViewTransform`
 ``backward_projection``   view_transform      :class:`BackwardProjection`
+``plain``                 depth_net           :class:`PlainDepthNet`
+``camera_aware``          depth_net           :class:`CameraAwareDepthNet`
 ``dense_voxels``          scene               :class:`DenseVoxels`
 ``voxel_classifier``      head                :class:`VoxelClassifier`
 ``voxel_ce``              supervision         :class:`VoxelCrossEntropy`
@@ -14,6 +16,7 @@ registry name             kind                class
 ========================  ==================  ==========================
 """
 
+from .depth_nets import CameraAwareDepthNet, DepthAndContext, DepthNet, PlainDepthNet
 from .depth_supervision import LidarDepthSupervision
 from .encoders import SmallCNN, TimmEncoder
 from .heads import VoxelClassifier
@@ -23,10 +26,14 @@ from .view_transforms import BackwardProjection, LSSViewTransform, splat
 
 __all__ = [
     "BackwardProjection",
+    "CameraAwareDepthNet",
+    "DepthAndContext",
+    "DepthNet",
     "DenseVoxelScene",
     "DenseVoxels",
     "LSSViewTransform",
     "LidarDepthSupervision",
+    "PlainDepthNet",
     "SmallCNN",
     "TimmEncoder",
     "VoxelClassifier",

@@ -26,6 +26,7 @@ INJECTED: dict[str, set[str]] = {
     "model": {"grid", "class_names", "free_label", "ignore_label", "optimizer", "scheduler", "metrics"},
     "encoder": set(),
     "view_transform": {"in_channels", "image_stride"},
+    "depth_net": {"in_channels", "num_bins", "out_channels"},
     "scene": {"in_channels"},
     "head": {"in_channels", "num_classes"},
     "supervision": {"free_label", "ignore_label"},

@@ -12,7 +12,7 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from occplug.components import BackwardProjection, LSSViewTransform, splat
+from occplug.components import BackwardProjection, DepthAndContext, DepthNet, LSSViewTransform, splat
 from occplug.components.view_transforms import (
     depth_bin_centers,
     frustum_points,
@@ -43,15 +43,17 @@ def make_batch(b: int = 1, n: int = 1, height: int = H, width: int = W, img_aug:
 GRID = GridSpec(range=(0.13, -8.07, -1.03, 16.13, 7.93, 5.37), voxel_size=0.8)
 
 
-class FixedOutput(nn.Module):
-    """Stands in for a per-cell net: returns a fixed (learnable) ``(B*N, D + C, h, w)`` tensor."""
+class FixedOutput(DepthNet):
+    """Stands in for a depth net: a fixed (learnable) ``(B*N, D + C, h, w)`` tensor split into depth logits and context."""
 
-    def __init__(self, value: Tensor) -> None:
+    def __init__(self, value: Tensor, num_bins: int) -> None:
         super().__init__()
         self.value = nn.Parameter(value)
+        self.num_bins, self.out_channels = num_bins, value.shape[1] - num_bins
 
-    def forward(self, x: Tensor) -> Tensor:
-        return self.value + 0.0 * x.sum()
+    def forward(self, x: Tensor, batch: Batch) -> DepthAndContext:
+        out = (self.value + 0.0 * x.sum()).view(*x.shape[:2], *self.value.shape[1:])
+        return DepthAndContext(out[:, :, : self.num_bins], out[:, :, self.num_bins :])
 
 
 # ----------------------------------------------------------------------------- LSS geometry
@@ -111,7 +113,7 @@ def _one_hot_lss(batch: Batch, depth_bins: list[float], channels: int) -> tuple[
     chosen = cell % d
     logits = torch.full((d, h, w), -1e4).scatter_(0, chosen[None], 1e4)
     context = (cell[None].float() + 1) * torch.arange(1.0, channels + 1).view(-1, 1, 1)
-    lss.depth_net = FixedOutput(torch.cat([logits, context])[None].expand(len(batch), d + channels, h, w).clone())
+    lss.depth_net = FixedOutput(torch.cat([logits, context])[None].expand(len(batch), d + channels, h, w).clone(), d)
     return lss, chosen, context
 
 
@@ -147,7 +149,7 @@ def test_lss_conserves_features_inside_the_grid_and_backpropagates() -> None:
     lss = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8)
     d = lss.num_depth_bins
     net_out = torch.randn(4, d + 3, 4, 8)
-    lss.depth_net = FixedOutput(net_out)
+    lss.depth_net = FixedOutput(net_out, d)
     lifted = lss(torch.zeros(2, 2, 4, 4, 8), batch)
     probs = net_out[:, :d].softmax(1).view(2, 2, d, 4, 8)
     torch.testing.assert_close(lifted.depth_probs, probs)
