@@ -27,10 +27,10 @@ from .view_transforms import BackwardProjection, LSSViewTransform, splat
 __all__ = [
     "BackwardProjection",
     "CameraAwareDepthNet",
-    "DepthAndContext",
-    "DepthNet",
     "DenseVoxelScene",
     "DenseVoxels",
+    "DepthAndContext",
+    "DepthNet",
     "LSSViewTransform",
     "LidarDepthSupervision",
     "PlainDepthNet",

@@ -175,14 +175,14 @@ class LSSViewTransform(ViewTransform):
         self.register_buffer("depth_centers", depth_bin_centers(depth_bins), persistent=False)
         self.num_depth_bins = int(self.depth_centers.shape[0])
         self.depth_net = build_depth_net(
-            depth_net, in_channels=in_channels, num_bins=self.num_depth_bins, out_channels=self.out_channels, hidden=hidden
+            depth_net, in_channels, self.num_depth_bins, self.out_channels, hidden=hidden
         )
         #: the public splatter doing the frustum geometry, the plans and the pooling.
         self.splatter = FrustumSplatter(self.grid, self.image_stride, mode=splat)
 
     @property
     def plan_cache(self) -> SplatPlanCache:
-        """Geometry key -> :class:`~occplug.ops.SplatPlan` of one sample (the splatter's; not part of the state dict)."""
+        """Geometry key -> :class:`~occplug.ops.SplatPlan` of one sample (the splatter's; not in the state dict)."""
         return self.splatter.plan_cache
 
     def voxel_index(self, batch: Batch, h: int, w: int) -> Tensor:
@@ -210,7 +210,9 @@ class LSSViewTransform(ViewTransform):
         )
 
 
-def build_depth_net(node: dict | DepthNet | None, in_channels: int, num_bins: int, out_channels: int, **defaults: object) -> DepthNet:
+def build_depth_net(
+    node: dict | DepthNet | None, in_channels: int, num_bins: int, out_channels: int, **defaults: object
+) -> DepthNet:
     """A :class:`DepthNet` from a ``depth_net`` node (``None``: ``{type: plain}``) or passed through.
 
     ``in_channels``, ``num_bins``, ``out_channels`` and ``defaults`` fill the parameters the

@@ -173,7 +173,7 @@ class GridSpec:
         return torch.cat([idx[..., :1].clamp(0, x - 1), idx[..., 1:2].clamp(0, y - 1), idx[..., 2:]], dim=-1)
 
     def contains(self, coord: Tensor) -> Tensor:
-        """``(...)`` bool: whether each ``(..., 3)`` point lies inside the grid's range (z range only when contracted)."""
+        """``(...)`` bool: whether each ``(..., 3)`` point lies inside the grid's range (contracted: its z range)."""
         c = coord.to(torch.float64)
         lower = torch.tensor(self.lower, dtype=c.dtype, device=c.device)
         upper = torch.tensor(self.upper, dtype=c.dtype, device=c.device)

@@ -146,7 +146,7 @@ class SplatPlan:
 
     @cached_property
     def point_row(self) -> Tensor:
-        """``(K,)`` int64 occupied-voxel row (into :attr:`voxels`) of every inside point, in :attr:`point` order (sorted)."""
+        """``(K,)`` int64 occupied-voxel row (into :attr:`voxels`) of every inside point, in :attr:`point` order."""
         occ = int(self.voxels.numel())
         pair_row = torch.repeat_interleave(torch.arange(occ, device=self.crow.device), self.crow.long().diff())
         return pair_row if self.pair is None else pair_row[self.pair]
@@ -599,7 +599,7 @@ class FrustumSplatter:
         return math.prod(self.out_shape)
 
     def cell_index(self, batch: Any, h: int, w: int, depths: Tensor) -> Tensor:
-        """``(B, N, D, h, w)`` int64 flat output cell in ``[0, V)`` of every frustum point (per sample), ``-1`` if dropped.
+        """``(B, N, D, h, w)`` int64 flat output cell in ``[0, V)`` of every frustum point (per sample), -1: dropped.
 
         The flat cell is ``(i*Y + j)*Z + k`` (3D) or ``i*Y + j`` (BEV), the layout of :attr:`out_shape`.
         """
@@ -607,7 +607,7 @@ class FrustumSplatter:
             points = frustum_points(batch, h, w, self.image_stride, depths)
             hook = self._point_to_index or self.grid.coord_to_index
             idx = hook(points)
-            x, y, z = self.grid.shape
+            _, y, z = self.grid.shape
             inside = self.grid.index_in_bounds(idx)
             flat = idx[..., 0] * y + idx[..., 1]
             if not self.bev:
@@ -628,10 +628,10 @@ class FrustumSplatter:
         parts = [t.detach().float().reshape(b, -1).cpu() for t in (batch.intrinsics, batch.cam_to_ego, batch.img_aug)]
         geometry = torch.cat([*parts, z.reshape(b, -1)], dim=1)
         shapes = tuple(tuple(t.shape[1:]) for t in (batch.intrinsics, batch.cam_to_ego, batch.img_aug, z))
-        static = dict(
-            h=int(h), w=int(w), stride=self.image_stride, grid=self.grid, bev=self.bev, shapes=shapes,
-            device=str(depths.device),
-        )
+        static = {
+            "h": int(h), "w": int(w), "stride": self.image_stride, "grid": self.grid, "bev": self.bev, "shapes": shapes,
+            "device": str(depths.device),
+        }
         return [geometry_key(geometry[i], **static) for i in range(b)]
 
     def plans(self, batch: Any, h: int, w: int, depths: Tensor) -> list[SplatPlan]:
@@ -704,7 +704,7 @@ class FrustumSplatter:
         """
         if features.dim() != 6:
             raise ValueError(f"splat_points: expected features (B, N, D, C, h, w), got shape {tuple(features.shape)}")
-        b, n, d, c, h, w = features.shape
+        b, _, _, c, h, w = features.shape
         with _no_autocast(features.device):
             features = _pool_dtype(features)
             if self.mode == "reference":

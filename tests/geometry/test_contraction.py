@@ -8,7 +8,9 @@ import torch
 from occplug.geometry import Contraction, GridSpec, contract, sample_volume, uncontract
 
 # Half-range R = 80 m, near = 40 m, kappa = 0.5: near = kappa * R, so the near field is metric (0.8 m voxels).
-CGRID = GridSpec(range=(-80, -80, -1, 80, 80, 5.4), voxel_size=(0.8, 0.8, 0.4), contraction={"near": 40.0, "kappa": 0.5})
+CGRID = GridSpec(
+    range=(-80, -80, -1, 80, 80, 5.4), voxel_size=(0.8, 0.8, 0.4), contraction={"near": 40.0, "kappa": 0.5}
+)
 METRIC = GridSpec(range=(-80, -80, -1, 80, 80, 5.4), voxel_size=(0.8, 0.8, 0.4))
 
 
@@ -33,7 +35,9 @@ def test_contract_is_continuous_monotone_bounded_and_inverts_exactly(kappa: floa
 
 def test_grid_contraction_known_values() -> None:
     # Centre 0, R = 80: contracted x' = 80 * contract(x, 40, 0.5); cell = floor((x' + 80) / 0.8).
-    pts = torch.tensor([[0.1, 0.1, 0.0], [39.9, 0.1, 0.0], [80.0, 0.1, 0.0], [1000.0, -1000.0, 0.0]], dtype=torch.float64)
+    pts = torch.tensor(
+        [[0.1, 0.1, 0.0], [39.9, 0.1, 0.0], [80.0, 0.1, 0.0], [1000.0, -1000.0, 0.0]], dtype=torch.float64
+    )
     idx = CGRID.coord_to_index(pts)
     # x = 39.9 -> x' = 39.9 (metric near field) -> cell 149; x = 80 -> x' = 60 -> cell 175;
     # x = 1000 -> x' = 80 * 0.98 = 78.4 -> cell 198; y = -1000 -> y' = -78.4 -> cell 1
@@ -53,11 +57,15 @@ def test_far_points_land_in_border_cells_never_out_of_bounds() -> None:
     assert CGRID.index_in_bounds(idx).all() and CGRID.contains(far).all()
     assert idx[1:, 0].tolist() == [199, 0, 199] and idx[3, 1] == 0
     # z stays linear: a point above the range is outside
-    assert not CGRID.contains(torch.tensor([1e3, 0.0, 9.0])) and not CGRID.index_in_bounds(CGRID.coord_to_index(torch.tensor([1e3, 0.0, 9.0])))
+    assert not CGRID.contains(torch.tensor([1e3, 0.0, 9.0])) and not CGRID.index_in_bounds(
+        CGRID.coord_to_index(torch.tensor([1e3, 0.0, 9.0]))
+    )
 
 
 def test_contracted_index_centre_round_trip_and_centers_agree() -> None:
-    idx = torch.stack(torch.meshgrid(torch.arange(200), torch.tensor([0, 7, 100, 199]), torch.tensor([0, 15]), indexing="ij"), -1)
+    idx = torch.stack(
+        torch.meshgrid(torch.arange(200), torch.tensor([0, 7, 100, 199]), torch.tensor([0, 15]), indexing="ij"), -1
+    )
     assert torch.equal(CGRID.coord_to_index(CGRID.index_to_coord(idx)), idx)
     centers = CGRID.centers()
     assert centers.shape == (200, 200, 16, 3)
@@ -77,7 +85,9 @@ def test_uncontracted_grid_is_unchanged_and_config_round_trips() -> None:
     pts = torch.randn(500, 3) * 50
     lower, size = torch.tensor(METRIC.lower, dtype=torch.float64), torch.tensor(METRIC.voxel_size, dtype=torch.float64)
     assert torch.equal(METRIC.coord_to_index(pts), torch.floor((pts.double() - lower) / size).long())
-    assert torch.equal(METRIC.normalize(pts), (pts - lower.float()) / (torch.tensor(METRIC.upper) - lower.float()) * 2 - 1)
+    assert torch.equal(
+        METRIC.normalize(pts), (pts - lower.float()) / (torch.tensor(METRIC.upper) - lower.float()) * 2 - 1
+    )
     assert GridSpec.from_config(METRIC.to_dict()) == METRIC
     cfg = CGRID.to_dict()
     assert cfg["contraction"] == {"near": [40.0, 40.0], "kappa": 0.5}
@@ -91,13 +101,17 @@ def test_contraction_config_errors_are_one_line() -> None:
     with pytest.raises(ValueError, match="near must be a positive"):
         Contraction(near=[1.0, -2.0])
     with pytest.raises(ValueError, match="mapping"):
-        GridSpec.from_config({"range": [-1, -1, -1, 1, 1, 1], "voxel_size": 0.5, "contraction": {"near": 1, "kapa": 0.5}})
+        GridSpec.from_config(
+            {"range": [-1, -1, -1, 1, 1, 1], "voxel_size": 0.5, "contraction": {"near": 1, "kapa": 0.5}}
+        )
 
 
 def test_sample_volume_on_a_contracted_grid_reads_the_metric_grid() -> None:
     # A volume whose value is the contracted x coordinate' of each cell centre is linear in contracted space, so
     # sampling it at any metric point returns that point's contracted x' exactly (inside the outer half-cells).
-    grid = GridSpec(range=(-8, -8, 0, 8, 8, 2), voxel_size=(1.0, 1.0, 1.0), contraction={"near": (4.0, 2.0), "kappa": 0.5})
+    grid = GridSpec(
+        range=(-8, -8, 0, 8, 8, 2), voxel_size=(1.0, 1.0, 1.0), contraction={"near": (4.0, 2.0), "kappa": 0.5}
+    )
     centers = grid.centers().double()
     xc = grid.contract_coords(centers)[..., 0].float()
     volume = xc[None, None]  # (1, 1, X, Y, Z)

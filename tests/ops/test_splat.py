@@ -283,7 +283,7 @@ def test_per_point_path_equals_naive_index_add_values_and_gradients(dtype: torch
     feats.grad = None
     ref = naive_points(feats, index, v)
     ref.backward(grad)
-    tol = dict(atol=1e-12, rtol=1e-12) if dtype == torch.float64 else dict(atol=1e-5, rtol=1e-5)
+    tol = {"atol": 1e-12, "rtol": 1e-12} if dtype == torch.float64 else {"atol": 1e-5, "rtol": 1e-5}
     torch.testing.assert_close(fast.view(3, 6, v), ref, **tol)
     torch.testing.assert_close(g_fast, feats.grad, **tol)
     dropped = (index < 0)[:, :, :, None].expand_as(feats)

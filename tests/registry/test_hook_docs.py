@@ -27,7 +27,9 @@ def test_every_hookspec_is_documented_with_its_signature():
 def test_hook_register_components_via_builtin(isolated_registry):
     registry = isolated_registry()
     kinds = {e.kind for e in registry.entries()}
-    assert kinds == {"encoder", "view_transform", "scene", "head", "supervision", "model", "data", "metric", "callback"}
+    assert kinds == {
+        "encoder", "view_transform", "depth_net", "scene", "head", "supervision", "model", "data", "metric", "callback"
+    }
     assert all(e.plugin == "occplug" for e in registry.entries())
 
 
