@@ -32,6 +32,8 @@ def occplug_register_components(registry: Registry) -> None:
     registry.add("point_encoder", "voxel_points", c.VoxelPoints)
     registry.add("view_transform", "lss", c.LSSViewTransform)
     registry.add("view_transform", "backward_projection", c.BackwardProjection)
+    registry.add("depth_net", "plain", c.PlainDepthNet)
+    registry.add("depth_net", "camera_aware", c.CameraAwareDepthNet)
     registry.add("scene", "dense_voxels", c.DenseVoxels)
     registry.add("head", "voxel_classifier", c.VoxelClassifier)
     registry.add("supervision", "voxel_ce", c.VoxelCrossEntropy)

@@ -54,6 +54,8 @@ KINDS: dict[str, Kind] = {
              "occplug.interfaces.encoder:PointEncoder"),
         Kind("view_transform", "lifts per-view features into an ego-frame volume",
              "occplug.interfaces.view_transform:ViewTransform"),
+        Kind("depth_net", "depth network of a lift-splat view transform: features (+ calibration) -> depth, context",
+             "occplug.interfaces.depth_net:DepthNet"),
         Kind("scene", "scene representation read by heads and queried by supervision",
              "occplug.interfaces.scene:SceneRepresentation"),
         Kind("head", "prediction head (occupancy heads answer predict_occupancy); may read other heads",

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Benchmark the splat at a nuScenes-like size: naive reference vs the fast splat vs backward projection.
+"""Benchmark the splat at a nuScenes-like size: naive vs fast splat (outer product, per point) vs backward projection.
 
 Size (defaults): 6 cameras of the synthetic world's nuScenes-like rig at 256 x 704 pixels, stride 16
 (16 x 44 feature maps), 88 depth bins ([1, 45) m in 0.5 m steps), 64 channels, the Occ3D grid
@@ -13,6 +13,9 @@ Measured, each on the same inputs and output layout (a contiguous ``(B, C, X, Y,
   (the reference LSS recomputes it every forward: the ``geometry`` line).
 * ``fast``: :func:`occplug.ops.splat_outer` with a cached :class:`occplug.ops.SplatPlan`
   (its one-off build per geometry is the ``plan build`` line).
+* ``naive_points`` / ``fast_points``: the per-point path, arbitrary ``(B, N, D, C, h, w)`` features
+  (here the same products, materialised): ``index_add_`` over all points vs
+  :func:`occplug.ops.splat_points` with the same cached plans.
 * ``backward_projection``: the whole :class:`~occplug.components.BackwardProjection` module
   (1x1 projection, projection of every voxel centre into every camera, bilinear sampling, mean).
 
@@ -20,7 +23,7 @@ Times are wall-clock milliseconds (median and best of ``--repeat`` runs after a 
 forward+backward back-propagates a fixed random gradient of the volume. Peak memory is the peak
 resident set size above the level before the call (Linux: ``/proc/self/clear_refs`` resets the
 high-water mark, ``VmHWM`` reads it), i.e. every tensor the call allocates, including the
-output volume (here 164 MB) and autograd's saved tensors. The last line is the ratio naive / fast.
+output volume (here 164 MB) and autograd's saved tensors. The last lines are the ratios naive / fast of both paths.
 
 Usage: ``python scripts/bench_view_transform.py [--repeat 5] [--batch 1] [--threads N]``
 """
@@ -35,11 +38,11 @@ from pathlib import Path
 
 import torch
 
-from occplug.components import BackwardProjection, splat
-from occplug.components.view_transforms import depth_bin_centers, frustum_points, voxel_flat_index
+from occplug.components import BackwardProjection
+from occplug.components.view_transforms import depth_bin_centers
 from occplug.data.synthetic.render import camera_rig
 from occplug.geometry import GridSpec
-from occplug.ops import build_splat_plan, splat_outer
+from occplug.ops import FrustumSplatter, splat, splat_outer, splat_points
 
 IMAGE_SIZE = (256, 704)
 STRIDE = 16
@@ -126,15 +129,18 @@ def main() -> None:
     for name in ("intrinsics", "cam_to_ego", "img_aug", "images"):
         setattr(geo, name, getattr(geo, name).to(device))
 
+    splatter = FrustumSplatter(GRID, STRIDE)
+
     def geometry() -> torch.Tensor:
-        return voxel_flat_index(frustum_points(geo, h, w, STRIDE, depths), GRID)  # (B, N, D, h, w)
+        return splatter.cell_index(geo, h, w, depths)  # (B, N, D, h, w), per-sample cells
 
     index = geometry()
     plans_t0 = time.perf_counter()
-    plans = [build_splat_plan(torch.where(index[i] >= 0, index[i] - i * v, index[i]), v) for i in range(b)]
+    plans = splatter.plans(geo, h, w, depths)
     sync()
     plan_ms = (time.perf_counter() - plans_t0) * 1e3
-    flat_index = index.reshape(-1)
+    offset = torch.arange(b, device=device).view(b, 1, 1, 1, 1) * v
+    flat_index = torch.where(index >= 0, index + offset, index).reshape(-1)
 
     probs = torch.randn(b, n, d, h, w, device=device).softmax(2).requires_grad_()
     context = torch.randn(b, n, c, h, w, device=device, requires_grad=True)
@@ -152,6 +158,19 @@ def main() -> None:
         sync()
         return out
 
+    point_features = (probs.detach().view(b, n, d, 1, h, w) * context.detach().view(b, n, 1, c, h, w)).requires_grad_()
+
+    def naive_points() -> torch.Tensor:
+        rows = point_features.permute(0, 1, 2, 4, 5, 3).reshape(-1, c)
+        out = splat(rows, flat_index, b * v).view(b, x, y, z, c).permute(0, 4, 1, 2, 3).contiguous()
+        sync()
+        return out
+
+    def fast_points() -> torch.Tensor:
+        out = splat_points(point_features, plans).view(b, c, x, y, z)
+        sync()
+        return out
+
     features = torch.randn(b, n, c, h, w, device=device, requires_grad=True)
     bp = BackwardProjection(c, STRIDE, GRID, out_channels=c, depth_bins=DEPTH_BINS, hidden=0).to(device)
 
@@ -162,7 +181,7 @@ def main() -> None:
 
     def with_backward(fn: Callable[[], torch.Tensor]) -> Callable[[], None]:
         def run() -> None:
-            for t in (probs, context, features):
+            for t in (probs, context, features, point_features):
                 t.grad = None
             fn().backward(grad_volume)
             sync()
@@ -170,7 +189,9 @@ def main() -> None:
         return run
 
     rows = []
-    for name, fn in (("naive", naive), ("fast", fast), ("backward_projection", backward_projection)):
+    methods = (("naive", naive), ("fast", fast), ("naive_points", naive_points), ("fast_points", fast_points),
+               ("backward_projection", backward_projection))
+    for name, fn in methods:
         fwd = time_ms(lambda fn=fn: (torch.no_grad()(fn))(), args.repeat)
         both = time_ms(with_backward(fn), args.repeat)
         peak_mb = peak_cuda_mb if device.type == "cuda" else peak_rss_mb
@@ -191,6 +212,15 @@ def main() -> None:
     diff = (out - ref).abs().max().item()
     gdiff = [(t.grad - g).abs().max().item() for t, g in zip((probs, context), ref_grads, strict=True)]
     del ref, out
+    point_features.grad = None
+    ref = naive_points()
+    ref.backward(grad_volume)
+    ref_grad = point_features.grad.clone()
+    point_features.grad = None
+    out = fast_points()
+    out.backward(grad_volume)
+    pdiff = (out - ref).abs().max().item(), (point_features.grad - ref_grad).abs().max().item()
+    del ref, out, ref_grad
 
     geo_ms = time_ms(lambda: geometry(), args.repeat)
     kept = sum(p.num_points_inside for p in plans)
@@ -206,9 +236,10 @@ def main() -> None:
     print(f"geometry (frustum index; the reference LSS recomputes it every forward): {geo_ms[0]:.1f} ms; "
           f"fast-splat plan build (once per geometry, then cached): {plan_ms:.1f} ms")
     print(f"max |fast - naive|: volume {diff:.3g}, d/d depth {gdiff[0]:.3g}, d/d context {gdiff[1]:.3g}")
-    naive_row, fast_row = rows[0], rows[1]
-    print(f"ratio naive / fast (median ms): forward {naive_row[1][0] / fast_row[1][0]:.2f}x, "
-          f"forward+backward {naive_row[2][0] / fast_row[2][0]:.2f}x")
+    print(f"max |fast_points - naive_points|: volume {pdiff[0]:.3g}, d/d features {pdiff[1]:.3g}")
+    for label, naive_row, fast_row in (("naive / fast", rows[0], rows[1]), ("naive_points / fast_points", rows[2], rows[3])):
+        print(f"ratio {label} (median ms): forward {naive_row[1][0] / fast_row[1][0]:.2f}x, "
+              f"forward+backward {naive_row[2][0] / fast_row[2][0]:.2f}x")
 
 
 if __name__ == "__main__":

@@ -8,6 +8,8 @@ registry name             kind                class
 ``lss``                   view_transform      :class:`LSSViewTransform`
 ``backward_projection``   view_transform      :class:`BackwardProjection`
 ``voxel_points``          point_encoder       :class:`VoxelPoints`
+``plain``                 depth_net           :class:`PlainDepthNet`
+``camera_aware``          depth_net           :class:`CameraAwareDepthNet`
 ``dense_voxels``          scene               :class:`DenseVoxels`
 ``voxel_classifier``      head                :class:`VoxelClassifier`
 ``voxel_ce``              supervision         :class:`VoxelCrossEntropy`
@@ -15,6 +17,7 @@ registry name             kind                class
 ========================  ==================  ==========================
 """
 
+from .depth_nets import CameraAwareDepthNet, DepthAndContext, DepthNet, PlainDepthNet
 from .depth_supervision import LidarDepthSupervision
 from .encoders import SmallCNN, TimmEncoder
 from .heads import VoxelClassifier
@@ -25,10 +28,14 @@ from .view_transforms import BackwardProjection, LSSViewTransform, splat
 
 __all__ = [
     "BackwardProjection",
+    "CameraAwareDepthNet",
     "DenseVoxelScene",
     "DenseVoxels",
+    "DepthAndContext",
+    "DepthNet",
     "LSSViewTransform",
     "LidarDepthSupervision",
+    "PlainDepthNet",
     "SmallCNN",
     "TimmEncoder",
     "VoxelClassifier",

@@ -15,28 +15,40 @@ intrinsics ``img_aug @ intrinsics`` of the augmented image, so they agree with e
 with any depth or semantic supervision that reads pixels.
 
 Both transforms take the same arguments, so a config swaps ``lss`` <-> ``backward_projection``
-by changing only ``type``.
+by changing only ``type``. The frustum geometry and the splat itself are public
+(:class:`occplug.ops.FrustumSplatter`); ``lss`` is a thin component on top of it
+(``feature_cell_centers``, ``frustum_points`` and ``splat`` are re-exported here from there).
 """
 
 from __future__ import annotations
 
 from contextlib import AbstractContextManager
-from typing import Literal
+from typing import Annotated, Literal
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from occplug.config.slots import Slot
 from occplug.data.frame import Batch
-from occplug.geometry import GridSpec, pixel_centers, project_to_image, unproject_from_image
+from occplug.geometry import GridSpec, project_to_image
 from occplug.interfaces import Lifted, ViewTransform
-from occplug.ops.splat import SplatPlan, SplatPlanCache, build_splat_plan, geometry_key, splat_outer
+from occplug.ops.splat import (
+    FrustumSplatter,
+    SplatPlan,
+    SplatPlanCache,
+    feature_cell_centers,
+    frustum_points,
+    splat,
+)
 
+from .depth_nets import DepthNet
 from .layers import PixelNet
 
 __all__ = [
     "BackwardProjection",
     "LSSViewTransform",
+    "build_depth_net",
     "depth_bin_centers",
     "feature_cell_centers",
     "frustum_points",
@@ -68,38 +80,6 @@ def depth_bin_centers(depth_bins: list[float] | tuple[float, ...]) -> Tensor:
     return start + (torch.arange(d, dtype=torch.float64) + 0.5).mul(step).to(torch.float32)
 
 
-def feature_cell_centers(h: int, w: int, stride: int, device: torch.device | str | None = None) -> Tensor:
-    """``(h, w, 2)`` float32 pixel ``(u, v)`` of each feature cell's centre: ``s*c + (s-1)/2``, ``s*r + (s-1)/2``."""
-    return pixel_centers(h, w, device=device) * stride + (stride - 1) / 2.0
-
-
-def frustum_points(batch: Batch, h: int, w: int, stride: int, depths: Tensor) -> Tensor:
-    """Ego-frame points of every feature cell centre at every depth.
-
-    Args:
-        batch: supplies ``intrinsics`` ``(B, N, 3, 3)``, ``cam_to_ego`` ``(B, N, 4, 4)`` and
-            ``img_aug`` ``(B, N, 3, 3)``.
-        h, w: feature map size; stride: pixels per feature cell.
-        depths: ``(D,)`` camera-frame z values, metres.
-
-    Returns:
-        ``(B, N, D, h, w, 3)`` float32 ego-frame points: cell ``(r, c)``'s centre
-        (:func:`feature_cell_centers`) unprojected through ``img_aug @ intrinsics`` at depth ``depths[d]``.
-    """
-    b, n = batch.cam_to_ego.shape[:2]
-    d = depths.shape[0]
-    uv = feature_cell_centers(h, w, stride, device=depths.device).expand(d, h, w, 2).reshape(1, 1, -1, 2)
-    z = depths.view(d, 1, 1).expand(d, h, w).reshape(1, 1, -1)
-    pts = unproject_from_image(
-        uv.expand(b, n, -1, 2),
-        z.expand(b, n, -1),
-        batch.intrinsics.float(),
-        batch.cam_to_ego.float(),
-        batch.img_aug.float(),
-    )
-    return pts.view(b, n, d, h, w, 3)
-
-
 def voxel_flat_index(points: Tensor, grid: GridSpec) -> Tensor:
     """Flat index of the voxel holding each point, over a batch of volumes; ``-1`` outside the grid.
 
@@ -117,28 +97,6 @@ def voxel_flat_index(points: Tensor, grid: GridSpec) -> Tensor:
     b = torch.arange(points.shape[0], device=points.device).view(-1, *([1] * (points.dim() - 2)))
     flat = ((b * x + idx[..., 0]) * y + idx[..., 1]) * z + idx[..., 2]
     return torch.where(inside, flat, torch.full_like(flat, -1))
-
-
-def splat(features: Tensor, index: Tensor, num_voxels: int) -> Tensor:
-    """Sum-pool point features into voxels (the naive, reference splat).
-
-    Args:
-        features: ``(M, C)`` features of ``M`` points.
-        index: ``(M,)`` int64 voxel of each point in ``[0, num_voxels)``, or ``-1`` to drop it.
-        num_voxels: number of output voxels.
-
-    Returns:
-        ``(num_voxels, C)``: for every voxel, the sum of the features of the points in it
-        (zero for an empty voxel); differentiable with respect to ``features``.
-    """
-    out = features.new_zeros(num_voxels + 1, features.shape[1])
-    dump = torch.where(index < 0, torch.full_like(index, num_voxels), index)  # dropped points go to a spare row
-    return out.index_add_(0, dump, features)[:num_voxels]
-
-
-def _num_voxels(grid: GridSpec) -> int:
-    x, y, z = grid.shape
-    return x * y * z
 
 
 def _no_autocast(device: torch.device) -> AbstractContextManager:
@@ -162,28 +120,32 @@ def _check_feature_size(features: Tensor, batch: Batch, stride: int, who: str) -
 class LSSViewTransform(ViewTransform):
     """Lift-Splat-Shoot: a categorical depth distribution per feature cell, splatted into voxels.
 
-    A per-cell net (:class:`~occplug.components.layers.PixelNet`) predicts ``D`` depth logits and
-    ``C`` context features for every feature cell; the softmax over depth times the context gives
-    ``D`` weighted copies of the context, placed at the cell centre (see the module docstring)
-    unprojected to each depth bin's centre through ``img_aug @ intrinsics`` and ``cam_to_ego``.
-    Copies outside the grid are dropped; the rest are summed into the voxel that contains them.
+    A depth net (kind ``depth_net``, default ``plain``: a per-cell conv head) predicts ``D`` depth
+    logits and ``C`` context features for every feature cell from the image features and the
+    batch's calibration; the softmax over depth times the context gives ``D`` weighted copies of
+    the context, placed at the cell centre (see the module docstring) unprojected to each depth
+    bin's centre through ``img_aug @ intrinsics`` and ``cam_to_ego``. Copies outside the grid are
+    dropped (on a contracted grid only those outside its z range); the rest are summed into the
+    voxel that contains them.
 
-    The sum runs through :func:`occplug.ops.splat_outer`, which never builds the ``D x C``
-    products: the (camera, depth bin, cell) -> voxel structure is prepared once per sample
-    geometry (``intrinsics``, ``cam_to_ego``, ``img_aug`` of that sample, the feature-map size,
-    stride, depth bins and grid; see :meth:`splat_plans`) and kept in :attr:`plan_cache`, so a
-    fixed camera rig computes its frustum geometry once. ``splat="reference"`` runs the naive
-    :func:`splat` (``index_add_`` over all frustum points) instead; both give the same volume.
+    The sum runs through the public :class:`occplug.ops.FrustumSplatter` (:attr:`splatter`), which
+    never builds the ``D x C`` products: the (camera, depth bin, cell) -> voxel structure is
+    prepared once per sample geometry and kept in :attr:`plan_cache`, so a fixed camera rig
+    computes its frustum geometry once. ``splat="reference"`` runs the naive :func:`splat`
+    (``index_add_`` over all frustum points) instead; both give the same volume.
 
     Args:
         in_channels: ``C_in`` of the image features (the encoder's ``out_channels``).
         image_stride: pixels per feature cell (the encoder's ``stride``).
-        grid: the output grid, a :class:`GridSpec` or ``{range, voxel_size}`` mapping.
+        grid: the output grid, a :class:`GridSpec` or ``{range, voxel_size[, contraction]}`` mapping.
         out_channels: ``C`` of the lifted volume.
         depth_bins: ``[start, stop, step]`` metres of camera-frame z; see :func:`depth_bin_centers`.
-        hidden: width of the per-cell net's 3x3 conv (0: a single 1x1 conv).
+        hidden: width of the depth net's 3x3 conv (0: a single 1x1 conv), passed to the depth net
+            unless its node sets ``hidden`` itself.
         splat: ``fast`` (cached plans, :func:`occplug.ops.splat_outer`) or ``reference``
             (the naive :func:`splat`; for checking and benchmarking).
+        depth_net: a ``depth_net`` node (default ``{type: plain}``) or a built :class:`DepthNet`;
+            its ``in_channels``, ``num_bins`` and ``out_channels`` are filled in.
 
     Forward:
         ``features`` ``(B, N, C_in, h, w)`` and a batch with ``intrinsics``, ``cam_to_ego``,
@@ -201,6 +163,7 @@ class LSSViewTransform(ViewTransform):
         depth_bins: list[float] = [1.0, 45.0, 1.0],  # noqa: B006 - read only, never mutated
         hidden: int = 64,
         splat: Literal["fast", "reference"] = "fast",
+        depth_net: Annotated[dict | DepthNet | None, Slot("depth_net")] = None,
     ) -> None:
         super().__init__()
         if splat not in ("fast", "reference"):
@@ -211,9 +174,16 @@ class LSSViewTransform(ViewTransform):
         self.splat_mode = splat
         self.register_buffer("depth_centers", depth_bin_centers(depth_bins), persistent=False)
         self.num_depth_bins = int(self.depth_centers.shape[0])
-        self.depth_net = PixelNet(in_channels, hidden, self.num_depth_bins + self.out_channels)
-        #: geometry key -> :class:`~occplug.ops.SplatPlan` of one sample (not part of the state dict).
-        self.plan_cache = SplatPlanCache()
+        self.depth_net = build_depth_net(
+            depth_net, in_channels, self.num_depth_bins, self.out_channels, hidden=hidden
+        )
+        #: the public splatter doing the frustum geometry, the plans and the pooling.
+        self.splatter = FrustumSplatter(self.grid, self.image_stride, mode=splat)
+
+    @property
+    def plan_cache(self) -> SplatPlanCache:
+        """Geometry key -> :class:`~occplug.ops.SplatPlan` of one sample (the splatter's; not in the state dict)."""
+        return self.splatter.plan_cache
 
     def voxel_index(self, batch: Batch, h: int, w: int) -> Tensor:
         """``(B, N, D, h, w)`` int64 flat voxel index (:func:`voxel_flat_index`) of every frustum point, -1 outside."""
@@ -221,72 +191,50 @@ class LSSViewTransform(ViewTransform):
             points = frustum_points(batch, h, w, self.image_stride, self.depth_centers)
             return voxel_flat_index(points, self.grid)
 
-    def geometry_keys(self, batch: Batch, h: int, w: int) -> list[str]:
-        """One exact fingerprint (:func:`~occplug.ops.geometry_key`) per batch item of everything its frustum depends on.
-
-        That is the item's ``intrinsics``, ``cam_to_ego`` and ``img_aug`` (as the float32 they are
-        used in), the feature-map size ``h, w``, the stride, the depth bin centres, the grid and the device.
-        """
-        b = batch.cam_to_ego.shape[0]
-        geometry = torch.cat(
-            [t.detach().float().reshape(b, -1) for t in (batch.intrinsics, batch.cam_to_ego, batch.img_aug)], dim=1
-        ).cpu()
-        shapes = tuple(tuple(t.shape[1:]) for t in (batch.intrinsics, batch.cam_to_ego, batch.img_aug))
-        static = dict(
-            h=int(h), w=int(w), stride=self.image_stride, grid=self.grid, shapes=shapes,
-            depths=geometry_key(self.depth_centers), device=str(self.depth_centers.device),
-        )
-        return [geometry_key(geometry[i], **static) for i in range(b)]
-
     def splat_plans(self, batch: Batch, h: int, w: int) -> list[SplatPlan]:
-        """The :class:`~occplug.ops.SplatPlan` of every batch item, from :attr:`plan_cache` or built.
-
-        On a miss the frustum index of the whole batch is computed once (:meth:`voxel_index`, the
-        same code the reference path runs) and a plan is built for each missing item.
-        """
-        keys = self.geometry_keys(batch, h, w)
-        plans: list[SplatPlan | None] = [self.plan_cache.get(k) for k in keys]
-        if any(p is None for p in plans):
-            index = self.voxel_index(batch, h, w)  # (B, N, D, h, w), sample b's voxels offset by b*V
-            v = _num_voxels(self.grid)
-            built: dict[str, SplatPlan] = {}
-            for i, key in enumerate(keys):
-                if plans[i] is not None:
-                    continue
-                if key not in built:
-                    local = torch.where(index[i] >= 0, index[i] - i * v, index[i])
-                    built[key] = build_splat_plan(local, v)
-                    self.plan_cache.put(key, built[key])
-                plans[i] = built[key]
-        return plans  # type: ignore[return-value]
+        """The :class:`~occplug.ops.SplatPlan` of every batch item (:meth:`occplug.ops.FrustumSplatter.plans`)."""
+        return self.splatter.plans(batch, h, w, self.depth_centers)
 
     def forward(self, features: Tensor, batch: Batch) -> Lifted:
         """Lift ``(B, N, C_in, h, w)`` features into a ``(B, C, X, Y, Z)`` volume; see the class docstring."""
         _check_feature_size(features, batch, self.image_stride, "lss")
-        b, n, _, h, w = features.shape
-        d, c = self.num_depth_bins, self.out_channels
-        x, y, z = self.grid.shape
-        out = self.depth_net(features.flatten(0, 1))
-        probs = out[:, :d].softmax(dim=1)  # (B*N, D, h, w)
-        context = out[:, d:]  # (B*N, C, h, w)
-        if self.splat_mode == "reference":
-            # Outer product, channels last: (B, N, D, h, w, C), row order matching voxel_index.
-            frustum = probs.view(b, n, d, 1, h, w) * context.view(b, n, 1, c, h, w)
-            frustum = frustum.permute(0, 1, 2, 4, 5, 3).reshape(-1, c)
-            index = self.voxel_index(batch, h, w).reshape(-1)
-            volume = splat(frustum, index, b * x * y * z).view(b, x, y, z, c).permute(0, 4, 1, 2, 3)
-        else:
-            plans = self.splat_plans(batch, h, w)
-            with _no_autocast(features.device):  # pooled in float32: sums of many bf16 terms drift
-                volume = splat_outer(probs.view(b, n, d, h, w).float(), context.view(b, n, c, h, w).float(), plans)
-            volume = volume.view(b, c, x, y, z)
+        logits, context = self.depth_net(features, batch)
+        probs = logits.softmax(dim=2)  # (B, N, D, h, w)
+        volume = self.splatter.splat_outer(probs, context, batch, self.depth_centers)
         return Lifted(
             volume=volume.contiguous(),
             grid=self.grid,
-            depth_probs=probs.view(b, n, d, h, w),
+            depth_probs=probs,
             depth_bins=self.depth_centers,
             image_stride=self.image_stride,
         )
+
+
+def build_depth_net(
+    node: dict | DepthNet | None, in_channels: int, num_bins: int, out_channels: int, **defaults: object
+) -> DepthNet:
+    """A :class:`DepthNet` from a ``depth_net`` node (``None``: ``{type: plain}``) or passed through.
+
+    ``in_channels``, ``num_bins``, ``out_channels`` and ``defaults`` fill the parameters the
+    node leaves out (where the registered factory accepts them).
+    """
+    if isinstance(node, DepthNet):
+        net = node
+    else:
+        from occplug.plugins import get_registry  # late: the registry is filled by importing the components
+
+        spec = {"type": "plain"} if node is None else node
+        net = get_registry().build(
+            "depth_net", spec, in_channels=in_channels, num_bins=num_bins, out_channels=out_channels, **defaults
+        )
+        if not isinstance(net, DepthNet):
+            raise TypeError(f"depth_net '{spec.get('type')}' built a {type(net).__name__}, not a DepthNet")
+    if net.num_bins != num_bins or net.out_channels != out_channels:
+        raise ValueError(
+            f"depth_net gives {net.num_bins} depth bins and {net.out_channels} context channels; "
+            f"the view transform needs {num_bins} and {out_channels}"
+        )
+    return net
 
 
 # ----------------------------------------------------------------------------- backward projection

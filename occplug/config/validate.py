@@ -21,8 +21,7 @@ from .constraints import NonNegative, Positive, Range, UnitInterval, violated
 from .errors import ConfigError
 from .slots import TOP_LEVEL, Slot, component_params, slot_of
 
-__all__ = [
-    "RUN_CONSTRAINTS","OPTIMIZERS", "SCHEDULERS", "UsedComponent", "check_type", "validate"]
+__all__ = ["RUN_CONSTRAINTS", "OPTIMIZERS", "SCHEDULERS", "UsedComponent", "check_type", "validate"]
 
 #: Optimizer names a config may use (``optimizer.type``); never an import path.
 OPTIMIZERS = ("adamw", "adam", "sgd")

@@ -1,7 +1,7 @@
 """Exact geometry: grids, rigid transforms, cameras, rays, volume warping, contraction."""
 
 from .cameras import effective_intrinsics, pixel_centers, project_to_image, unproject_from_image
-from .contraction import contract, uncontract
+from .contraction import Contraction, contract, uncontract
 from .grid import GridSpec
 from .rays import camera_rays, lidar_ray_directions
 from .raycast import first_hit, observed_mask, traversed_mask
@@ -9,6 +9,7 @@ from .transforms import invert_pose, make_pose, relative_pose, rotation_z, trans
 from .volumes import sample_volume, warp_volume
 
 __all__ = [
+    "Contraction",
     "GridSpec",
     "camera_rays",
     "contract",

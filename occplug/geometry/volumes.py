@@ -12,20 +12,30 @@ __all__ = ["sample_volume", "warp_volume"]
 
 
 def sample_volume(volume: Tensor, grid: GridSpec, points: Tensor, mode: str = "bilinear") -> Tensor:
-    """Trilinearly sample a volume at continuous ego-frame points.
+    """Trilinearly sample a volume (bilinearly a BEV map) at continuous ego-frame points.
+
+    On a contracted grid (:attr:`GridSpec.contraction`) the points are contracted first, so the
+    interpolation is linear in contracted coordinates; this is how a contracted volume is read on
+    a benchmark's metric grid (pass that grid's :meth:`~GridSpec.centers`).
 
     Args:
-        volume: ``(B, C, X, Y, Z)`` features on ``grid`` (value of voxel ``[i, j, k]`` sits at its centre).
+        volume: ``(B, C, X, Y, Z)`` features on ``grid`` (value of voxel ``[i, j, k]`` sits at its
+            centre), or a BEV map ``(B, C, X, Y)`` (value of cell ``[i, j]`` at its centre, any height).
         grid: the grid the volume lives on.
         points: ``(B, P, 3)`` ego-frame points, metres.
         mode: ``"bilinear"`` (trilinear for volumes) or ``"nearest"``.
 
     Returns:
-        ``(B, P, C)``; points outside the grid read zeros.
+        ``(B, P, C)``; points outside the grid read zeros (a BEV map ignores z; a contracted grid
+        has no outside in x and y: far points read the border cells).
     """
     b, p = points.shape[:2]
     norm = grid.normalize(points.to(volume.dtype)).flip(-1)  # grid_sample wants (z, y, x)
-    out = F.grid_sample(volume, norm.view(b, p, 1, 1, 3), mode=mode, padding_mode="zeros", align_corners=False)
+    if volume.dim() == 4:
+        bev = norm[..., 1:].reshape(b, p, 1, 2)  # (y, x): grid_sample's (W, H) of an (X, Y) map
+        out = F.grid_sample(volume, bev, mode=mode, padding_mode="zeros", align_corners=False)
+    else:
+        out = F.grid_sample(volume, norm.view(b, p, 1, 1, 3), mode=mode, padding_mode="zeros", align_corners=False)
     return out.view(b, volume.shape[1], p).transpose(1, 2)
 
 

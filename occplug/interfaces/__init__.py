@@ -1,5 +1,6 @@
 """The component kinds: small abstract classes every registered component subclasses."""
 
+from .depth_net import DepthAndContext, DepthNet
 from .encoder import ImageEncoder, PointEncoder, feature_levels
 from .head import Head, OccupancyHead
 from .scene import Scene, SceneRepresentation
@@ -7,6 +8,8 @@ from .supervision import ModelOutputs, SupervisionSource
 from .view_transform import Lifted, ViewTransform
 
 __all__ = [
+    "DepthAndContext",
+    "DepthNet",
     "Head",
     "ImageEncoder",
     "Lifted",

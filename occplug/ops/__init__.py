@@ -1,5 +1,29 @@
 """Performance-critical operators shared by components (pure PyTorch first; see :mod:`occplug.ops.splat`)."""
 
-from .splat import SplatPlan, SplatPlanCache, build_splat_plan, geometry_key, splat_outer
+from .splat import (
+    FrustumSplatter,
+    PointToIndex,
+    SplatPlan,
+    SplatPlanCache,
+    build_splat_plan,
+    feature_cell_centers,
+    frustum_points,
+    geometry_key,
+    splat,
+    splat_outer,
+    splat_points,
+)
 
-__all__ = ["SplatPlan", "SplatPlanCache", "build_splat_plan", "geometry_key", "splat_outer"]
+__all__ = [
+    "FrustumSplatter",
+    "PointToIndex",
+    "SplatPlan",
+    "SplatPlanCache",
+    "build_splat_plan",
+    "feature_cell_centers",
+    "frustum_points",
+    "geometry_key",
+    "splat",
+    "splat_outer",
+    "splat_points",
+]

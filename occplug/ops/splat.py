@@ -18,9 +18,19 @@ its ``index_add_``. The gradients are exact and explicit (:class:`_SplatOuter`):
 ``d context = A^T @ grad`` and ``d A[v, cell] = <grad[v, :], context[cell, :]>`` (a sampled
 dense-dense product over the non-zeros only), which flows back to each point's depth probability.
 
+Per-point features (any ``(B, N, D, C, h, w)`` feature per (camera, depth bin, cell), not only
+the outer product) pool through the same plan (:class:`_SplatPoints`): the features of the points
+inside the grid are gathered in plan order, which is sorted by voxel, and summed per voxel by one
+sparse ``(V_occ, K)`` matrix of ones; the gradient of a point is its voxel's output gradient.
+
 Everything is vectorised (no Python loop over points; one loop over batch items); the
-reference to match is :func:`occplug.components.view_transforms.splat`. A CUDA kernel may be
-added beside this path later, never instead of it.
+reference to match is :func:`splat` (``index_add_`` over every frustum point). A CUDA kernel
+may be added beside this path later, never instead of it.
+
+:class:`FrustumSplatter` is the public front: it computes the frustum of a batch's cameras
+(any monotone depth centres, shared or per camera), maps it to the cells of a 3D or BEV
+:class:`~occplug.geometry.GridSpec` (contracted grids included, or through a custom
+point -> cell hook), caches the plans per geometry and runs either path.
 """
 
 from __future__ import annotations
@@ -30,13 +40,34 @@ import math
 import warnings
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
+from functools import cached_property
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-__all__ = ["SplatPlan", "SplatPlanCache", "build_splat_plan", "geometry_key", "splat_outer"]
+from occplug.geometry import GridSpec, pixel_centers, unproject_from_image
+
+__all__ = [
+    "FrustumSplatter",
+    "PointToIndex",
+    "SplatPlan",
+    "SplatPlanCache",
+    "build_splat_plan",
+    "feature_cell_centers",
+    "frustum_points",
+    "geometry_key",
+    "splat",
+    "splat_outer",
+    "splat_points",
+]
+
+#: A point -> cell hook: ``(..., 3)`` float32 ego-frame points to ``(..., 3)`` int64 ``(i, j, k)``
+#: cells of the target grid; cells outside ``[0, X) x [0, Y) x [0, Z)`` are dropped.
+PointToIndex = Callable[[Tensor], Tensor]
 
 
 # ----------------------------------------------------------------------------- plan
@@ -112,6 +143,25 @@ class SplatPlan:
     def matrix_t(self, values: Tensor) -> Tensor:
         """``A^T`` as a sparse CSR ``(M, V_occ)`` tensor, given ``A``'s ``(nnz,)`` values."""
         return _csr(self.t_crow, self.t_col, values[self.t_perm], (self.num_cells, int(self.voxels.numel())))
+
+    @cached_property
+    def point_row(self) -> Tensor:
+        """``(K,)`` int64 occupied-voxel row (into :attr:`voxels`) of every inside point, in :attr:`point` order."""
+        occ = int(self.voxels.numel())
+        pair_row = torch.repeat_interleave(torch.arange(occ, device=self.crow.device), self.crow.long().diff())
+        return pair_row if self.pair is None else pair_row[self.pair]
+
+    @cached_property
+    def point_crow(self) -> Tensor:
+        """``(V_occ + 1,)`` CSR row pointers of the ``(V_occ, K)`` point -> voxel matrix (per-point path)."""
+        return _csr_rows(self.point_row, int(self.voxels.numel()), self.crow.dtype)
+
+    def point_matrix(self, dtype: torch.dtype) -> Tensor:
+        """The sparse CSR ``(V_occ, K)`` matrix of ones summing the inside points (in :attr:`point` order) per voxel."""
+        k = self.num_points_inside
+        col = torch.arange(k, device=self.point.device, dtype=self.crow.dtype)
+        ones = torch.ones(k, dtype=dtype, device=self.point.device)
+        return _csr(self.point_crow, col, ones, (int(self.voxels.numel()), k))
 
 
 def _csr(crow: Tensor, col: Tensor, values: Tensor, size: tuple[int, int]) -> Tensor:
@@ -344,3 +394,321 @@ def splat_outer(depth: Tensor, context: Tensor, plans: Sequence[SplatPlan]) -> T
         raise ValueError(f"splat_outer: depth is {depth.dtype} but context is {context.dtype}")
     context_cl = context.permute(0, 1, 3, 4, 2)  # (B, N, h, w, C): one row per cell
     return _SplatOuter.apply(depth.contiguous(), context_cl.contiguous(), tuple(plans))
+
+
+class _SplatPoints(torch.autograd.Function):
+    """``(B, N*D, C, h*w)`` per-point features -> ``(B, C, V)``; the gradient of a point is its voxel's."""
+
+    @staticmethod
+    def forward(ctx, features: Tensor, plans: tuple[SplatPlan, ...], hw: int) -> Tensor:  # type: ignore[override]
+        b, _, c, _ = features.shape
+        out = features.new_zeros(b, c, plans[0].num_voxels)
+        for i, plan in enumerate(plans):
+            if plan.nnz == 0:
+                continue
+            rows = features[i][plan.point // hw, :, plan.point % hw]  # (K, C), plan order = sorted by voxel
+            pooled = plan.point_matrix(features.dtype) @ rows  # (V_occ, C)
+            out[i].index_copy_(1, plan.voxels, pooled.t())
+        ctx.plans, ctx.hw, ctx.shape = plans, hw, features.shape
+        return out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:  # type: ignore[override]
+        plans: tuple[SplatPlan, ...] = ctx.plans
+        hw = ctx.hw
+        grad_features = grad.new_zeros(ctx.shape)
+        for i, plan in enumerate(plans):
+            if plan.nnz == 0:
+                continue
+            g_occ = grad[i].index_select(1, plan.voxels).t()  # (V_occ, C)
+            grad_features[i][plan.point // hw, :, plan.point % hw] = g_occ.index_select(0, plan.point_row)
+        return grad_features, None, None
+
+
+def splat_points(features: Tensor, plans: Sequence[SplatPlan]) -> Tensor:
+    """Sum-pool per-point frustum features into voxels, per a plan for each batch item.
+
+    Equal (up to float summation order) to :func:`splat` of the features made channels-last with
+    the plan's voxel index, but only the points inside the grid are read.
+
+    Args:
+        features: ``(B, N, D, C, h, w)`` floating features of every (camera, depth bin, cell)
+            point (a channels-last ``(B, N, D, h, w, C)`` tensor permuted to this shape works too).
+        plans: ``B`` plans (:func:`build_splat_plan`) of shape ``(N, D, h, w)``, one ``V``.
+
+    Returns:
+        ``(B, C, V)`` in ``features``' dtype: ``out[b, :, v]`` sums ``features[b, n, d, :, r, c]``
+        over the points of plan ``b`` inside voxel ``v``. Differentiable in ``features``.
+    """
+    if features.dim() != 6:
+        raise ValueError(f"splat_points: expected features (B, N, D, C, h, w), got shape {tuple(features.shape)}")
+    b, n, d, c, h, w = features.shape
+    if len(plans) != b:
+        raise ValueError(f"splat_points: {len(plans)} plans for a batch of {b}")
+    if any(p.shape != (n, d, h, w) for p in plans) or len({p.num_voxels for p in plans}) != 1:
+        raise ValueError(f"splat_points: every plan must be for points ({n}, {d}, {h}, {w}) and one grid")
+    return _SplatPoints.apply(features.reshape(b, n * d, c, h * w), tuple(plans), h * w)
+
+
+def splat(features: Tensor, index: Tensor, num_voxels: int) -> Tensor:
+    """Sum-pool point features into voxels (the naive, reference splat).
+
+    Args:
+        features: ``(M, C)`` features of ``M`` points.
+        index: ``(M,)`` int64 voxel of each point in ``[0, num_voxels)``, or ``-1`` to drop it.
+        num_voxels: number of output voxels.
+
+    Returns:
+        ``(num_voxels, C)``: for every voxel, the sum of the features of the points in it
+        (zero for an empty voxel); differentiable with respect to ``features``.
+    """
+    out = features.new_zeros(num_voxels + 1, features.shape[1])
+    dump = torch.where(index < 0, torch.full_like(index, num_voxels), index)  # dropped points go to a spare row
+    return out.index_add_(0, dump, features)[:num_voxels]
+
+
+# ----------------------------------------------------------------------------- frustum geometry
+def feature_cell_centers(h: int, w: int, stride: int, device: torch.device | str | None = None) -> Tensor:
+    """``(h, w, 2)`` float32 pixel ``(u, v)`` of each feature cell's centre: ``s*c + (s-1)/2``, ``s*r + (s-1)/2``."""
+    return pixel_centers(h, w, device=device) * stride + (stride - 1) / 2.0
+
+
+def _depths_per_camera(depths: Tensor, b: int, n: int) -> Tensor:
+    """``(D,)``, ``(N, D)`` or ``(B, N, D)`` depth centres -> a ``(B, N, D)`` float32 view."""
+    if depths.dim() not in (1, 2, 3) or (depths.dim() >= 2 and depths.shape[-2] != n) or (
+        depths.dim() == 3 and depths.shape[0] != b
+    ):
+        raise ValueError(f"depth centres must be (D,), (N, D) or (B, N, D) for B={b}, N={n}; got {tuple(depths.shape)}")
+    return depths.float().expand(b, n, depths.shape[-1])
+
+
+def frustum_points(batch: Any, h: int, w: int, stride: int, depths: Tensor) -> Tensor:
+    """Ego-frame points of every feature cell centre at every depth.
+
+    Args:
+        batch: supplies ``intrinsics`` ``(B, N, 3, 3)``, ``cam_to_ego`` ``(B, N, 4, 4)`` and
+            ``img_aug`` ``(B, N, 3, 3)`` (a :class:`~occplug.data.Batch` or anything with those).
+        h, w: feature map size; stride: pixels per feature cell.
+        depths: camera-frame z values, metres: ``(D,)`` for every camera, ``(N, D)`` per camera or
+            ``(B, N, D)`` per sample and camera.
+
+    Returns:
+        ``(B, N, D, h, w, 3)`` float32 ego-frame points: cell ``(r, c)``'s centre
+        (:func:`feature_cell_centers`) unprojected through ``img_aug @ intrinsics`` at depth ``depths[..., d]``.
+    """
+    b, n = batch.cam_to_ego.shape[:2]
+    z = _depths_per_camera(depths, b, n)
+    d = z.shape[-1]
+    uv = feature_cell_centers(h, w, stride, device=depths.device).expand(d, h, w, 2).reshape(1, 1, -1, 2)
+    pts = unproject_from_image(
+        uv.expand(b, n, -1, 2),
+        z[..., None, None].expand(b, n, d, h, w).reshape(b, n, -1),
+        batch.intrinsics.float(),
+        batch.cam_to_ego.float(),
+        batch.img_aug.float(),
+    )
+    return pts.view(b, n, d, h, w, 3)
+
+
+def _no_autocast(device: torch.device) -> AbstractContextManager:
+    """Geometry and pooling run in float32 even under mixed precision (bf16 would move points by centimetres)."""
+    return torch.autocast(device_type=device.type, enabled=False)
+
+
+def _pool_dtype(t: Tensor) -> Tensor:
+    """Half-precision inputs are pooled in float32 (sums of many bf16 terms drift); float32/64 stay."""
+    return t.float() if t.dtype in (torch.float16, torch.bfloat16) else t
+
+
+# ----------------------------------------------------------------------------- the public splatter
+class FrustumSplatter:
+    """Splats frustum features of a batch's cameras into a 3D or BEV grid, with cached plans.
+
+    A frustum point is a feature cell ``(r, c)`` of camera ``n`` at depth centre ``d``: the cell
+    centre (:func:`feature_cell_centers`) unprojected through ``img_aug @ intrinsics`` and
+    ``cam_to_ego`` (:func:`frustum_points`). ``point_to_index`` maps it to a cell ``(i, j, k)`` of
+    ``grid`` (default: :meth:`GridSpec.coord_to_index`, which contracts x and y on a contracted
+    grid, so far points land in the border cells); cells outside the grid are dropped. For a BEV
+    target the cells ``(i, j, k)`` of one column sum into BEV cell ``(i, j)`` (``k`` must still
+    lie in ``[0, Z)``: the grid's z range bounds what is pooled).
+
+    Two kinds of features:
+
+    * :meth:`splat_outer`: weights ``(B, N, D, h, w)`` (e.g. depth probabilities) times
+      per-cell context ``(B, N, C, h, w)``, never building the products (:func:`splat_outer`);
+    * :meth:`splat_points`: arbitrary per-point features ``(B, N, D, C, h, w)`` (:func:`splat_points`).
+
+    With ``mode="fast"`` the (camera, depth, cell) -> voxel structure of each batch item is built
+    once per geometry (its ``intrinsics``, ``cam_to_ego``, ``img_aug``, depth centres, feature-map
+    size) and kept in :attr:`plan_cache`; ``mode="reference"`` runs the naive :func:`splat` over all
+    points instead (same values up to float summation order). Half-precision inputs are pooled in float32.
+
+    Args:
+        grid: the target grid (metric or contracted).
+        image_stride: image pixels per feature cell.
+        bev: pool into ``(X, Y)`` instead of ``(X, Y, Z)``.
+        point_to_index: optional :data:`PointToIndex` hook replacing the grid's own indexing; it
+            must be a pure function of the points (plans are cached). Setting it clears the cache.
+        mode: ``"fast"`` or ``"reference"``.
+        max_plans: plans kept in the cache.
+
+    Output of both splats: ``(B, C, X, Y, Z)`` (or ``(B, C, X, Y)`` for BEV) in the ego frame on
+    ``grid``, float32 for half-precision inputs, else the inputs' dtype.
+    """
+
+    def __init__(
+        self,
+        grid: GridSpec,
+        image_stride: int,
+        bev: bool = False,
+        point_to_index: PointToIndex | None = None,
+        mode: Literal["fast", "reference"] = "fast",
+        max_plans: int = 16,
+    ) -> None:
+        if mode not in ("fast", "reference"):
+            raise ValueError(f"splat mode must be 'fast' or 'reference', got {mode!r}")
+        if int(image_stride) < 1:
+            raise ValueError(f"image_stride must be >= 1, got {image_stride}")
+        self.grid = GridSpec.from_config(grid)
+        self.image_stride = int(image_stride)
+        self.bev = bool(bev)
+        self.mode = mode
+        #: geometry key -> :class:`SplatPlan` of one batch item (never part of a state dict).
+        self.plan_cache = SplatPlanCache(max_plans)
+        self._point_to_index = point_to_index
+
+    @property
+    def point_to_index(self) -> PointToIndex | None:
+        """The point -> cell hook (``None``: the grid's :meth:`~GridSpec.coord_to_index`)."""
+        return self._point_to_index
+
+    @point_to_index.setter
+    def point_to_index(self, hook: PointToIndex | None) -> None:
+        self._point_to_index = hook
+        self.plan_cache.clear()  # plans made with the old hook would be stale
+
+    @property
+    def out_shape(self) -> tuple[int, ...]:
+        """``(X, Y, Z)``, or ``(X, Y)`` for BEV."""
+        return self.grid.shape[:2] if self.bev else self.grid.shape
+
+    @property
+    def num_cells(self) -> int:
+        """``V``: cells of one output volume."""
+        return math.prod(self.out_shape)
+
+    def cell_index(self, batch: Any, h: int, w: int, depths: Tensor) -> Tensor:
+        """``(B, N, D, h, w)`` int64 flat output cell in ``[0, V)`` of every frustum point (per sample), -1: dropped.
+
+        The flat cell is ``(i*Y + j)*Z + k`` (3D) or ``i*Y + j`` (BEV), the layout of :attr:`out_shape`.
+        """
+        with _no_autocast(depths.device):
+            points = frustum_points(batch, h, w, self.image_stride, depths)
+            hook = self._point_to_index or self.grid.coord_to_index
+            idx = hook(points)
+            _, y, z = self.grid.shape
+            inside = self.grid.index_in_bounds(idx)
+            flat = idx[..., 0] * y + idx[..., 1]
+            if not self.bev:
+                flat = flat * z + idx[..., 2]
+            return torch.where(inside, flat, torch.full_like(flat, -1))
+
+    def geometry_keys(self, batch: Any, h: int, w: int, depths: Tensor) -> list[str]:
+        """One exact fingerprint (:func:`geometry_key`) per batch item of everything its plan depends on.
+
+        That is the item's ``intrinsics``, ``cam_to_ego``, ``img_aug`` and depth centres (as the
+        float32 they are used in), the feature-map size, the stride, the grid, BEV or not and the device.
+        Checks that the depth centres are positive and increasing.
+        """
+        b, n = batch.cam_to_ego.shape[:2]
+        z = _depths_per_camera(depths.detach(), b, n).cpu()
+        if not bool((z > 0).all()) or not bool((z.diff(dim=-1) > 0).all()):
+            raise ValueError("depth centres must be positive and strictly increasing along D")
+        parts = [t.detach().float().reshape(b, -1).cpu() for t in (batch.intrinsics, batch.cam_to_ego, batch.img_aug)]
+        geometry = torch.cat([*parts, z.reshape(b, -1)], dim=1)
+        shapes = tuple(tuple(t.shape[1:]) for t in (batch.intrinsics, batch.cam_to_ego, batch.img_aug, z))
+        static = {
+            "h": int(h), "w": int(w), "stride": self.image_stride, "grid": self.grid, "bev": self.bev, "shapes": shapes,
+            "device": str(depths.device),
+        }
+        return [geometry_key(geometry[i], **static) for i in range(b)]
+
+    def plans(self, batch: Any, h: int, w: int, depths: Tensor) -> list[SplatPlan]:
+        """The :class:`SplatPlan` of every batch item, from :attr:`plan_cache` or built.
+
+        On a miss the cell index of the whole batch is computed once (:meth:`cell_index`, the
+        same code the reference path runs) and a plan is built for each missing item.
+        """
+        keys = self.geometry_keys(batch, h, w, depths)
+        plans: list[SplatPlan | None] = [self.plan_cache.get(k) for k in keys]
+        if any(p is None for p in plans):
+            index = self.cell_index(batch, h, w, depths)
+            built: dict[str, SplatPlan] = {}
+            for i, key in enumerate(keys):
+                if plans[i] is not None:
+                    continue
+                if key not in built:
+                    built[key] = build_splat_plan(index[i], self.num_cells)
+                    self.plan_cache.put(key, built[key])
+                plans[i] = built[key]
+        return plans  # type: ignore[return-value]
+
+    def _reference(self, rows: Tensor, batch: Any, h: int, w: int, depths: Tensor) -> Tensor:
+        """Naive :func:`splat` of ``(B*N*D*h*w, C)`` channels-last point rows -> ``(B, C, *out_shape)``."""
+        b = batch.cam_to_ego.shape[0]
+        v, c = self.num_cells, rows.shape[1]
+        index = self.cell_index(batch, h, w, depths)
+        offset = torch.arange(b, device=index.device).view(b, 1, 1, 1, 1) * v
+        flat = torch.where(index >= 0, index + offset, index).reshape(-1)
+        volume = splat(rows, flat, b * v).view(b, *self.out_shape, c)
+        return volume.movedim(-1, 1)
+
+    def splat_outer(self, depth: Tensor, context: Tensor, batch: Any, depths: Tensor) -> Tensor:
+        """Pool ``depth[b, n, d, r, c] * context[b, n, :, r, c]`` into the grid.
+
+        Args:
+            depth: ``(B, N, D, h, w)`` weights per frustum point (e.g. depth probabilities).
+            context: ``(B, N, C, h, w)`` features per cell.
+            batch: the calibration: ``intrinsics``, ``cam_to_ego``, ``img_aug`` (see :func:`frustum_points`).
+            depths: depth centres ``(D,)``, ``(N, D)`` or ``(B, N, D)``, metres of camera-frame z.
+
+        Returns:
+            ``(B, C, *out_shape)``, contiguous; differentiable in ``depth`` and ``context``.
+        """
+        if depth.dim() != 5 or context.dim() != 5:
+            raise ValueError(f"splat_outer: expected depth (B, N, D, h, w) and context (B, N, C, h, w), got "
+                             f"{tuple(depth.shape)} and {tuple(context.shape)}")
+        b, n, d, h, w = depth.shape
+        c = context.shape[2]
+        with _no_autocast(depth.device):
+            depth, context = _pool_dtype(depth), _pool_dtype(context)
+            if self.mode == "reference":
+                # Outer product, channels last: (B, N, D, h, w, C), row order matching cell_index.
+                frustum = depth.view(b, n, d, 1, h, w) * context.view(b, n, 1, c, h, w)
+                rows = frustum.permute(0, 1, 2, 4, 5, 3).reshape(-1, c)
+                return self._reference(rows, batch, h, w, depths).contiguous()
+            plans = self.plans(batch, h, w, depths)
+            return splat_outer(depth, context, plans).view(b, c, *self.out_shape)
+
+    def splat_points(self, features: Tensor, batch: Any, depths: Tensor) -> Tensor:
+        """Pool arbitrary per-point features ``features[b, n, d, :, r, c]`` into the grid.
+
+        Args:
+            features: ``(B, N, D, C, h, w)`` (a channels-last ``(B, N, D, h, w, C)`` tensor
+                permuted to this shape costs no copy in the reference path).
+            batch, depths: as in :meth:`splat_outer`.
+
+        Returns:
+            ``(B, C, *out_shape)``, contiguous; differentiable in ``features``.
+        """
+        if features.dim() != 6:
+            raise ValueError(f"splat_points: expected features (B, N, D, C, h, w), got shape {tuple(features.shape)}")
+        b, _, _, c, h, w = features.shape
+        with _no_autocast(features.device):
+            features = _pool_dtype(features)
+            if self.mode == "reference":
+                rows = features.permute(0, 1, 2, 4, 5, 3).reshape(-1, c)
+                return self._reference(rows, batch, h, w, depths).contiguous()
+            plans = self.plans(batch, h, w, depths)
+            return splat_points(features, plans).view(b, c, *self.out_shape)

@@ -66,7 +66,7 @@ def check_component(kind: str, name: str, spec: dict[str, Any] | None = None, *,
     node.update(spec or {})
     # what a parent would pass: the kind's contract names the arguments, this table their test values
     values = {"in_channels": IN_CHANNELS, "image_stride": 4, "num_classes": 18, "grid": grid.to_dict(),
-              "level_channels": [IN_CHANNELS], "level_strides": [4]}
+              "level_channels": [IN_CHANNELS], "level_strides": [4], "num_bins": 6, "out_channels": IN_CHANNELS}
     defaults = {k: values[k] for k in given_arguments(kind, entry.factory) if k in values}
     torch.manual_seed(0)
     comp = build_component(kind, node, **defaults)
@@ -119,6 +119,21 @@ def _check_point_encoder(enc: I.PointEncoder, batch: Batch, grid: GridSpec) -> N
     _finite(first, "point encoder output")
     enc(*inputs).square().mean().backward()
     _has_grad(enc, "point encoder")
+
+
+def _check_depth_net(net: I.DepthNet, batch: Batch, grid: GridSpec) -> None:
+    inputs = _inputs(net, batch, grid)
+    first, second = _deterministic(net, lambda m: m(*inputs))
+    b, n, _, h, w = inputs[0].shape
+    assert isinstance(first, I.DepthAndContext), "a depth net returns DepthAndContext"
+    assert first.depth_logits.shape == (b, n, net.num_bins, h, w), f"depth logits {tuple(first.depth_logits.shape)}"
+    assert first.context.shape == (b, n, net.out_channels, h, w), f"context {tuple(first.context.shape)}"
+    assert torch.equal(first.depth_logits, second.depth_logits) and torch.equal(first.context, second.context), \
+        "depth net is not deterministic in eval mode"
+    out = net(*inputs)
+    (out.depth_logits.square().mean() + out.context.square().mean()).backward()
+    assert inputs[0].grad is not None and inputs[0].grad.abs().sum() > 0, "no gradient reaches the image features"
+    _has_grad(net, "depth net")
 
 
 def _check_view_transform(vt: I.ViewTransform, batch: Batch, grid: GridSpec) -> None:
@@ -220,6 +235,7 @@ _CHECKS = {
     "encoder": _check_encoder,
     "point_encoder": _check_point_encoder,
     "view_transform": _check_view_transform,
+    "depth_net": _check_depth_net,
     "scene": _check_scene,
     "head": _check_head,
     "supervision": _check_supervision,

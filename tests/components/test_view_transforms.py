@@ -12,7 +12,7 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from occplug.components import BackwardProjection, LSSViewTransform, splat
+from occplug.components import BackwardProjection, DepthAndContext, DepthNet, LSSViewTransform, splat
 from occplug.components.view_transforms import (
     depth_bin_centers,
     frustum_points,
@@ -43,15 +43,17 @@ def make_batch(b: int = 1, n: int = 1, height: int = H, width: int = W, img_aug:
 GRID = GridSpec(range=(0.13, -8.07, -1.03, 16.13, 7.93, 5.37), voxel_size=0.8)
 
 
-class FixedOutput(nn.Module):
-    """Stands in for a per-cell net: returns a fixed (learnable) ``(B*N, D + C, h, w)`` tensor."""
+class FixedOutput(DepthNet):
+    """Stands in for a depth net: a fixed (learnable) ``(B*N, D + C, h, w)`` tensor split into depth logits and context."""
 
-    def __init__(self, value: Tensor) -> None:
+    def __init__(self, value: Tensor, num_bins: int) -> None:
         super().__init__()
         self.value = nn.Parameter(value)
+        self.num_bins, self.out_channels = num_bins, value.shape[1] - num_bins
 
-    def forward(self, x: Tensor) -> Tensor:
-        return self.value + 0.0 * x.sum()
+    def forward(self, x: Tensor, batch: Batch) -> DepthAndContext:
+        out = (self.value + 0.0 * x.sum()).view(*x.shape[:2], *self.value.shape[1:])
+        return DepthAndContext(out[:, :, : self.num_bins], out[:, :, self.num_bins :])
 
 
 # ----------------------------------------------------------------------------- LSS geometry
@@ -111,7 +113,7 @@ def _one_hot_lss(batch: Batch, depth_bins: list[float], channels: int) -> tuple[
     chosen = cell % d
     logits = torch.full((d, h, w), -1e4).scatter_(0, chosen[None], 1e4)
     context = (cell[None].float() + 1) * torch.arange(1.0, channels + 1).view(-1, 1, 1)
-    lss.depth_net = FixedOutput(torch.cat([logits, context])[None].expand(len(batch), d + channels, h, w).clone())
+    lss.depth_net = FixedOutput(torch.cat([logits, context])[None].expand(len(batch), d + channels, h, w).clone(), d)
     return lss, chosen, context
 
 
@@ -147,7 +149,7 @@ def test_lss_conserves_features_inside_the_grid_and_backpropagates() -> None:
     lss = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8)
     d = lss.num_depth_bins
     net_out = torch.randn(4, d + 3, 4, 8)
-    lss.depth_net = FixedOutput(net_out)
+    lss.depth_net = FixedOutput(net_out, d)
     lifted = lss(torch.zeros(2, 2, 4, 4, 8), batch)
     probs = net_out[:, :d].softmax(1).view(2, 2, d, 4, 8)
     torch.testing.assert_close(lifted.depth_probs, probs)
@@ -245,3 +247,127 @@ def test_both_view_transforms_take_the_same_arguments_and_output_the_same_shape(
         lifted.volume.square().sum().backward()
         assert feats.grad.abs().sum() > 0
     assert shapes[0] == shapes[1] == (2, 5, *GRID.shape)
+
+
+# ----------------------------------------------------------------------------- depth nets (kind depth_net)
+def test_plain_depth_net_gives_the_numbers_of_the_former_built_in_head() -> None:
+    """Same seed -> the same weights as the PixelNet LSS used to build, and the same volume as its formula."""
+    from occplug.components.layers import PixelNet
+
+    batch = make_batch(b=2, n=2)
+    torch.manual_seed(7)
+    lss = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8)
+    torch.manual_seed(7)
+    former = PixelNet(4, 8, 24 + 3)
+    assert lss.depth_net.net.state_dict().keys() == former.state_dict().keys()
+    for key, value in former.state_dict().items():
+        assert torch.equal(lss.depth_net.net.state_dict()[key], value), key
+    feats = torch.randn(2, 2, 4, 4, 8)
+    lifted = lss(feats, batch)
+    out = former(feats.flatten(0, 1))
+    probs = out[:, :24].softmax(1).view(2, 2, 24, 4, 8)
+    torch.testing.assert_close(lifted.depth_probs, probs, atol=0, rtol=0)
+    ref = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8,
+                           splat="reference")
+    ref.load_state_dict(lss.state_dict())
+    frustum = (probs.view(2, 2, 24, 1, 4, 8) * out[:, 24:].view(2, 2, 1, 3, 4, 8)).permute(0, 1, 2, 4, 5, 3).reshape(-1, 3)
+    x, y, z = GRID.shape
+    expected = splat(frustum, lss.voxel_index(batch, 4, 8).reshape(-1), 2 * x * y * z).view(2, x, y, z, 3).permute(0, 4, 1, 2, 3)
+    torch.testing.assert_close(ref(feats, batch).volume, expected, atol=0, rtol=0)  # the reference path: bit-identical
+    torch.testing.assert_close(lifted.volume, expected, atol=1e-5, rtol=1e-5)
+
+
+def test_camera_vector_known_values() -> None:
+    from occplug.components.depth_nets import camera_vector
+
+    half = torch.tensor([[0.5, 0.0, -0.25], [0.0, 0.5, -0.25], [0.0, 0.0, 1.0]])  # resize by 1/2 about pixel centres
+    batch = make_batch(b=1, n=1, height=16, width=32, img_aug=half)
+    vec = camera_vector(batch)
+    assert vec.shape == (1, 1, 18)
+    # effective K = [[20, 0, 17.5], [0, 20, 9.5]]: row 0 / W = 32, row 1 / H = 16
+    torch.testing.assert_close(vec[0, 0, :6], torch.tensor([20 / 32, 0.0, 17.5 / 32, 0.0, 20 / 16, 9.5 / 16]))
+    torch.testing.assert_close(vec[0, 0, 6:15], CAM_TO_EGO_R.reshape(9))
+    torch.testing.assert_close(vec[0, 0, 15:], torch.tensor([0.0, 0.0, 1.5]))
+
+
+def test_camera_aware_depth_net_is_gated_by_the_calibration() -> None:
+    from occplug.components import CameraAwareDepthNet
+
+    torch.manual_seed(0)
+    net = CameraAwareDepthNet(in_channels=4, num_bins=6, out_channels=3, hidden=8, camera_hidden=16, depth_blocks=1)
+    net.eval()
+    feats = torch.randn(1, 1, 4, 4, 8).expand(1, 2, 4, 4, 8)
+    batch = make_batch(b=1, n=2)
+    logits, context = net(feats, batch)
+    assert logits.shape == (1, 2, 6, 4, 8) and context.shape == (1, 2, 3, 4, 8)
+    # same features, same camera -> same output; a moved camera or a different focal length changes it
+    torch.testing.assert_close(logits[0, 0], logits[0, 1])
+    moved = make_batch(b=1, n=2)
+    moved.cam_to_ego[0, 1, 1, 3] = 0.7
+    moved.intrinsics[0, 0, 0, 0] = 55.0
+    logits2, context2 = net(feats, moved)
+    assert not torch.allclose(logits2[0, 1], logits[0, 1]) and not torch.allclose(context2[0, 0], context[0, 0])
+    # With gates forced open (last MLP layer 0, bias +30: sigmoid = 1) it is the ungated conv stack exactly.
+    with torch.no_grad():
+        for gate in (net.depth_gate, net.context_gate):
+            gate.mlp[-1].weight.zero_()
+            gate.mlp[-1].bias.fill_(30.0)
+        x = net.reduce(feats.flatten(0, 1))
+        want_logits = net.depth_head(net.depth_blocks(x)).view(1, 2, 6, 4, 8)
+        want_context = net.context_head(x).view(1, 2, 3, 4, 8)
+        got_logits, got_context = net(feats, moved)
+    torch.testing.assert_close(got_logits, want_logits)
+    torch.testing.assert_close(got_context, want_context)
+
+
+def test_lss_with_a_camera_aware_depth_net_trains_its_gates() -> None:
+    torch.manual_seed(0)
+    batch = make_batch(b=1, n=2)
+    lss = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8,
+                           depth_net={"type": "camera_aware", "camera_hidden": 8})
+    assert type(lss.depth_net).__name__ == "CameraAwareDepthNet" and lss.depth_net.num_bins == 24
+    assert lss.depth_net.reduce[0].out_channels == 8  # LSS's hidden reached the depth net
+    lss(torch.randn(1, 2, 4, 4, 8), batch).volume.square().sum().backward()
+    assert lss.depth_net.depth_gate.mlp[0].weight.grad.abs().sum() > 0
+    assert lss.depth_net.context_gate.mlp[0].weight.grad.abs().sum() > 0
+
+
+def test_depth_net_node_is_validated_with_the_config() -> None:
+    from pathlib import Path
+
+    from occplug.config import ConfigError, compose, validate
+    from occplug.plugins import get_registry
+
+    root = Path(__file__).resolve().parents[2]
+    cfg = compose([str(root / "configs" / "baseline.yaml")]).resolved()
+    cfg["model"]["view_transform"]["depth_net"] = {"type": "camera_aware", "depth_blocks": 2}
+    used = validate(cfg, get_registry())
+    assert any(u.kind == "depth_net" and u.type == "camera_aware" for u in used)
+    cfg["model"]["view_transform"]["depth_net"] = {"type": "camera_awar"}
+    with pytest.raises(ConfigError, match=r"model.view_transform.depth_net.type: no depth_net named 'camera_awar'.*camera_aware"):
+        validate(cfg, get_registry())
+    cfg["model"]["view_transform"]["depth_net"] = {"type": "plain", "hiden": 3}
+    with pytest.raises(ConfigError, match=r"model.view_transform.depth_net.hiden: .*did you mean 'hidden'"):
+        validate(cfg, get_registry())
+
+
+def test_lss_on_a_contracted_grid_keeps_far_mass() -> None:
+    """A contracted LSS grid keeps every frustum point inside its z range: the volume sums the whole (z-valid) frustum."""
+    torch.manual_seed(0)
+    batch = make_batch(b=1, n=1)
+    grid = {"range": [-8.0, -8.0, -1.03, 8.0, 8.0, 5.37], "voxel_size": 0.8, "contraction": {"near": 4.0, "kappa": 0.5}}
+    lss = LSSViewTransform(in_channels=4, image_stride=S, grid=grid, out_channels=2, depth_bins=[1.0, 45.0, 1.0], hidden=8)
+    assert lss.grid.is_contracted
+    lifted = lss(torch.randn(1, 1, 4, 4, 8), batch)
+    pts = frustum_points(batch, 4, 8, S, lss.depth_centers)
+    z_ok = ((pts[..., 2] >= -1.03) & (pts[..., 2] < 5.37)).float()  # (1, 1, D, h, w)
+    kept = (lifted.depth_probs * z_ok).sum()
+    assert 0.3 < float(z_ok.mean()) < 1.0  # some points leave through the floor or the ceiling, none sideways
+    ones = LSSViewTransform(in_channels=4, image_stride=S, grid=grid, out_channels=2, depth_bins=[1.0, 45.0, 1.0], hidden=0)
+    with torch.no_grad():
+        ones.depth_net.net[0].weight.zero_()
+        ones.depth_net.net[0].bias.zero_()
+        ones.depth_net.net[0].bias[44:] = 1.0  # uniform depth, context 1
+    vol = ones(torch.randn(1, 1, 4, 4, 8), batch).volume
+    torch.testing.assert_close(vol[0, 0].sum(), z_ok.sum() / 44)
+    assert kept > 0

@@ -1,4 +1,5 @@
-"""The fast splat (occplug.ops.splat) against the naive reference, and its geometry cache.
+"""The fast splat (occplug.ops.splat) against the naive reference, its geometry cache, and the public
+FrustumSplatter (per-point path, BEV, per-camera depths, point -> cell hook, contracted grids).
 
 Random geometry: cameras at random positions/yaws/pitches with random focal lengths, images
 augmented by a random resize + crop (+ horizontal flip), on a grid that some frustum points miss.
@@ -15,7 +16,15 @@ from torch import Tensor
 from occplug.components import LSSViewTransform, splat
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, make_pose
-from occplug.ops import SplatPlanCache, build_splat_plan, geometry_key, splat_outer
+from occplug.ops import (
+    FrustumSplatter,
+    SplatPlanCache,
+    build_splat_plan,
+    frustum_points,
+    geometry_key,
+    splat_outer,
+    splat_points,
+)
 from occplug.testing import hand_batch
 
 H, W, S = 32, 64, 8  # images; stride -> 4 x 8 feature cells
@@ -236,3 +245,143 @@ def test_cache_is_lru_bounded_and_not_copied() -> None:
     lss(torch.randn(1, 1, 4, 4, 8), random_batch(1, 1, seed=6))
     assert len(lss.plan_cache) == 1
     assert not any("plan" in k for k in lss.state_dict())
+
+
+# ----------------------------------------------------------------------------- the public FrustumSplatter
+H4, W8 = 4, 8  # feature map of the 32 x 64 images at stride 8
+
+
+def naive_points(features: Tensor, index: Tensor, v: int) -> Tensor:
+    """Reference: (B, N, D, C, h, w) features, (B, N, D, h, w) local index -> (B, C, V) by index_add_ over every point."""
+    b, c = features.shape[0], features.shape[3]
+    rows = features.permute(0, 1, 2, 4, 5, 3).reshape(-1, c)
+    offset = torch.arange(b).view(b, 1, 1, 1, 1) * v
+    flat = torch.where(index >= 0, index + offset, index).reshape(-1)
+    return splat(rows, flat, b * v).view(b, v, c).permute(0, 2, 1)
+
+
+def _case(dtype: torch.dtype, seed: int, c: int = 6):
+    g = torch.Generator().manual_seed(seed)
+    batch = random_batch(3, 2, seed=seed)
+    depths = torch.linspace(1.5, 19.5, 10)
+    feats = torch.randn(3, 2, 10, c, H4, W8, generator=g, dtype=dtype).requires_grad_()
+    return batch, depths, feats
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_per_point_path_equals_naive_index_add_values_and_gradients(dtype: torch.dtype) -> None:
+    batch, depths, feats = _case(dtype, seed=11)
+    sp = FrustumSplatter(GRID, S)
+    index = sp.cell_index(batch, H4, W8, depths)
+    assert 0.1 < (index >= 0).float().mean() < 0.9
+    v = sp.num_cells
+    grad = torch.randn(3, 6, v, dtype=dtype)
+    fast = sp.splat_points(feats, batch, depths)
+    assert fast.shape == (3, 6, *GRID.shape) and fast.dtype == dtype
+    fast.backward(grad.view_as(fast))
+    g_fast = feats.grad.clone()
+    feats.grad = None
+    ref = naive_points(feats, index, v)
+    ref.backward(grad)
+    tol = {"atol": 1e-12, "rtol": 1e-12} if dtype == torch.float64 else {"atol": 1e-5, "rtol": 1e-5}
+    torch.testing.assert_close(fast.view(3, 6, v), ref, **tol)
+    torch.testing.assert_close(g_fast, feats.grad, **tol)
+    dropped = (index < 0)[:, :, :, None].expand_as(feats)
+    assert g_fast[dropped].abs().max() == 0 and g_fast[~dropped].abs().min() > 0
+    # the splatter's own reference mode gives the same
+    torch.testing.assert_close(FrustumSplatter(GRID, S, mode="reference").splat_points(feats, batch, depths), fast, **tol)
+
+
+def test_per_point_gradcheck_with_repeated_pairs() -> None:
+    g = torch.Generator().manual_seed(3)
+    index = torch.randint(-1, 5, (2, 2, 3, 2, 2), generator=g)
+    index[:, :, 1] = index[:, :, 0]  # several points of one cell in one voxel
+    plans = [build_splat_plan(index[i], 5) for i in range(2)]
+    feats = torch.randn(2, 2, 3, 4, 2, 2, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda f: splat_points(f, plans), (feats,))
+    torch.testing.assert_close(splat_points(feats, plans), naive_points(feats, index, 5))
+
+
+def test_outer_path_equals_per_point_path_of_the_products() -> None:
+    batch, depths, _ = _case(torch.float64, seed=12)
+    g = torch.Generator().manual_seed(0)
+    probs = torch.rand(3, 2, 10, H4, W8, generator=g, dtype=torch.float64)
+    context = torch.randn(3, 2, 5, H4, W8, generator=g, dtype=torch.float64)
+    sp = FrustumSplatter(GRID, S)
+    outer = sp.splat_outer(probs, context, batch, depths)
+    points = sp.splat_points(probs[:, :, :, None] * context[:, :, None], batch, depths)
+    torch.testing.assert_close(outer, points, atol=1e-12, rtol=1e-12)
+    assert sp.plan_cache.misses == 3 and sp.plan_cache.hits == 3  # the second call reused the plans
+
+
+def test_bev_target_sums_each_column_of_the_3d_volume() -> None:
+    batch, depths, feats = _case(torch.float64, seed=13)
+    vol = FrustumSplatter(GRID, S).splat_points(feats, batch, depths)
+    bev_sp = FrustumSplatter(GRID, S, bev=True)
+    bev = bev_sp.splat_points(feats, batch, depths)
+    assert bev.shape == (3, 6, *GRID.shape[:2]) and bev_sp.num_cells == GRID.shape[0] * GRID.shape[1]
+    torch.testing.assert_close(bev, vol.sum(-1), atol=1e-12, rtol=1e-12)
+    ref = FrustumSplatter(GRID, S, bev=True, mode="reference")
+    torch.testing.assert_close(ref.splat_points(feats, batch, depths), bev, atol=1e-12, rtol=1e-12)
+
+
+def test_per_camera_depth_centres() -> None:
+    batch, _, feats = _case(torch.float64, seed=14)
+    per_cam = torch.stack([torch.linspace(1.5, 19.5, 10), torch.logspace(0.1, 1.3, 10)])  # (N, D), two spacings
+    sp = FrustumSplatter(GRID, S)
+    out = sp.splat_points(feats, batch, per_cam)
+    # camera by camera with a shared (D,) vector: the sum over cameras is the two-camera result
+    parts = []
+    for n in range(2):
+        one = hand_batch(3, images=batch.images[:, n : n + 1], intrinsics=batch.intrinsics[:, n : n + 1],
+                         cam_to_ego=batch.cam_to_ego[:, n : n + 1], img_aug=batch.img_aug[:, n : n + 1])
+        parts.append(FrustumSplatter(GRID, S).splat_points(feats[:, n : n + 1], one, per_cam[n]))
+    torch.testing.assert_close(out, parts[0] + parts[1], atol=1e-12, rtol=1e-12)
+    pts = frustum_points(batch, H4, W8, S, per_cam)
+    assert pts.shape == (3, 2, 10, H4, W8, 3)
+    # (B, N, D) too; and a bad shape or a non-monotone vector is one clear error
+    torch.testing.assert_close(sp.splat_points(feats, batch, per_cam.expand(3, 2, 10)), out)
+    with pytest.raises(ValueError, match=r"\(D,\), \(N, D\) or \(B, N, D\)"):
+        sp.splat_points(feats, batch, torch.ones(3, 10))
+    with pytest.raises(ValueError, match="strictly increasing"):
+        sp.splat_points(feats, batch, torch.linspace(19.5, 1.5, 10))
+
+
+def test_point_to_index_hook_replaces_the_grid_indexing() -> None:
+    batch, depths, feats = _case(torch.float64, seed=15)
+    shifted = GridSpec(range=(-11.2, -12.0, -1.0, 12.8, 12.0, 4.6), voxel_size=0.8)  # GRID moved +0.8 m in x
+
+    def hook(points: Tensor) -> Tensor:  # index on a grid shifted by one voxel
+        return GRID.coord_to_index(points - torch.tensor([0.8, 0.0, 0.0]))
+
+    via_hook = FrustumSplatter(GRID, S, point_to_index=hook).splat_points(feats, batch, depths)
+    direct = FrustumSplatter(shifted, S).splat_points(feats, batch, depths)
+    torch.testing.assert_close(via_hook, direct)
+    sp = FrustumSplatter(GRID, S)
+    sp.splat_points(feats, batch, depths)
+    sp.point_to_index = hook
+    assert len(sp.plan_cache) == 0  # a new hook never meets a stale plan
+    torch.testing.assert_close(sp.splat_points(feats, batch, depths), direct)
+
+
+def test_a_point_1km_away_lands_in_the_outer_cell_of_a_contracted_grid() -> None:
+    # One camera at ego (0, 0, 1.5) looking along +x; principal point on cell (0, 0)'s centre of a 1 x 1 feature map.
+    cam = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    batch = hand_batch(
+        1, images=torch.zeros(1, 1, 3, 8, 8), intrinsics=torch.tensor([[[[10.0, 0, 3.5], [0, 10.0, 3.5], [0, 0, 1]]]]),
+        cam_to_ego=make_pose(cam, torch.tensor([0.0, 0.0, 1.5])).view(1, 1, 4, 4),
+    )
+    contracted = GridSpec(range=(-80, -80, -1, 80, 80, 5.4), voxel_size=(0.8, 0.8, 0.4), contraction={"near": 40.0})
+    metric = GridSpec(range=(-80, -80, -1, 80, 80, 5.4), voxel_size=(0.8, 0.8, 0.4))
+    depths = torch.tensor([10.0, 60.0, 1000.0])
+    feats = torch.tensor([1.0, 10.0, 100.0]).view(1, 1, 3, 1, 1, 1)
+    out = FrustumSplatter(contracted, 8).splat_points(feats, batch, depths)[0, 0]
+    # x = 10 -> cell 112; x = 60 -> x' = 80 (1 - 0.5 / 1.5) = 53.33 -> cell 166; x = 1000 -> x' = 78.4 -> cell 198
+    assert out[112, 100, 6] == 1.0 and out[166, 100, 6] == 10.0 and out[198, 100, 6] == 100.0
+    assert out.sum() == 111.0
+    # With 1.6 m cells (100 x 100 BEV) 1 km and 1000 km both land in the outer cell 99, never dropped
+    # (10 m -> cell floor(90 / 1.6) = 56); the metric grid drops everything beyond 80 m.
+    coarse = GridSpec(range=(-80, -80, -1, 80, 80, 5.4), voxel_size=(1.6, 1.6, 0.4), contraction={"near": 40.0})
+    far = FrustumSplatter(coarse, 8, bev=True).splat_points(feats, batch, torch.tensor([10.0, 1e3, 1e6]))[0, 0]
+    assert far.shape == (100, 100) and far[56, 50] == 1.0 and far[99, 50] == 10.0 + 100.0 and far.sum() == 111.0
+    assert FrustumSplatter(metric, 8).splat_points(feats, batch, depths)[0, 0].sum() == 11.0
