@@ -224,8 +224,12 @@ def build_callbacks(cfg: dict[str, Any]) -> list[Callback]:
     return out
 
 
-def _trainer(cfg: dict[str, Any], root: Path | None, callbacks: list[Callback], logger: Any = False) -> L.Trainer:
+def _trainer(
+    cfg: dict[str, Any], root: Path | None, callbacks: list[Callback], logger: Any = False, train_batches: int | None = None
+) -> L.Trainer:
     kwargs = dict(cfg.get("trainer") or {})
+    if train_batches is not None:  # log at least once per epoch: no "fewer batches than the logging interval" warning
+        kwargs["log_every_n_steps"] = max(1, min(int(kwargs.get("log_every_n_steps", 50)), train_batches))
     try:
         callbacks = [*callbacks, *build_callbacks(cfg)]
     except (ValueError, TypeError) as exc:
@@ -312,7 +316,7 @@ def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, f
     info = _RunInfoCallback(run_info(cfg, model, dm))
     checkpoint = ModelCheckpoint(dirpath=str(ckpt_dir), **{"save_last": True, **(cfg.get("checkpoint") or {})})
     logger = CSVLogger(save_dir=str(run_dir), name="logs")  # logs/version_<n>/: a resume never overwrites
-    trainer = _trainer(cfg, run_dir, [checkpoint, info], logger)
+    trainer = _trainer(cfg, run_dir, [checkpoint, info], logger, train_batches=train_batches_per_epoch(cfg, dm))
     if trainer.is_global_zero:
         run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / "config.yaml").write_text(
@@ -444,6 +448,20 @@ def _build(cfg: dict[str, Any]) -> tuple[OccDataModule, OccupancyModel]:
         raise RunError(str(exc).splitlines()[0]) from None
     except (ValueError, TypeError, FileNotFoundError, ImportError) as exc:
         raise RunError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
+
+
+def train_batches_per_epoch(cfg: dict[str, Any], dm: OccDataModule) -> int:
+    """Training batches one process runs per epoch (after ``trainer.limit_train_batches``)."""
+    trainer = cfg.get("trainer") or {}
+    devices = trainer.get("devices", 1)
+    world = devices if isinstance(devices, int) and devices > 0 else 1
+    batches = math.ceil(len(dm.dataset("train")) / max(1, int(dm.batch_size) * world))  # type: ignore[arg-type]
+    limit = trainer.get("limit_train_batches")
+    if isinstance(limit, int) and not isinstance(limit, bool):
+        batches = min(batches, limit)
+    elif isinstance(limit, float):
+        batches = max(1, int(batches * limit))
+    return max(1, batches)
 
 
 def check_trainable(model: OccupancyModel) -> None:

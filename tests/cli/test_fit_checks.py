@@ -72,3 +72,15 @@ def test_the_first_batch_check_changes_nothing(tmp_path, monkeypatch):
     assert sa.keys() == sb.keys() and any("running_mean" in k for k in sa)
     for key in sa:
         assert torch.equal(sa[key], sb[key]), key
+
+
+def test_a_tiny_run_logs_each_epoch_without_the_logging_interval_warning(tmp_path):
+    import warnings
+
+    cfg = runner.load_config([BASELINE, "occplug/trainer/debug"], [*TINY, "trainer.max_steps=3", "trainer.log_every_n_steps=50"])
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        runner.fit(cfg, tmp_path / "run")
+    assert not [w for w in seen if "logging interval" in str(w.message)]
+    csv = next((tmp_path / "run" / "logs").glob("version_*/metrics.csv")).read_text()
+    assert "train/loss" in csv.splitlines()[0]  # logged although the epoch has fewer steps than 50
