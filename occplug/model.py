@@ -16,6 +16,7 @@ from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 from occplug.metrics.base import OccMetric
 from occplug.plugins import get_registry
+from occplug.queries import check_query_support
 from occplug.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
 
 __all__ = ["KIND_INTERFACES", "OccModel", "build_component"]
@@ -97,7 +98,9 @@ class OccModel(L.LightningModule):
         self.scene = build_component("scene", scene, in_channels=self.view_transform.out_channels)
         self.heads = nn.ModuleDict(
             {
-                name: build_component("head", spec, in_channels=self.scene.out_channels, num_classes=self.num_classes)
+                name: build_component(
+                    "head", spec, in_channels=self.scene.out_channels, num_classes=self.num_classes, free_label=free_label
+                )
                 for name, spec in heads.items()
                 if spec is not None
             }
@@ -114,6 +117,7 @@ class OccModel(L.LightningModule):
                 if spec is not None
             }
         )
+        check_query_support(self.heads, self.supervision)  # a queried head must answer (occplug/queries.py)
         self.val_metrics = self._build_metrics(metrics, ignore_label)
         self.test_metrics = self._build_metrics(metrics, ignore_label)
         self.last_results: dict[str, dict[str, float]] = {}
@@ -161,8 +165,8 @@ class OccModel(L.LightningModule):
         scene = self.scene(lifted, batch)
         heads = {name: head(scene, batch) for name, head in self.heads.items()}
 
-        def query(head_name: str, points: Tensor) -> Tensor:
-            return self.heads[head_name].query(scene, points)
+        def query(head_name: str, points: Tensor, times: Tensor | None = None) -> I.QueryResult:
+            return self.heads[head_name].query(scene, points, times)
 
         return I.ModelOutputs(image_features=features, lifted=lifted, scene=scene, heads=heads, query=query)
 

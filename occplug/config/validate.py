@@ -27,7 +27,7 @@ INJECTED: dict[str, set[str]] = {
     "encoder": set(),
     "view_transform": {"in_channels", "image_stride"},
     "scene": {"in_channels"},
-    "head": {"in_channels", "num_classes"},
+    "head": {"in_channels", "num_classes", "free_label"},
     "supervision": {"free_label", "ignore_label"},
     "data": set(),
     "metric": {"num_classes", "class_names", "free_label", "ignore_label"},
@@ -273,6 +273,10 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
         _validate_kwargs(config["trainer"], "trainer", L.Trainer, {"callbacks", "logger", "default_root_dir"})
     if config.get("checkpoint") is not None:
         _validate_kwargs(config["checkpoint"], "checkpoint", ModelCheckpoint, {"dirpath"})
+    if isinstance(config["model"], dict):  # query supervision on a head that cannot answer it
+        from occplug.queries import check_query_config
+
+        check_query_config(config["model"], registry)
     return v.used
 
 

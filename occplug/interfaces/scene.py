@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 
+import torch
 from torch import Tensor, nn
 
 from occplug.data.frame import Batch
@@ -26,6 +27,16 @@ class Scene(ABC):
     features: Tensor
     grid: GridSpec
     channels: int
+
+    @property
+    def batch_size(self) -> int:
+        """``B``: samples in this scene (``features``' first dimension unless a subclass says otherwise)."""
+        return int(self.features.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        """Where the scene's tensors live (query points are made there)."""
+        return self.features.device
 
     @abstractmethod
     def sample(self, points: Tensor) -> Tensor:
