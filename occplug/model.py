@@ -19,6 +19,7 @@ from occplug.interfaces.model import OccupancyModel
 from occplug.kinds import KINDS
 from occplug.metrics.base import OccMetric
 from occplug.plugins import get_registry
+from occplug.queries import check_query_support
 from occplug.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
 
 __all__ = ["OccModel", "build_component", "head_order"]
@@ -155,7 +156,9 @@ class OccModel(OccupancyModel):
         self.scene = build_component("scene", scene, in_channels=self.view_transform.out_channels)
         self.heads = nn.ModuleDict(
             {
-                name: build_component("head", spec, in_channels=self.scene.out_channels, num_classes=self.num_classes)
+                name: build_component(
+                    "head", spec, in_channels=self.scene.out_channels, num_classes=self.num_classes, free_label=free_label
+                )
                 for name, spec in heads.items()
                 if spec is not None
             }
@@ -173,6 +176,7 @@ class OccModel(OccupancyModel):
                 if spec is not None
             }
         )
+        check_query_support(self.heads, self.supervision)  # a queried head must answer (occplug/queries.py)
         self.val_metrics = self._build_metrics(metrics, ignore_label)
         self.test_metrics = self._build_metrics(metrics, ignore_label)
         self.last_results: dict[str, dict[str, float]] = {}
@@ -205,8 +209,8 @@ class OccModel(OccupancyModel):
     def forward(self, batch: Batch) -> I.ModelOutputs:
         """Run every component on ``batch``; see :class:`~occplug.interfaces.ModelOutputs`."""
 
-        def query(head_name: str, points: Tensor, *args: Any, **kwargs: Any) -> Any:
-            return self.heads[head_name].query(outputs.scene, points, *args, **kwargs)
+        def query(head_name: str, points: Tensor, times: Tensor | None = None) -> I.QueryResult:
+            return self.heads[head_name].query(outputs.scene, points, times)
 
         outputs = I.ModelOutputs(image_features=None, lifted=None, scene=None, heads={}, query=query)
         levels = feature_levels(self.encoder(batch.images))

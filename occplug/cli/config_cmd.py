@@ -1,4 +1,4 @@
-"""``occplug config show``."""
+"""``occplug config show | validate``."""
 
 from __future__ import annotations
 
@@ -21,6 +21,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     show.add_argument("--explain", metavar="KEY", help="say which file or override set KEY")
     show.add_argument("--no-validate", action="store_true", help="print without validating")
     show.set_defaults(func=cmd_show)
+    check = actions.add_parser("validate", help="check the composed config (components, arguments, query heads); builds nothing")
+    add_config_args(check)
+    check.set_defaults(func=cmd_validate)
 
 
 def cmd_show(args: argparse.Namespace) -> int:
@@ -39,4 +42,12 @@ def cmd_show(args: argparse.Namespace) -> int:
             print(f"{k}: set by {origin}")
         return 0
     print(yaml.safe_dump(resolved, sort_keys=False, default_flow_style=None), end="")
+    return 0
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    if not args.config:
+        raise UsageError("config validate needs at least one -c CONFIG")
+    validate(compose(args.config, args.overrides).resolved(), get_registry())
+    print(f"ok: {' + '.join(args.config)}")
     return 0

@@ -6,7 +6,7 @@ from torch import Tensor, nn
 
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
-from occplug.interfaces import OccupancyHead, Scene
+from occplug.interfaces import DEFAULT_QUERY_CHUNK, OccupancyHead, QueryResult, Scene
 
 __all__ = ["VoxelClassifier"]
 
@@ -14,14 +14,19 @@ __all__ = ["VoxelClassifier"]
 class VoxelClassifier(OccupancyHead):
     """Classify scene features with an MLP ``Linear -> ReLU -> Linear``, per voxel or per point.
 
-    The same MLP serves the dense path (a 1x1x1 conv over ``scene.features``) and
-    :meth:`query` (over ``scene.sample(points)``), so the two agree exactly at voxel centres.
+    Queryable (the scene is read at the points, trilinearly for dense voxels), not temporal. The
+    same MLP serves the dense path (over ``scene.features``) and :meth:`query` (over
+    ``scene.sample(points)``), so the two agree at voxel centres. It predicts ``free`` as one of its
+    ``K`` classes (no occupancy logit).
 
     Args:
         in_channels: ``C`` of the scene features.
         num_classes: ``K`` (Occ3D: 18 with ``free`` = 17).
         hidden: width of the hidden layer (0: a linear classifier).
     """
+
+    queryable = True
+    temporal = False
 
     def __init__(self, in_channels: int, num_classes: int = 18, hidden: int = 64) -> None:
         super().__init__()
@@ -41,19 +46,19 @@ class VoxelClassifier(OccupancyHead):
         """``{"logits": (B, K, X, Y, Z)}`` on ``scene.grid``."""
         return {"logits": self.occupancy_logits(scene, scene.grid)}
 
-    def occupancy_logits(self, scene: Scene, grid: GridSpec) -> Tensor:
+    def occupancy_logits(self, scene: Scene, grid: GridSpec, chunk_size: int = DEFAULT_QUERY_CHUNK) -> Tensor:
         """``(B, K, X, Y, Z)`` logits at the centres of ``grid``'s voxels.
 
-        On the scene's own dense grid this classifies ``scene.features`` directly; on any other
-        grid (or a non-dense scene) it queries the scene at ``grid.centers()``.
+        On the scene's own dense grid this classifies ``scene.features`` directly (the fast path,
+        equal to the query default); on any other grid, or a non-dense scene, it is the chunked
+        query default of :meth:`OccupancyHead.occupancy_logits`.
         """
         feats = scene.features
         if grid == scene.grid and feats.dim() == 5 and tuple(feats.shape[2:]) == grid.shape:
             return self.classify(feats.movedim(1, -1)).movedim(-1, 1)
-        b = feats.shape[0]
-        centers = grid.centers(device=feats.device).to(feats.dtype).reshape(1, -1, 3).expand(b, -1, -1)
-        return self.query(scene, centers).transpose(1, 2).reshape(b, self.num_classes, *grid.shape)
+        return super().occupancy_logits(scene, grid, chunk_size)
 
-    def query(self, scene: Scene, points: Tensor) -> Tensor:
-        """``(B, P, K)`` logits at ``(B, P, 3)`` ego-frame points (classifies ``scene.sample(points)``)."""
-        return self.classify(scene.sample(points))
+    def query(self, scene: Scene, points: Tensor, times: Tensor | None = None) -> QueryResult:
+        """Class logits ``(B, P, K)`` of ``scene.sample(points)`` at ``(B, P, 3)`` ego-frame points (``times``: 0 only)."""
+        self.check_query(points, times)
+        return QueryResult(class_logits=self.classify(scene.sample(points)))

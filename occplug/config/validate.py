@@ -311,6 +311,10 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
         _validate_kwargs(config["trainer"], "trainer", L.Trainer, {"callbacks", "logger", "default_root_dir"})
     if config.get("checkpoint") is not None:
         _validate_kwargs(config["checkpoint"], "checkpoint", ModelCheckpoint, {"dirpath"})
+    if isinstance(config["model"], dict):  # query supervision on a head that cannot answer it
+        from occplug.queries import check_query_config
+
+        check_query_config(config["model"], registry)
     return v.used
 
 

@@ -2,7 +2,8 @@
 
 from .depth_net import DepthAndContext, DepthNet
 from .encoder import ImageEncoder, PointEncoder, feature_levels
-from .head import Head, OccupancyHead
+from .head import DEFAULT_QUERY_CHUNK, Head, OccupancyHead
+from .query import QueryResult
 from .scene import Scene, SceneRepresentation
 from .supervision import ModelOutputs, SupervisionSource
 from .view_transform import Lifted, ViewTransform
@@ -10,12 +11,14 @@ from .view_transform import Lifted, ViewTransform
 __all__ = [
     "DepthAndContext",
     "DepthNet",
+    "DEFAULT_QUERY_CHUNK",
     "Head",
     "ImageEncoder",
     "Lifted",
     "ModelOutputs",
     "OccupancyHead",
     "PointEncoder",
+    "QueryResult",
     "Scene",
     "SceneRepresentation",
     "SupervisionSource",

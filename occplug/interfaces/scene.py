@@ -29,6 +29,16 @@ class Scene(ABC):
     grid: GridSpec
     channels: int
 
+    @property
+    def batch_size(self) -> int:
+        """``B``: samples in this scene (``features``' first dimension unless a subclass says otherwise)."""
+        return int(self.features.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        """Where the scene's tensors live (query points are made there)."""
+        return self.features.device
+
     @abstractmethod
     def sample(self, points: Tensor) -> Tensor:
         """Features at continuous ego-frame points.

@@ -11,6 +11,7 @@ from torch import Tensor, nn
 
 from occplug.data.frame import Batch
 
+from .query import QueryResult
 from .scene import Scene
 from .view_transform import Lifted
 
@@ -31,8 +32,10 @@ class ModelOutputs:
         lifted: the view transform's output (volume, optional depth distributions).
         scene: the scene representation.
         heads: each head's named outputs, keyed by the head's config name.
-        query: ``query(head_name, points (B, P, 3)) -> (B, P, K)`` asks an occupancy head
-            for logits at continuous points (4D query supervision uses this).
+        query: ``query(head_name, points, times=None) -> QueryResult`` asks the queryable head
+            ``model.heads.<head_name>`` about ``(B, P, 3)`` ego-frame points of the current frame at
+            ``(B, P)`` times in seconds relative to it (``None``: all 0); see
+            :meth:`~occplug.interfaces.OccupancyHead.query`. 4D query supervision uses this.
         image_levels: every level of the image encoder, finest first (``[image_features]`` for
             a single-scale encoder).
         encoded: each point encoder's ``(B, C, X, Y, Z)`` volume, keyed by its config name.
@@ -44,7 +47,7 @@ class ModelOutputs:
     lifted: Lifted | None
     scene: Scene | None
     heads: dict[str, dict[str, Tensor]]
-    query: Callable[[str, Tensor], Tensor]
+    query: Callable[..., QueryResult]
     image_levels: list[Tensor] = field(default_factory=list)
     encoded: dict[str, Tensor] = field(default_factory=dict)
     extras: dict[str, object] = field(default_factory=dict)
@@ -69,6 +72,15 @@ class SupervisionSource(nn.Module, ABC):
     requires: frozenset[str] = frozenset()
 
     weight: float
+
+    #: Config name of the head this source asks through :attr:`ModelOutputs.query` (``None``: none).
+    #: A source that queries takes it as the constructor argument ``query_head`` and stores it here, so
+    #: the model build (and config validation, from the argument) can check the head is queryable.
+    query_head: str | None = None
+    #: Whether its queries ask about other time steps (``times != 0``): the queried head must be temporal.
+    #: Config validation reads the class attribute; a source whose need depends on its arguments sets it
+    #: on the instance in its constructor (then the model build catches an impossible mix).
+    needs_temporal_queries: bool = False
 
     @property
     def training_mask(self) -> str:

@@ -65,7 +65,7 @@ def check_component(kind: str, name: str, spec: dict[str, Any] | None = None, *,
         node["grid"] = grid.to_dict()
     node.update(spec or {})
     # what a parent would pass: the kind's contract names the arguments, this table their test values
-    values = {"in_channels": IN_CHANNELS, "image_stride": 4, "num_classes": 18, "grid": grid.to_dict(),
+    values = {"in_channels": IN_CHANNELS, "image_stride": 4, "num_classes": 18, "free_label": 17, "grid": grid.to_dict(),
               "level_channels": [IN_CHANNELS], "level_strides": [4], "num_bins": 6, "out_channels": IN_CHANNELS}
     defaults = {k: values[k] for k in given_arguments(kind, entry.factory) if k in values}
     torch.manual_seed(0)
@@ -183,15 +183,21 @@ def _check_head(head: I.Head, batch: Batch, grid: GridSpec) -> None:
         logits = head.occupancy_logits(scene, grid)
         assert logits.shape == (len(batch), head.num_classes, *grid.shape), f"occupancy_logits {tuple(logits.shape)}"
         assert torch.allclose(logits, head(*inputs)["logits"], atol=1e-5), "occupancy_logits != forward logits"
-        idx = torch.tensor([[1, 2, 3], [5, 0, 1]])
-        pts = grid.index_to_coord(idx)[None].expand(len(batch), -1, -1)
-        try:
-            queried = head.query(scene, pts)
-        except TypeError:
-            queried = None  # a head may decline arbitrary queries
-        if queried is not None:
+        if head.queryable:  # queries at voxel centres agree with the voxel logits; t != 0 only for temporal heads
+            idx = torch.tensor([[1, 2, 3], [5, 0, 1]])
+            pts = grid.index_to_coord(idx)[None].expand(len(batch), -1, -1)
+            result = head.query(scene, pts)
+            assert isinstance(result, I.QueryResult), f"query returned a {type(result).__name__}, not a QueryResult"
             expected = logits[:, :, idx[:, 0], idx[:, 1], idx[:, 2]].transpose(1, 2)
+            queried = result.logits(head.free_label)
             assert torch.allclose(queried, expected, atol=1e-4), "query at voxel centres != occupancy logits"
+            if not head.temporal:
+                try:
+                    head.query(scene, pts, torch.full(pts.shape[:2], 0.5))
+                except ValueError:
+                    pass
+                else:
+                    raise AssertionError("a head that is not temporal must reject queries at t != 0 (ValueError)")
         head.train()
     out = head(*inputs)
     torch.stack([v.float().square().mean() for v in out.values() if v.is_floating_point()]).sum().backward()
