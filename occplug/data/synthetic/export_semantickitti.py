@@ -42,9 +42,10 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from occplug.data.formats.semantickitti import LEARNING_MAP_INV, SSC_GRID, write_bits, write_raw_labels
+from occplug.data.classes import SEMANTIC_KITTI_LEARNING_MAP_INV as LEARNING_MAP_INV
 from occplug.data.frame import Frame
 from occplug.data.imageio import write_rgb
+from occplug.data.semantickitti.format import SSC_GRID, write_bits, write_raw_labels
 from occplug.geometry import GridSpec, invert_pose
 
 from .config import SPLITS, SyntheticWorldConfig

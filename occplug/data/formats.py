@@ -1,10 +1,10 @@
-"""On-disk formats of the real data sets, and occplug's own prediction files.
+"""File helpers shared by every data set, and occplug's own prediction files.
 
-Submodules (import them by name; this package imports neither eagerly):
+The on-disk formats of the real data sets live with their readers:
 
-* :mod:`occplug.data.formats.occ3d` — Occ3D ``labels.npz`` (``semantics``, ``mask_lidar``,
+* :mod:`occplug.data.nuscenes.format` — Occ3D ``labels.npz`` (``semantics``, ``mask_lidar``,
   ``mask_camera``) and the ``gts/<scene>/<token>/`` layout.
-* :mod:`occplug.data.formats.semantickitti` — SemanticKITTI SSC voxel files (bit-packed ``.bin``,
+* :mod:`occplug.data.semantickitti.format` — SemanticKITTI SSC voxel files (bit-packed ``.bin``,
   ``.invalid``, ``.occluded``; ``uint16`` ``.label``), the learning map to the 20 SSC classes and the
   ``sequences/XX/voxels/`` layout.
 

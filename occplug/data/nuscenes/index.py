@@ -28,7 +28,7 @@ The index ``<out>/nuscenes_index.npz`` (``numpy.savez_compressed``, no pickles) 
 * boxes, concatenated over samples with ``box_offsets`` ``(S + 1,)``: ``boxes`` ``(M, 9)``
   float64 in the ego frame (centre, length, width, height, yaw, vx, vy as ``Frame.boxes``;
   nuScenes stores sizes as width, length, height), ``box_labels`` (Occ3D ids by category,
-  :data:`CATEGORY_TO_OCC3D`), ``box_track_ids``, ``box_num_lidar_pts``, ``box_category`` (index into
+  :data:`~occplug.data.classes.NUSCENES_TO_OCC3D`), ``box_track_ids``, ``box_num_lidar_pts``, ``box_category`` (index into
   ``meta.categories``). Velocities follow ``NuScenes.box_velocity``: centred difference of the
   previous and next annotation of the instance (one-sided at the ends), NaN -> 0 when the instance
   has a single annotation or the gap exceeds 1.5 s (3 s centred), as mmdetection3d does.
@@ -55,19 +55,17 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from occplug.data.formats import FormatError, read_split_file
+from ..classes import NUSCENES_LIDARSEG_CATEGORIES, nuscenes_to_occ3d
+from ..formats import FormatError, read_split_file
 
 __all__ = [
     "CAMERAS",
-    "CATEGORY_TO_OCC3D",
     "INDEX_FORMAT",
     "INDEX_NAME",
-    "LIDARSEG_CATEGORIES",
     "OPTIONAL_TABLES",
     "REQUIRED_TABLES",
     "NuScenesIndex",
     "build_index",
-    "category_to_occ3d",
     "collect_index",
     "index_path",
     "official_splits",
@@ -85,34 +83,6 @@ LIDAR = "LIDAR_TOP"
 REQUIRED_TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor", "sample_annotation",
                    "instance", "category")
 OPTIONAL_TABLES = ("lidarseg",)
-
-#: nuScenes category -> Occ3D id (the detection classes; flat / static classes for lidarseg);
-#: unlisted categories are 0 ``others``; ``noise`` and ``vehicle.ego`` are 255 (ignored).
-CATEGORY_TO_OCC3D: dict[str, int] = {
-    "noise": 255, "vehicle.ego": 255,
-    "movable_object.barrier": 1, "vehicle.bicycle": 2, "vehicle.bus.bendy": 3, "vehicle.bus.rigid": 3, "vehicle.car": 4,
-    "vehicle.construction": 5, "vehicle.motorcycle": 6, "human.pedestrian.adult": 7, "human.pedestrian.child": 7,
-    "human.pedestrian.construction_worker": 7, "human.pedestrian.police_officer": 7, "movable_object.trafficcone": 8,
-    "vehicle.trailer": 9, "vehicle.truck": 10, "flat.driveable_surface": 11, "flat.other": 12, "flat.sidewalk": 13,
-    "flat.terrain": 14, "static.manmade": 15, "static.vegetation": 16,
-}  # fmt: skip
-
-#: The 32 nuScenes-lidarseg categories, index = the id stored in ``*_lidarseg.bin``.
-LIDARSEG_CATEGORIES: tuple[str, ...] = (
-    "noise", "animal", "human.pedestrian.adult", "human.pedestrian.child", "human.pedestrian.construction_worker",
-    "human.pedestrian.personal_mobility", "human.pedestrian.police_officer", "human.pedestrian.stroller",
-    "human.pedestrian.wheelchair", "movable_object.barrier", "movable_object.debris",
-    "movable_object.pushable_pullable", "movable_object.trafficcone", "static_object.bicycle_rack", "vehicle.bicycle",
-    "vehicle.bus.bendy", "vehicle.bus.rigid", "vehicle.car", "vehicle.construction", "vehicle.emergency.ambulance",
-    "vehicle.emergency.police", "vehicle.motorcycle", "vehicle.trailer", "vehicle.truck", "flat.driveable_surface",
-    "flat.other", "flat.sidewalk", "flat.terrain", "static.manmade", "static.other", "static.vegetation", "vehicle.ego",
-)  # fmt: skip
-
-
-def category_to_occ3d(name: str) -> int:
-    """The Occ3D id of a nuScenes category (:data:`CATEGORY_TO_OCC3D`, else 0 ``others``)."""
-    return CATEGORY_TO_OCC3D.get(name, 0)
-
 
 # The official scene splits (nuscenes-devkit ``nuscenes/utils/splits.py``, Apache-2.0), as scene numbers.
 _TRAIN = (
@@ -455,7 +425,7 @@ def collect_index(root: str | Path, version: str, occ_root: str | Path | None = 
     instance_index = {t: i for i, t in enumerate(instances)}
     categories = [r["name"] for r in tables.rows["category"]]
     seg_index = {int(r["index"]): r["name"] for r in tables.rows["category"] if isinstance(r.get("index"), int)}
-    lidarseg_names = [seg_index.get(i, "noise") for i in range(max(seg_index) + 1)] if seg_index else list(LIDARSEG_CATEGORIES)
+    lidarseg_names = [seg_index.get(i, "noise") for i in range(max(seg_index) + 1)] if seg_index else list(NUSCENES_LIDARSEG_CATEGORIES)
     category_index = {r["token"]: i for i, r in enumerate(tables.rows["category"])}
     instance_category = {r["token"]: category_index.get(r.get("category_token"), -1) for r in tables.rows["instance"]}
 
@@ -611,7 +581,7 @@ def _scene_splits(tables: _Tables, version: str, splits: str | Path) -> dict[str
 
 
 def _occ3d_label(categories: list[str], category: int) -> int:
-    return category_to_occ3d(categories[category]) if 0 <= category < len(categories) else 0
+    return nuscenes_to_occ3d(categories[category]) if 0 <= category < len(categories) else 0
 
 
 def _box_in_ego(tables: _Tables, ann: dict[str, Any], ego: np.ndarray) -> np.ndarray:
