@@ -1,4 +1,4 @@
-"""A toy plugin used by the registry and config tests (not installed; registered as an object)."""
+"""The one toy plugin of the registry and config tests (not installed: registered as an object or an entry point)."""
 
 from __future__ import annotations
 
