@@ -1,5 +1,9 @@
 """Plugin discovery: the built-in plugin plus every ``occplug`` entry point.
 
+The built-in plugin is named, not imported (:data:`BUILTIN_MODULE`, as pytest's ``default_plugins``): it imports
+the components it registers and those read the registry built here, so importing it from this module would close
+a circle (plugins -> builtin -> model -> plugins).
+
 Switches (environment variables, read when the plugin manager is first built):
 
 * ``OCCPLUG_DISABLE_PLUGINS=a,b``: do not load these entry points.
@@ -10,10 +14,11 @@ Switches (environment variables, read when the plugin manager is first built):
 from __future__ import annotations
 
 import contextlib
+import importlib
 import os
 import sys
-from collections.abc import Iterator, Sequence
 import traceback
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
@@ -38,6 +43,8 @@ __all__ = [
 
 ENTRY_POINT_GROUP = "occplug"
 BUILTIN_NAME = "occplug"
+#: The module of the core's own plugin, registered as :data:`BUILTIN_NAME` before any entry point.
+BUILTIN_MODULE = "occplug.builtin"
 
 
 @dataclass
@@ -91,13 +98,11 @@ def _entry_points() -> list[metadata.EntryPoint]:
 def _build_manager(
     only: list[str] | None = None, extra: tuple[tuple[str, object], ...] = (), autoload: bool = True
 ) -> _State:
-    from . import builtin
-
     pm = pluggy.PluginManager("occplug")
     pm.add_hookspecs(hookspecs)
-    pm.register(builtin, name=BUILTIN_NAME)
+    pm.register(importlib.import_module(BUILTIN_MODULE), name=BUILTIN_NAME)
     version = metadata.version("occplug") if _installed("occplug") else None
-    reports = {BUILTIN_NAME: PluginReport(BUILTIN_NAME, "occplug", version, builtin.__name__)}
+    reports = {BUILTIN_NAME: PluginReport(BUILTIN_NAME, "occplug", version, BUILTIN_MODULE)}
     disabled = set(_env_list("OCCPLUG_DISABLE_PLUGINS") or []) if autoload else set()
     if autoload:
         only = _env_list("OCCPLUG_LOAD_PLUGINS")

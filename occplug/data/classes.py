@@ -10,6 +10,7 @@ __all__ = [
     "NUSCENES_TO_OCC3D",
     "OCC3D_NUM_CLASSES",
     "OCC3D_TO_NUSCENES",
+    "OCC3D_TO_SEMANTIC_KITTI",
     "SEMANTIC_KITTI_CLASSES",
     "SEMANTIC_KITTI_COLORS",
     "SEMANTIC_KITTI_LEARNING_MAP",
@@ -196,3 +197,10 @@ SEMANTIC_KITTI_LEARNING_MAP_INV: dict[int, int] = {
     0: 0, 1: 10, 2: 11, 3: 15, 4: 18, 5: 20, 6: 30, 7: 31, 8: 32, 9: 40, 10: 44, 11: 48, 12: 49,
     13: 50, 14: 51, 15: 70, 16: 71, 17: 72, 18: 80, 19: 81,
 }  # fmt: skip
+
+#: Occ3D id (index) -> SemanticKITTI SSC class (255 = ignored: ``others`` and ``traffic_cone`` have no SSC class;
+#: ``free`` -> 0 ``empty``); length 256, so any ``uint8`` Occ3D label indexes it.
+OCC3D_TO_SEMANTIC_KITTI: tuple[int, ...] = tuple(
+    {0: 255, 1: 14, 2: 2, 3: 5, 4: 1, 5: 5, 6: 3, 7: 6, 8: 255, 9: 5, 10: 4, 11: 9, 12: 12, 13: 11, 14: 17, 15: 13,
+     16: 15, 17: 0}.get(i, 255) for i in range(256)
+)  # fmt: skip

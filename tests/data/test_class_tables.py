@@ -52,7 +52,21 @@ def test_semantickitti_learning_map_known_entries_and_inverse():
 def test_each_table_has_one_copy_in_the_core():
     """A literal that only a copy of a table would hold appears in ``classes.py`` and nowhere else."""
     root = Path(occplug.__file__).parent
-    markers = ('"vehicle.bus.bendy"', '"human.pedestrian.wheelchair"', "252: 1, 253: 7", "13: 50, 14: 51")
+    markers = ('"vehicle.bus.bendy"', '"human.pedestrian.wheelchair"', "252: 1, 253: 7", "13: 50, 14: 51",
+               "16: 15, 17: 0}")
     for marker in markers:
         holders = sorted(p.relative_to(root).as_posix() for p in root.rglob("*.py") if marker in p.read_text())
         assert holders == ["data/classes.py"], (marker, holders)
+
+
+def test_occ3d_to_semantickitti_by_name():
+    from occplug.data.classes import OCC3D_TO_SEMANTIC_KITTI as to_ssc
+
+    assert len(to_ssc) == 256 and to_ssc[255] == 255
+    same = ("car", "bicycle", "motorcycle", "truck", "sidewalk", "terrain", "vegetation")
+    for name in same:
+        assert SEMANTIC_KITTI_CLASSES[to_ssc[OCC3D_CLASSES.index(name)]] == name
+    assert SEMANTIC_KITTI_CLASSES[to_ssc[OCC3D_CLASSES.index("pedestrian")]] == "person"
+    assert SEMANTIC_KITTI_CLASSES[to_ssc[OCC3D_CLASSES.index("driveable_surface")]] == "road"
+    assert SEMANTIC_KITTI_CLASSES[to_ssc[OCC3D_CLASSES.index("free")]] == "empty"
+    assert to_ssc[OCC3D_CLASSES.index("traffic_cone")] == 255 and to_ssc[OCC3D_CLASSES.index("others")] == 255

@@ -14,8 +14,8 @@ from pathlib import Path
 
 from ..check import CheckSummary, DataCheckError, Findings, progress_bar
 from ..formats import FormatError, read_split_file
-from .format import SSC_SHAPE, VOXEL_EXTENSIONS, voxel_file_problem
-from .reader import SPLIT_SEQUENCES, _Sequence
+from .format import SPLIT_SEQUENCES, SSC_SHAPE, VOXEL_EXTENSIONS, voxel_file_problem
+from .reader import _Sequence
 
 __all__ = ["check_semantickitti", "read_sequence_splits"]
 

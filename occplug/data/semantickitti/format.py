@@ -34,6 +34,7 @@ from ..formats import FormatError, as_numpy
 
 __all__ = [
     "IGNORE",
+    "SPLIT_SEQUENCES",
     "SSC_GRID",
     "SSC_SHAPE",
     "SSCVoxels",
@@ -58,6 +59,12 @@ SSC_SHAPE: tuple[int, int, int] = (256, 256, 32)
 SSC_GRID = GridSpec((0.0, -25.6, -2.0, 51.2, 25.6, 4.4), 0.2)
 #: The id ignored by the SSC benchmark.
 IGNORE = 255
+#: The standard SSC split: train 00-07, 09, 10; val 08; test 11-21.
+SPLIT_SEQUENCES: dict[str, tuple[str, ...]] = {
+    "train": ("00", "01", "02", "03", "04", "05", "06", "07", "09", "10"),
+    "val": ("08",),
+    "test": tuple(f"{i:02d}" for i in range(11, 22)),
+}
 
 
 def learning_map_lut(completion: bool = True) -> np.ndarray:
