@@ -13,7 +13,9 @@ from occplug.config.slots import Slot
 class ToyEncoder(occplug.ImageEncoder):
     """A toy encoder with typed arguments."""
 
-    def __init__(self, channels: int, scale: float = 1.0, mode: Literal["a", "b"] = "a", name: str | None = None) -> None:
+    def __init__(
+        self, channels: int, scale: float = 1.0, mode: Literal["a", "b"] = "a", name: str | None = None
+    ) -> None:
         super().__init__()
         self.out_channels, self.stride = channels, 1
         self.scale, self.mode = scale, mode

@@ -77,7 +77,7 @@ class Findings:
         self.checked[category] += n
 
     def add(self, category: str, subject: str | Path, message: str, kind: str | None = None) -> None:
-        """Record a problem; problems of one ``kind`` (default: the message with its numbers blanked) are counted together."""
+        """Record a problem; problems of one ``kind`` (default: the message, numbers blanked) are counted together."""
         key = (category, kind or re.sub(r"\d+", "#", message))
         if key in self.problems:
             self.problems[key][1] += 1
@@ -88,7 +88,7 @@ class Findings:
         """A reader's one-line error (``<path>: <problem>``) as a problem of ``path``."""
         text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         prefix = f"{path}: "
-        self.add(category, path, text[len(prefix):] if text.startswith(prefix) else text)
+        self.add(category, path, text[len(prefix) :] if text.startswith(prefix) else text)
 
     def stat(self, category: str, path: Path) -> int | None:
         """Count ``path`` as checked; its size, or None (a problem recorded) when missing or empty."""

@@ -53,7 +53,9 @@ def load_npz(path: str | Path) -> dict[str, np.ndarray]:
         with np.load(path, allow_pickle=False) as data:
             return {key: data[key] for key in data.files}
     except Exception as exc:  # zipfile, pickle and value errors all mean "not a readable npz"
-        raise FormatError(f"{path}: not a readable .npz file ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+        raise FormatError(
+            f"{path}: not a readable .npz file ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+        ) from None
 
 
 def save_npz(path: str | Path, **arrays: np.ndarray) -> None:
@@ -131,7 +133,9 @@ def read_split_file(path: str | Path, items: str = "scene names") -> dict[str, l
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise FormatError(f"{path}: not valid JSON ({str(exc).splitlines()[0]})") from None
     if not isinstance(data, dict) or not all(isinstance(v, list) for v in data.values()):
-        raise FormatError(f'{path}: a split file maps split names to lists of {items}, e.g. {{"train": [...], "val": [...]}}')
+        raise FormatError(
+            f'{path}: a split file maps split names to lists of {items}, e.g. {{"train": [...], "val": [...]}}'
+        )
     for split in data:
         if split not in ("train", "val", "test"):
             raise FormatError(f"{path}: unknown split '{split}' (valid: train, val, test)")

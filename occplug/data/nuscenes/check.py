@@ -47,7 +47,9 @@ def check_nuscenes(root: str | Path, version: str, occ_root: str | Path | None =
     Raises:
         DataCheckError: one line (see the module docstring); FormatError: unreadable tables.
     """
-    index = collect_index(root, version, occ_root, splits, sweeps, progress=progress, progress_delay=common.PROGRESS_DELAY)
+    index = collect_index(
+        root, version, occ_root, splits, sweeps, progress=progress, progress_delay=common.PROGRESS_DELAY
+    )
     lists, where = split_lists(version, splits)
     findings = Findings()
     scene_file = Path(root) / version / "scene.json"
@@ -56,16 +58,25 @@ def check_nuscenes(root: str | Path, version: str, occ_root: str | Path | None =
         for name in sorted(lists[split]):
             findings.check(f"scenes of {where}")
             if name not in present.get(split, ()):
-                findings.add(f"scenes of {where}", scene_file, f"scene {name} of the {split} split is missing", "missing")
-    splits_seen, checked, notes = _check_index_files(index, Path(root), None if occ_root is None else Path(occ_root),
-                                                     shape, lidar, findings, progress)
+                findings.add(
+                    f"scenes of {where}", scene_file, f"scene {name} of the {split} split is missing", "missing"
+                )
+    splits_seen, checked, notes = _check_index_files(
+        index, Path(root), None if occ_root is None else Path(occ_root), shape, lidar, findings, progress
+    )
     findings.raise_first()
     return CheckSummary(f"nuScenes tree {root} ({version}; scenes per {where})", splits_seen, checked, notes)
 
 
-def check_index(index: str | Path, root: str | Path | None = None, occ_root: str | Path | None = None,
-                splits: str | Path = "official", lidar: bool = True, shape: Sequence[int] = OCC3D_SHAPE,
-                progress: bool = True) -> CheckSummary:
+def check_index(
+    index: str | Path,
+    root: str | Path | None = None,
+    occ_root: str | Path | None = None,
+    splits: str | Path = "official",
+    lidar: bool = True,
+    shape: Sequence[int] = OCC3D_SHAPE,
+    progress: bool = True,
+) -> CheckSummary:
     """Check a prepared index and every file it names, without writing anything.
 
     Args:
@@ -98,15 +109,26 @@ def check_index(index: str | Path, root: str | Path | None = None, occ_root: str
             if name not in indexed:
                 findings.add(f"scenes of {where}", idx.path, f"scene {name} of the {split} split is missing", "missing")
             elif indexed[name] != split:
-                findings.add(f"scenes of {where}", idx.path, f"scene {name} is in the {indexed[name]} split, not {split}",
-                             "wrong split")
+                findings.add(
+                    f"scenes of {where}",
+                    idx.path,
+                    f"scene {name} is in the {indexed[name]} split, not {split}",
+                    "wrong split",
+                )
     splits_seen, checked, notes = _check_index_files(idx, root_dir, occ_dir, shape, lidar, findings, progress)
     findings.raise_first()
     return CheckSummary(f"index {idx.path} (root {root_dir}; scenes per {where})", splits_seen, checked, notes)
 
 
-def _check_index_files(index: NuScenesIndex, root: Path, occ_root: Path | None, shape: Sequence[int], lidar: bool,
-                       findings: Findings, progress: bool) -> tuple[dict[str, tuple[int, int]], dict[str, int], list[str]]:
+def _check_index_files(
+    index: NuScenesIndex,
+    root: Path,
+    occ_root: Path | None,
+    shape: Sequence[int],
+    lidar: bool,
+    findings: Findings,
+    progress: bool,
+) -> tuple[dict[str, tuple[int, int]], dict[str, int], list[str]]:
     """Every file of every sample of ``index`` (see the module docstring); problems go to ``findings``.
 
     Returns:
@@ -128,7 +150,11 @@ def _check_index_files(index: NuScenesIndex, root: Path, occ_root: Path | None, 
                     seen_lidar.add(path)
                     size = findings.stat("LiDAR files", path)
                     if size is not None and size % _PCD_POINT:
-                        findings.add("LiDAR files", path, f"{size} bytes is not a whole number of 5-float32 points (corrupt .bin?)")
+                        findings.add(
+                            "LiDAR files",
+                            path,
+                            f"{size} bytes is not a whole number of 5-float32 points (corrupt .bin?)",
+                        )
                     elif size is not None and i == 0:
                         points = size // _PCD_POINT
                 if rec.get("lidarseg"):
@@ -147,16 +173,24 @@ def _check_index_files(index: NuScenesIndex, root: Path, occ_root: Path | None, 
                     sem = labels.semantics
                     bad = sem[(sem >= num_classes) & (sem != 255)]
                     if bad.numel():
-                        findings.add("label files", path, f"'semantics' holds class id {int(bad.max())}; expected "
-                                                          f"0..{num_classes - 1} (or 255, ignored)")
+                        findings.add(
+                            "label files",
+                            path,
+                            f"'semantics' holds class id {int(bad.max())}; expected "
+                            f"0..{num_classes - 1} (or 255, ignored)",
+                        )
             bar.update()
     splits: dict[str, tuple[int, int]] = {}
     for split in ("train", "val", "test"):
         items = index.split_indices(split)
         if items:
             splits[split] = (len({index.samples[i]["scene"] for i in items}), len(items))
-    checked = {"images": findings.checked["images"], "LiDAR files (keyframes and sweeps)": findings.checked["LiDAR files"],
-               "lidarseg files": findings.checked["lidarseg files"], f"label files {shape}": findings.checked["label files"]}
+    checked = {
+        "images": findings.checked["images"],
+        "LiDAR files (keyframes and sweeps)": findings.checked["LiDAR files"],
+        "lidarseg files": findings.checked["lidarseg files"],
+        f"label files {shape}": findings.checked["label files"],
+    }
     notes = []
     if not lidar:
         notes.append("LiDAR files not checked (--no-lidar)")

@@ -93,25 +93,42 @@ def check_semantickitti(root: str | Path, splits: str | Path | None = None, lida
                     size = findings.stat("velodyne files", velo)
                     points = None
                     if size is not None and size % _VELO_POINT:
-                        findings.add("velodyne files", velo, f"{size} bytes is not a whole number of 4-float32 points (corrupt .bin?)")
+                        findings.add(
+                            "velodyne files",
+                            velo,
+                            f"{size} bytes is not a whole number of 4-float32 points (corrupt .bin?)",
+                        )
                     elif size is not None:
                         points = size // _VELO_POINT
                     if seq.labelled:
                         label = seq.folder / "labels" / f"{name}.label"
                         lsize = findings.stat("point-label files", label)
                         if lsize is not None and points is not None and lsize != 4 * points:
-                            findings.add("point-label files", label, f"{lsize} bytes; expected {4 * points} (one uint32 "
-                                                                     f"label per point of its velodyne scan)")
+                            findings.add(
+                                "point-label files",
+                                label,
+                                f"{lsize} bytes; expected {4 * points} (one uint32 "
+                                f"label per point of its velodyne scan)",
+                            )
                 bar.update()
     findings.raise_first()
     notes = [] if lidar else ["velodyne/ and labels/ not checked (--no-lidar)"]
     absent = [s for s in expected.get("test", ()) if not (root / "sequences" / s).is_dir()]
     if absent:
         notes.append(f"test sequences not present: {', '.join(absent)} (optional)")
-    checked = {"images": findings.checked["images"], f"voxel files {shape}": findings.checked["voxel files"],
-               "velodyne files": findings.checked["velodyne files"], "point-label files": findings.checked["point-label files"]}
-    return CheckSummary(f"SemanticKITTI tree {root} (sequences per {where})",
-                        {k: (v[0], v[1]) for k, v in counts.items()}, checked, notes, unit="sequence")
+    checked = {
+        "images": findings.checked["images"],
+        f"voxel files {shape}": findings.checked["voxel files"],
+        "velodyne files": findings.checked["velodyne files"],
+        "point-label files": findings.checked["point-label files"],
+    }
+    return CheckSummary(
+        f"SemanticKITTI tree {root} (sequences per {where})",
+        {k: (v[0], v[1]) for k, v in counts.items()},
+        checked,
+        notes,
+        unit="sequence",
+    )
 
 
 def _check_voxels(folder: Path, shape: tuple[int, ...], findings: Findings) -> None:

@@ -129,7 +129,8 @@ def voxel_file_problem(suffix: str, size: int, shape: tuple[int, ...] = SSC_SHAP
     count = int(np.prod(shape))
     shape = tuple(shape)
     if suffix == ".label":
-        return None if size == 2 * count else f"{size} bytes; expected {2 * count} ({count} uint16 voxels of a {shape} grid)"
+        expected = f"{2 * count} ({count} uint16 voxels of a {shape} grid)"
+        return None if size == 2 * count else f"{size} bytes; expected {expected}"
     if suffix not in VOXEL_EXTENSIONS:
         raise ValueError(f"unknown voxel file extension {suffix!r} (valid: {', '.join(VOXEL_EXTENSIONS)})")
     return None if size * 8 == count else f"{size} bytes; expected {count // 8} ({count} voxels, 8 per byte)"
