@@ -33,6 +33,7 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "PluginLoadError",
     "PluginReport",
+    "broken_plugins_warning",
     "config_dirs",
     "get_plugin_manager",
     "get_registry",
@@ -57,6 +58,18 @@ class PluginReport:
     module: str | None
     error: str | None = None
     components: dict[str, list[str]] = field(default_factory=dict)
+    #: What the plugin failed to do when :attr:`error` is set: ``import``, ``register`` (its hook raised), ...
+    failed_to: str | None = None
+
+    @property
+    def problem(self) -> str | None:
+        """One line, e.g. ``failed to import: ImportError: needs torch_scatter``; None for a working plugin."""
+        if self.error is None:
+            return None
+        first = self.error.strip().splitlines()[0] if self.error.strip() else "unknown error"
+        for prefix in ("registration failed: ", "occplug_config_dir failed: "):  # said by failed_to already
+            first = first.removeprefix(prefix)
+        return f"failed to {self.failed_to or 'load'}: {first}"
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form."""
@@ -115,12 +128,14 @@ def _build_manager(
         reports[ep.name] = report
         if ep.name in pm.list_name_plugin() and pm.get_plugin(ep.name) is not None:
             report.error = f"the plugin name '{ep.name}' is already taken"
+            report.failed_to = "load"
             continue
         try:
             module = ep.load()
             pm.register(module, name=ep.name)
         except Exception as exc:  # a broken plugin must not break the others
             report.error = f"{type(exc).__name__}: {exc}"
+            report.failed_to = "import"
             if os.environ.get("OCCPLUG_TRACE_PLUGINS"):
                 traceback.print_exc()
     if only is not None:
@@ -184,9 +199,11 @@ def fill_registry(pm: pluggy.PluginManager, reports: dict[str, PluginReport] | N
         except Exception as exc:
             if report is not None:
                 report.error = f"registration failed: {type(exc).__name__}: {exc}"
+                report.failed_to = "register"
             _drop_partial(registry, impl.plugin_name)
     registry.current_plugin = BUILTIN_NAME
     registry.current_distribution = None
+    registry.broken_plugins = {r.name: r.problem for r in reports.values() if r.problem is not None}
     for entry in registry.entries():
         rep = reports.get(entry.plugin)
         if rep is not None:
@@ -205,6 +222,14 @@ def plugin_reports() -> list[PluginReport]:
     return list(_get_state().reports.values())
 
 
+def broken_plugins_warning() -> str | None:
+    """One ``warning:`` line naming every plugin that failed to load, or None when all loaded."""
+    broken = [f"plugin '{r.name}' {r.problem}" for r in plugin_reports() if r.problem is not None]
+    if not broken:
+        return None
+    return f"warning: {'; '.join(broken)} (its components are unavailable; `occplug plugins` shows details)"
+
+
 def config_dirs() -> dict[str, Path]:
     """Config folders by plugin name (``occplug`` is the core's own ``occplug/configs``)."""
     pm = get_plugin_manager()
@@ -216,6 +241,7 @@ def config_dirs() -> dict[str, Path]:
             report = _get_state().reports.get(impl.plugin_name)
             if report is not None:
                 report.error = f"occplug_config_dir failed: {type(exc).__name__}: {exc}"
+                report.failed_to = "give its config folder"
             continue
         if folder is not None:
             dirs[impl.plugin_name] = Path(str(folder))
