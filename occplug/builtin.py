@@ -20,8 +20,8 @@ if TYPE_CHECKING:
 def occplug_register_components(registry: Registry) -> None:
     """Register the core's encoders, view transforms, scene, head, supervision, data, metric and model."""
     from . import components as c
-    from .data.occ3d_nuscenes import Occ3DNuScenesDataModule
-    from .data.semantickitti import SemanticKITTIDataModule
+    from .data.nuscenes.reader import Occ3DNuScenesDataModule
+    from .data.semantickitti.reader import SemanticKITTIDataModule
     from .data.synthetic import SyntheticDataModule
     from .metrics import Occ3DMIoU, RayIoU, SSCMetrics
     from .model import OccModel

@@ -1,5 +1,9 @@
 """Plugin discovery: the built-in plugin plus every ``occplug`` entry point.
 
+The built-in plugin is named, not imported (:data:`BUILTIN_MODULE`, as pytest's ``default_plugins``): it imports
+the components it registers and those read the registry built here, so importing it from this module would close
+a circle (plugins -> builtin -> model -> plugins).
+
 Switches (environment variables, read when the plugin manager is first built):
 
 * ``OCCPLUG_DISABLE_PLUGINS=a,b``: do not load these entry points.
@@ -10,10 +14,11 @@ Switches (environment variables, read when the plugin manager is first built):
 from __future__ import annotations
 
 import contextlib
+import importlib
 import os
 import sys
-from collections.abc import Iterator, Sequence
 import traceback
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
@@ -28,6 +33,7 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "PluginLoadError",
     "PluginReport",
+    "broken_plugins_warning",
     "config_dirs",
     "get_plugin_manager",
     "get_registry",
@@ -38,6 +44,8 @@ __all__ = [
 
 ENTRY_POINT_GROUP = "occplug"
 BUILTIN_NAME = "occplug"
+#: The module of the core's own plugin, registered as :data:`BUILTIN_NAME` before any entry point.
+BUILTIN_MODULE = "occplug.builtin"
 
 
 @dataclass
@@ -50,6 +58,18 @@ class PluginReport:
     module: str | None
     error: str | None = None
     components: dict[str, list[str]] = field(default_factory=dict)
+    #: What the plugin failed to do when :attr:`error` is set: ``import``, ``register`` (its hook raised), ...
+    failed_to: str | None = None
+
+    @property
+    def problem(self) -> str | None:
+        """One line, e.g. ``failed to import: ImportError: needs torch_scatter``; None for a working plugin."""
+        if self.error is None:
+            return None
+        first = self.error.strip().splitlines()[0] if self.error.strip() else "unknown error"
+        for prefix in ("registration failed: ", "occplug_config_dir failed: "):  # said by failed_to already
+            first = first.removeprefix(prefix)
+        return f"failed to {self.failed_to or 'load'}: {first}"
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form."""
@@ -91,13 +111,11 @@ def _entry_points() -> list[metadata.EntryPoint]:
 def _build_manager(
     only: list[str] | None = None, extra: tuple[tuple[str, object], ...] = (), autoload: bool = True
 ) -> _State:
-    from . import builtin
-
     pm = pluggy.PluginManager("occplug")
     pm.add_hookspecs(hookspecs)
-    pm.register(builtin, name=BUILTIN_NAME)
+    pm.register(importlib.import_module(BUILTIN_MODULE), name=BUILTIN_NAME)
     version = metadata.version("occplug") if _installed("occplug") else None
-    reports = {BUILTIN_NAME: PluginReport(BUILTIN_NAME, "occplug", version, builtin.__name__)}
+    reports = {BUILTIN_NAME: PluginReport(BUILTIN_NAME, "occplug", version, BUILTIN_MODULE)}
     disabled = set(_env_list("OCCPLUG_DISABLE_PLUGINS") or []) if autoload else set()
     if autoload:
         only = _env_list("OCCPLUG_LOAD_PLUGINS")
@@ -110,12 +128,14 @@ def _build_manager(
         reports[ep.name] = report
         if ep.name in pm.list_name_plugin() and pm.get_plugin(ep.name) is not None:
             report.error = f"the plugin name '{ep.name}' is already taken"
+            report.failed_to = "load"
             continue
         try:
             module = ep.load()
             pm.register(module, name=ep.name)
         except Exception as exc:  # a broken plugin must not break the others
             report.error = f"{type(exc).__name__}: {exc}"
+            report.failed_to = "import"
             if os.environ.get("OCCPLUG_TRACE_PLUGINS"):
                 traceback.print_exc()
     if only is not None:
@@ -179,9 +199,11 @@ def fill_registry(pm: pluggy.PluginManager, reports: dict[str, PluginReport] | N
         except Exception as exc:
             if report is not None:
                 report.error = f"registration failed: {type(exc).__name__}: {exc}"
+                report.failed_to = "register"
             _drop_partial(registry, impl.plugin_name)
     registry.current_plugin = BUILTIN_NAME
     registry.current_distribution = None
+    registry.broken_plugins = {r.name: r.problem for r in reports.values() if r.problem is not None}
     for entry in registry.entries():
         rep = reports.get(entry.plugin)
         if rep is not None:
@@ -200,6 +222,14 @@ def plugin_reports() -> list[PluginReport]:
     return list(_get_state().reports.values())
 
 
+def broken_plugins_warning() -> str | None:
+    """One ``warning:`` line naming every plugin that failed to load, or None when all loaded."""
+    broken = [f"plugin '{r.name}' {r.problem}" for r in plugin_reports() if r.problem is not None]
+    if not broken:
+        return None
+    return f"warning: {'; '.join(broken)} (its components are unavailable; `occplug plugins` shows details)"
+
+
 def config_dirs() -> dict[str, Path]:
     """Config folders by plugin name (``occplug`` is the core's own ``occplug/configs``)."""
     pm = get_plugin_manager()
@@ -211,6 +241,7 @@ def config_dirs() -> dict[str, Path]:
             report = _get_state().reports.get(impl.plugin_name)
             if report is not None:
                 report.error = f"occplug_config_dir failed: {type(exc).__name__}: {exc}"
+                report.failed_to = "give its config folder"
             continue
         if folder is not None:
             dirs[impl.plugin_name] = Path(str(folder))

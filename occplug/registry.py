@@ -68,6 +68,9 @@ class Registry:
         self._entries: dict[tuple[str, str], Entry] = {}
         self.current_plugin: str = "occplug"
         self.current_distribution: str | None = None
+        #: ``{plugin name: what went wrong}`` of the plugins that failed to load (set by :mod:`occplug.plugins`);
+        #: an unknown name mentions them, since the missing component may be theirs.
+        self.broken_plugins: dict[str, str] = {}
 
     def add(self, kind: str, name: str, factory: Callable[..., Any]) -> None:
         """Register ``factory`` as ``name`` of ``kind``.
@@ -119,7 +122,8 @@ class Registry:
             raise UnknownComponentError(f"unknown component kind '{kind}'; kinds are: {', '.join(KINDS)}")
         names = self.names(kind)
         hint = closest(str(name), names)
-        parts = [f"no {kind} named '{name}'"]
+        broken = "".join(f" (plugin '{p}' {why})" for p, why in self.broken_plugins.items())
+        parts = [f"no {kind} named '{name}'{broken}"]
         if hint:
             parts.append(f"did you mean '{hint}'?")
         parts.append(f"available: {', '.join(names) if names else '(none)'}")

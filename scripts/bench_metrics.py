@@ -21,7 +21,7 @@ import time
 
 import torch
 
-from occplug.data.formats.occ3d import OCC3D_GRID
+from occplug.data.nuscenes.format import OCC3D_GRID
 from occplug.data.synthetic.config import preset
 from occplug.data.synthetic.labels import voxel_labels
 from occplug.data.synthetic.render import LIDAR_TO_EGO

@@ -142,7 +142,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_prepare_nuscenes(args: argparse.Namespace) -> int:
-    from occplug.data.nuscenes_index import build_index, read_index
+    from occplug.data.nuscenes.index import build_index, read_index
 
     if args.sweeps < 0:
         raise UsageError(f"--sweeps must be >= 0, got {args.sweeps}")
@@ -159,7 +159,8 @@ def cmd_prepare_nuscenes(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from occplug.data import check
+    from occplug.data.nuscenes import check as nuscenes
+    from occplug.data.semantickitti import check as semantickitti
 
     kwargs: dict = {"lidar": not args.no_lidar, "progress": not args.no_progress}
     if args.shape is not None:
@@ -170,12 +171,12 @@ def cmd_check(args: argparse.Namespace) -> int:
         if args.dataset == "nuscenes":
             if args.sweeps < 0:
                 raise UsageError(f"--sweeps must be >= 0, got {args.sweeps}")
-            summary = check.check_nuscenes(args.root, args.version, occ_root=args.occ, splits=args.splits,
-                                           sweeps=args.sweeps, **kwargs)
+            summary = nuscenes.check_nuscenes(args.root, args.version, occ_root=args.occ, splits=args.splits,
+                                              sweeps=args.sweeps, **kwargs)
         elif args.dataset == "semantickitti":
-            summary = check.check_semantickitti(args.root, splits=args.splits, **kwargs)
+            summary = semantickitti.check_semantickitti(args.root, splits=args.splits, **kwargs)
         else:
-            summary = check.check_index(args.index, root=args.root, occ_root=args.occ, splits=args.splits, **kwargs)
+            summary = nuscenes.check_index(args.index, root=args.root, occ_root=args.occ, splits=args.splits, **kwargs)
     except (ValueError, FileNotFoundError) as exc:
         raise UsageError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
     print("\n".join(summary.lines()))

@@ -7,7 +7,7 @@ Ground truth (``--gt DIR``, layout detected):
 
 * **Occ3D**: ``labels.npz`` (``semantics``, ``mask_lidar``, ``mask_camera``) under
   ``DIR/gts/<scene>/<token>/``, ``DIR/<scene>/<token>/`` or ``DIR/<token>/``
-  (:func:`occplug.data.formats.occ3d.find_label_files`); classes 0-17, 17 = free.
+  (:func:`occplug.data.nuscenes.format.find_label_files`); classes 0-17, 17 = free.
 * **SemanticKITTI**: ``DIR/sequences/<XX>/voxels/<NNNNNN>.label`` with ``.invalid`` beside it;
   token ``<XX>_<NNNNNN>``; raw ids remapped to the 20 SSC classes (0 = empty, 255 ignored).
 
@@ -39,8 +39,9 @@ from torch import Tensor
 
 from occplug.data.classes import OCC3D_CLASSES, OCC3D_FREE, SEMANTIC_KITTI_CLASSES
 from occplug.data.formats import FormatError, find_predictions, load_npz, read_prediction
-from occplug.data.formats import occ3d, semantickitti
 from occplug.data.frame import Batch
+from occplug.data.nuscenes import format as occ3d
+from occplug.data.semantickitti import format as semantickitti
 from occplug.geometry import GridSpec
 
 from .errors import UsageError
@@ -193,7 +194,7 @@ def _read_origins(path: Path, tokens: list[str]) -> dict[str, Tensor]:
 
 
 def _index_origins(path: Path, tokens: list[str]) -> dict[str, Tensor]:
-    from occplug.data.nuscenes_index import read_index
+    from occplug.data.nuscenes.index import read_index
 
     try:
         index = read_index(path)

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import yaml
 
 from occplug import runner
+from occplug.plugins import broken_plugins_warning
 
 from . import add_config_args
 from .errors import UsageError
@@ -38,6 +40,9 @@ def _print_metrics(results: dict[str, float]) -> None:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
+    warning = broken_plugins_warning()
+    if warning and runner.is_rank_zero():
+        print(warning, file=sys.stderr)
     try:
         if args.resume:
             run_dir = Path(args.resume)

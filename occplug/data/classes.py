@@ -1,4 +1,4 @@
-"""Class taxonomies: Occ3D-nuScenes (the default) and SemanticKITTI SSC."""
+"""Class taxonomies: Occ3D-nuScenes (the default) and SemanticKITTI SSC; their colours and mapping tables."""
 
 from __future__ import annotations
 
@@ -6,10 +6,17 @@ __all__ = [
     "OCC3D_CLASSES",
     "OCC3D_COLORS",
     "OCC3D_FREE",
+    "NUSCENES_LIDARSEG_CATEGORIES",
+    "NUSCENES_TO_OCC3D",
     "OCC3D_NUM_CLASSES",
+    "OCC3D_TO_NUSCENES",
+    "OCC3D_TO_SEMANTIC_KITTI",
     "SEMANTIC_KITTI_CLASSES",
     "SEMANTIC_KITTI_COLORS",
+    "SEMANTIC_KITTI_LEARNING_MAP",
+    "SEMANTIC_KITTI_LEARNING_MAP_INV",
     "class_colors",
+    "nuscenes_to_occ3d",
 ]
 
 #: Occ3D-nuScenes class names indexed by id; id 17 is ``free`` (empty space).
@@ -136,3 +143,64 @@ def class_colors(class_names: tuple[str, ...] | list[str]) -> tuple[tuple[int, i
         r, g, b = colorsys.hsv_to_rgb((i * 0.618033988749895) % 1.0, 0.75, 0.95)
         out.append((round(r * 255), round(g * 255), round(b * 255)))
     return tuple(out)
+
+
+# ---------------------------------------------------------------- mapping tables
+# Every table between a data set's own label ids / category names and the taxonomies above lives here,
+# so a reader, an exporter and a test never hold private copies that can drift apart.
+
+#: nuScenes category -> Occ3D id (the detection classes; flat / static classes for lidarseg);
+#: unlisted categories are 0 ``others`` (:func:`nuscenes_to_occ3d`); ``noise`` and ``vehicle.ego`` are 255 (ignored).
+NUSCENES_TO_OCC3D: dict[str, int] = {
+    "noise": 255, "vehicle.ego": 255,
+    "movable_object.barrier": 1, "vehicle.bicycle": 2, "vehicle.bus.bendy": 3, "vehicle.bus.rigid": 3, "vehicle.car": 4,
+    "vehicle.construction": 5, "vehicle.motorcycle": 6, "human.pedestrian.adult": 7, "human.pedestrian.child": 7,
+    "human.pedestrian.construction_worker": 7, "human.pedestrian.police_officer": 7, "movable_object.trafficcone": 8,
+    "vehicle.trailer": 9, "vehicle.truck": 10, "flat.driveable_surface": 11, "flat.other": 12, "flat.sidewalk": 13,
+    "flat.terrain": 14, "static.manmade": 15, "static.vegetation": 16,
+}  # fmt: skip
+
+#: Occ3D id -> the nuScenes category the synthetic exporter writes for a box or a LiDAR point of that class
+#: (one representative per id; :data:`NUSCENES_TO_OCC3D` maps each back to its id, ``static.other`` to 0).
+OCC3D_TO_NUSCENES: dict[int, str] = {
+    0: "static.other", 1: "movable_object.barrier", 2: "vehicle.bicycle", 3: "vehicle.bus.rigid", 4: "vehicle.car",
+    5: "vehicle.construction", 6: "vehicle.motorcycle", 7: "human.pedestrian.adult", 8: "movable_object.trafficcone",
+    9: "vehicle.trailer", 10: "vehicle.truck", 11: "flat.driveable_surface", 12: "flat.other", 13: "flat.sidewalk",
+    14: "flat.terrain", 15: "static.manmade", 16: "static.vegetation",
+}  # fmt: skip
+
+#: The 32 nuScenes-lidarseg categories, index = the id stored in ``*_lidarseg.bin``.
+NUSCENES_LIDARSEG_CATEGORIES: tuple[str, ...] = (
+    "noise", "animal", "human.pedestrian.adult", "human.pedestrian.child", "human.pedestrian.construction_worker",
+    "human.pedestrian.personal_mobility", "human.pedestrian.police_officer", "human.pedestrian.stroller",
+    "human.pedestrian.wheelchair", "movable_object.barrier", "movable_object.debris",
+    "movable_object.pushable_pullable", "movable_object.trafficcone", "static_object.bicycle_rack", "vehicle.bicycle",
+    "vehicle.bus.bendy", "vehicle.bus.rigid", "vehicle.car", "vehicle.construction", "vehicle.emergency.ambulance",
+    "vehicle.emergency.police", "vehicle.motorcycle", "vehicle.trailer", "vehicle.truck", "flat.driveable_surface",
+    "flat.other", "flat.sidewalk", "flat.terrain", "static.manmade", "static.other", "static.vegetation", "vehicle.ego",
+)  # fmt: skip
+
+
+def nuscenes_to_occ3d(category: str) -> int:
+    """The Occ3D id of a nuScenes category (:data:`NUSCENES_TO_OCC3D`, else 0 ``others``)."""
+    return NUSCENES_TO_OCC3D.get(category, 0)
+
+
+#: Raw SemanticKITTI label id -> SSC class id 0..19 (``learning_map`` of ``semantic-kitti.yaml``).
+SEMANTIC_KITTI_LEARNING_MAP: dict[int, int] = {
+    0: 0, 1: 0, 10: 1, 11: 2, 13: 5, 15: 3, 16: 5, 18: 4, 20: 5, 30: 6, 31: 7, 32: 8, 40: 9, 44: 10,
+    48: 11, 49: 12, 50: 13, 51: 14, 52: 0, 60: 9, 70: 15, 71: 16, 72: 17, 80: 18, 81: 19, 99: 0,
+    252: 1, 253: 7, 254: 6, 255: 8, 256: 5, 257: 5, 258: 4, 259: 5,
+}  # fmt: skip
+#: SSC class id -> raw label id (``learning_map_inv``).
+SEMANTIC_KITTI_LEARNING_MAP_INV: dict[int, int] = {
+    0: 0, 1: 10, 2: 11, 3: 15, 4: 18, 5: 20, 6: 30, 7: 31, 8: 32, 9: 40, 10: 44, 11: 48, 12: 49,
+    13: 50, 14: 51, 15: 70, 16: 71, 17: 72, 18: 80, 19: 81,
+}  # fmt: skip
+
+#: Occ3D id (index) -> SemanticKITTI SSC class (255 = ignored: ``others`` and ``traffic_cone`` have no SSC class;
+#: ``free`` -> 0 ``empty``); length 256, so any ``uint8`` Occ3D label indexes it.
+OCC3D_TO_SEMANTIC_KITTI: tuple[int, ...] = tuple(
+    {0: 255, 1: 14, 2: 2, 3: 5, 4: 1, 5: 5, 6: 3, 7: 6, 8: 255, 9: 5, 10: 4, 11: 9, 12: 12, 13: 11, 14: 17, 15: 13,
+     16: 15, 17: 0}.get(i, 255) for i in range(256)
+)  # fmt: skip

@@ -34,6 +34,7 @@ from .augment import Augmentation, ImageTransform, apply_image_transforms
 from .datamodule import OccDataModule
 from .frame import Frame
 from .pseudo_labels import PseudoLabelSource
+from .records import read_frame, save_frame
 from .sequences import SceneIndex, SceneSequenceSampler
 
 __all__ = [
@@ -166,8 +167,6 @@ class ReaderDataset(Dataset[Frame]):
         frame = None
         path = None if self.cache_root is None else self.cache_root / f"{self.token(index)}.pt"
         if path is not None and path.is_file():
-            from .synthetic.writer import read_frame
-
             try:
                 frame = read_frame(path)
             except Exception:  # noqa: BLE001 (an unreadable cache entry is decoded again)
@@ -175,8 +174,6 @@ class ReaderDataset(Dataset[Frame]):
         if frame is None:
             frame = self.load(index)
             if path is not None:
-                from .synthetic.writer import save_frame
-
                 save_frame(frame, path)
         frame.extras["is_sequence_start"] = self.scenes.is_start(index)
         return frame

@@ -59,8 +59,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from occplug.data.formats.occ3d import OCC3D_GRID
 from occplug.data.frame import Batch
+from occplug.data.nuscenes.format import OCC3D_GRID
 from occplug.geometry import GridSpec
 from occplug.geometry.raycast import first_hits
 

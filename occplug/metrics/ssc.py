@@ -13,7 +13,7 @@ Definition followed: the SemanticKITTI SSC benchmark, ``evaluate_completion.py``
   occupied-in-both / ground-truth occupied.
 
 Values are in percent (the scorer prints ``* 100`` too). Predictions must be SSC class ids; the
-benchmark's remapping of raw label files happens in :mod:`occplug.data.formats.semantickitti`.
+benchmark's remapping of raw label files happens in :mod:`occplug.data.semantickitti.format`.
 """
 
 from __future__ import annotations

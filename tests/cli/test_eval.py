@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from occplug.cli import main
-from occplug.data.classes import OCC3D_CLASSES
+from occplug.data.classes import OCC3D_CLASSES, SEMANTIC_KITTI_LEARNING_MAP, SEMANTIC_KITTI_LEARNING_MAP_INV
 from occplug.data.formats import FormatError, read_prediction, write_prediction
-from occplug.data.formats import occ3d, semantickitti as kitti
 from occplug.data.frame import Batch
+from occplug.data.nuscenes import format as occ3d
+from occplug.data.semantickitti import format as kitti
 from occplug.metrics import Occ3DMIoU, RayIoU, SSCMetrics
 from occplug.testing.fixtures import make_tiny_batch
 
@@ -87,7 +88,7 @@ def test_semantickitti_labels_learning_map_and_layout(tmp_path):
     lut = kitti.learning_map_lut()
     assert [lut[r] for r in (0, 10, 252, 40, 60, 81, 1, 52, 99, 7, 65535)] == [0, 1, 1, 9, 9, 19, 255, 255, 255, 255, 255]
     assert kitti.learning_map_lut(completion=False)[52] == 0
-    assert all(kitti.LEARNING_MAP[kitti.LEARNING_MAP_INV[c]] == c for c in range(20))
+    assert all(SEMANTIC_KITTI_LEARNING_MAP[SEMANTIC_KITTI_LEARNING_MAP_INV[c]] == c for c in range(20))
     raw = torch.tensor([0, 10, 252, 52, 81, 71, 99, 40]).reshape(2, 2, 2)
     label = tmp_path / "sequences" / "08" / "voxels" / "000123.label"
     kitti.write_raw_labels(label, raw)

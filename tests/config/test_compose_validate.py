@@ -1,7 +1,7 @@
 import textwrap
 
 import pytest
-from toy_components import ToyPlugin
+from toy_plugin import ToyPlugin
 
 from occplug.config import ConfigError, compose, validate
 

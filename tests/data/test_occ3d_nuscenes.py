@@ -11,8 +11,8 @@ import torch
 
 from occplug.cli import main
 from occplug.data.formats import FormatError
-from occplug.data.nuscenes_index import INDEX_NAME, matrix_to_quaternion, quaternion_to_matrix, read_index
-from occplug.data.occ3d_nuscenes import Occ3DNuScenesDataModule
+from occplug.data.nuscenes.index import INDEX_NAME, matrix_to_quaternion, quaternion_to_matrix, read_index
+from occplug.data.nuscenes.reader import Occ3DNuScenesDataModule
 from occplug.data.sequences import relative_motion
 from occplug.data.synthetic import SyntheticDataset, default_cache_dir, preset
 from occplug.geometry import invert_pose
@@ -339,7 +339,7 @@ def test_camera_only_runs_need_no_lidar_file_and_lidar_supervision_names_the_mis
 
 def test_eval_takes_rayiou_origins_from_the_prepared_index(tree, tmp_path, capsys):
     """``occplug eval --index`` casts from the same sequence origins the reader gives each frame."""
-    from occplug.data.formats.occ3d import find_label_files
+    from occplug.data.nuscenes.format import find_label_files
 
     labels = find_label_files(tree)
     dm = module(tree)

@@ -10,11 +10,12 @@ import torch
 
 from occplug.cli import main
 from occplug.data import collate_frames
+from occplug.data.classes import OCC3D_TO_SEMANTIC_KITTI as OCC3D_TO_SSC
 from occplug.data.formats import FormatError
-from occplug.data.formats.semantickitti import pack, read_bits, unpack
-from occplug.data.semantickitti import SemanticKITTIDataModule
+from occplug.data.semantickitti.format import pack, read_bits, unpack
+from occplug.data.semantickitti.reader import SemanticKITTIDataModule
 from occplug.data.synthetic import LIDAR_TO_EGO, SyntheticDataset, default_cache_dir, preset
-from occplug.data.synthetic.export_semantickitti import OCC3D_TO_SSC, lidar_grid, semantickitti_world
+from occplug.data.synthetic.export_semantickitti import lidar_grid, semantickitti_world
 from occplug.geometry import invert_pose
 
 TINY = preset("tiny")

@@ -97,7 +97,16 @@ def test_plugins_json_lists_builtin_components(capsys):
     data = json.loads(capsys.readouterr().out)
     core = next(p for p in data if p["name"] == "occplug")
     assert core["version"] == metadata.version("occplug") and core["error"] is None
-    assert set(core["components"]) >= {"encoder", "view_transform", "scene", "head", "supervision", "data", "metric", "model"}
+    assert set(core["components"]) >= {
+        "encoder",
+        "view_transform",
+        "scene",
+        "head",
+        "supervision",
+        "data",
+        "metric",
+        "model",
+    }
     assert {"lss", "backward_projection"} <= set(core["components"]["view_transform"])
 
 

@@ -9,11 +9,11 @@ from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
 from occplug.data.frame import Frame
+from occplug.data.records import read_frame, save_frame
 
 from .config import SyntheticWorldConfig
 from .frames import generate_frame
 from .world import Scene, build_scene
-from .writer import read_frame, save_frame
 
 __all__ = ["SyntheticDataset", "default_cache_dir"]
 

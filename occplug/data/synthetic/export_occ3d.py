@@ -1,7 +1,7 @@
 """The synthetic world written as a nuScenes-shaped tree with Occ3D ground truth.
 
 :func:`write_occ3d_nuscenes` writes what the real data sets ship, so the real readers
-(``occplug data prepare nuscenes`` + :class:`~occplug.data.occ3d_nuscenes.Occ3DNuScenesDataModule`)
+(``occplug data prepare nuscenes`` + :class:`~occplug.data.nuscenes.reader.Occ3DNuScenesDataModule`)
 can be tested end to end::
 
     <out>/
@@ -41,10 +41,12 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from occplug.data.formats.occ3d import write_labels
+from occplug.data.classes import NUSCENES_LIDARSEG_CATEGORIES as LIDARSEG_CATEGORIES
+from occplug.data.classes import OCC3D_TO_NUSCENES as OCC3D_TO_CATEGORY
 from occplug.data.frame import Frame
 from occplug.data.imageio import write_rgb
-from occplug.data.nuscenes_index import LIDARSEG_CATEGORIES, matrix_to_quaternion
+from occplug.data.nuscenes.format import write_labels
+from occplug.data.nuscenes.index import matrix_to_quaternion
 
 from .config import SPLITS, SyntheticWorldConfig
 from .dataset import SyntheticDataset, default_cache_dir
@@ -52,13 +54,6 @@ from .pseudo import PseudoRealism, SyntheticPseudoLabels, mapping_table
 
 __all__ = ["OCC3D_TO_CATEGORY", "write_occ3d_nuscenes"]
 
-#: Occ3D id -> the nuScenes category written for a box or a LiDAR point of that class.
-OCC3D_TO_CATEGORY: dict[int, str] = {
-    0: "static.other", 1: "movable_object.barrier", 2: "vehicle.bicycle", 3: "vehicle.bus.rigid", 4: "vehicle.car",
-    5: "vehicle.construction", 6: "vehicle.motorcycle", 7: "human.pedestrian.adult", 8: "movable_object.trafficcone",
-    9: "vehicle.trailer", 10: "vehicle.truck", 11: "flat.driveable_surface", 12: "flat.other", 13: "flat.sidewalk",
-    14: "flat.terrain", 15: "static.manmade", 16: "static.vegetation",
-}  # fmt: skip
 _LIDAR = "LIDAR_TOP"
 _EPOCH = 1_600_000_000_000_000  # µs
 

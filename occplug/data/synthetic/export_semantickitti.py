@@ -42,9 +42,12 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from occplug.data.formats.semantickitti import LEARNING_MAP_INV, SSC_GRID, write_bits, write_raw_labels
+from occplug.data.classes import OCC3D_TO_SEMANTIC_KITTI as OCC3D_TO_SSC
+from occplug.data.classes import SEMANTIC_KITTI_LEARNING_MAP_INV as LEARNING_MAP_INV
 from occplug.data.frame import Frame
 from occplug.data.imageio import write_rgb
+from occplug.data.semantickitti.format import SPLIT_SEQUENCES as STANDARD_SEQUENCES
+from occplug.data.semantickitti.format import SSC_GRID, write_bits, write_raw_labels
 from occplug.geometry import GridSpec, invert_pose
 
 from .config import SPLITS, SyntheticWorldConfig
@@ -54,17 +57,6 @@ from .render import LIDAR_TO_EGO
 
 __all__ = ["OCC3D_TO_SSC", "STANDARD_SEQUENCES", "lidar_grid", "semantickitti_world", "write_semantickitti"]
 
-#: Occ3D id (index) -> SemanticKITTI SSC class (255 = ignored); length 256.
-OCC3D_TO_SSC: tuple[int, ...] = tuple(
-    {0: 255, 1: 14, 2: 2, 3: 5, 4: 1, 5: 5, 6: 3, 7: 6, 8: 255, 9: 5, 10: 4, 11: 9, 12: 12, 13: 11, 14: 17, 15: 13,
-     16: 15, 17: 0}.get(i, 255) for i in range(256)
-)  # fmt: skip
-#: The standard SSC split's sequences.
-STANDARD_SEQUENCES: dict[str, tuple[str, ...]] = {
-    "train": ("00", "01", "02", "03", "04", "05", "06", "07", "09", "10"),
-    "val": ("08",),
-    "test": tuple(f"{i:02d}" for i in range(11, 22)),
-}
 _OTHER_OBJECT = 99  # raw id of SemanticKITTI's "other-object" (ignored by the SSC benchmark)
 
 

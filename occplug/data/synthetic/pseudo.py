@@ -41,6 +41,7 @@ import yaml
 from torch import Tensor
 
 from occplug.data.classes import OCC3D_CLASSES, SEMANTIC_KITTI_CLASSES
+from occplug.data.classes import OCC3D_TO_SEMANTIC_KITTI as OCC3D_TO_SSC
 from occplug.data.frame import Frame
 from occplug.geometry import camera_rays
 
@@ -262,8 +263,6 @@ class SyntheticPseudoLabels:
         if not r.foreign_taxonomy:
             out = truth.clone()
             if self.taxonomy == "semantickitti":
-                from .export_semantickitti import OCC3D_TO_SSC
-
                 out = torch.tensor(OCC3D_TO_SSC, dtype=torch.int64)[truth.clamp(0, 255)]
             pool = torch.tensor(sorted(set(range(len(_TAXONOMIES[self.taxonomy]))) - {0}))
         else:

@@ -39,14 +39,14 @@ from torch.utils.data import Dataset
 
 from occplug.geometry import GridSpec
 
-from .classes import OCC3D_CLASSES, OCC3D_FREE
-from .formats import FormatError
-from .formats.occ3d import OCC3D_GRID, read_labels
-from .frame import Frame
-from .imageio import read_rgb
-from .nuscenes_index import NuScenesIndex, category_to_occ3d, read_index
-from .pipeline import FramePipeline, ReaderDataModule, ReaderDataset, resolve_load_points, stat_files
-from .sequences import SceneIndex
+from ..classes import OCC3D_CLASSES, OCC3D_FREE, nuscenes_to_occ3d
+from ..formats import FormatError
+from ..frame import Frame
+from ..imageio import read_rgb
+from ..pipeline import FramePipeline, ReaderDataModule, ReaderDataset, resolve_load_points, stat_files
+from ..sequences import SceneIndex
+from .format import OCC3D_GRID, read_labels
+from .index import NuScenesIndex, read_index
 
 __all__ = ["Occ3DNuScenesDataModule", "Occ3DNuScenesDataset", "read_pcd_bin"]
 
@@ -111,7 +111,7 @@ class Occ3DNuScenesDataset(ReaderDataset):
         seg_names = index.meta.get("lidarseg_categories") or []
         self._seg_lut = np.full(256, 255, dtype=np.int64)
         for i, name in enumerate(seg_names[:256]):
-            self._seg_lut[i] = category_to_occ3d(name)
+            self._seg_lut[i] = nuscenes_to_occ3d(name)
 
     def token(self, index: int) -> str:
         return self.index.samples[self.items[index]]["token"]

@@ -23,7 +23,7 @@ from torch import Tensor
 
 from occplug.geometry import GridSpec
 
-from . import FormatError, as_numpy, load_npz, save_npz
+from ..formats import FormatError, as_numpy, load_npz, save_npz
 
 __all__ = [
     "OCC3D_GRID",

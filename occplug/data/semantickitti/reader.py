@@ -34,22 +34,15 @@ from torch.utils.data import Dataset
 
 from occplug.geometry import GridSpec
 
-from .classes import SEMANTIC_KITTI_CLASSES
-from .formats import FormatError
-from .formats.semantickitti import IGNORE, SSC_GRID, learning_map_lut, read_voxels, sample_token, voxel_file_problem
-from .frame import Frame
-from .imageio import read_rgb
-from .pipeline import FramePipeline, ReaderDataModule, ReaderDataset, latest_mtime, resolve_load_points, stat_files
-from .sequences import SceneIndex
+from ..classes import SEMANTIC_KITTI_CLASSES
+from ..formats import FormatError
+from ..frame import Frame
+from ..imageio import read_rgb
+from ..pipeline import FramePipeline, ReaderDataModule, ReaderDataset, latest_mtime, resolve_load_points, stat_files
+from ..sequences import SceneIndex
+from .format import IGNORE, SPLIT_SEQUENCES, SSC_GRID, learning_map_lut, read_voxels, sample_token, voxel_file_problem
 
-__all__ = ["SPLIT_SEQUENCES", "SemanticKITTIDataModule", "SemanticKITTIDataset", "read_calib", "read_poses", "read_velodyne"]
-
-#: The standard SSC split.
-SPLIT_SEQUENCES: dict[str, tuple[str, ...]] = {
-    "train": ("00", "01", "02", "03", "04", "05", "06", "07", "09", "10"),
-    "val": ("08",),
-    "test": tuple(f"{i:02d}" for i in range(11, 22)),
-}
+__all__ = ["SemanticKITTIDataModule", "SemanticKITTIDataset", "read_calib", "read_poses", "read_velodyne"]
 
 
 def read_calib(path: Path) -> dict[str, np.ndarray]:

@@ -11,7 +11,7 @@ Arrays are stored in C order over ``(X, Y, Z) = (256, 256, 32)``: x forward 0..5
 -25.6..25.6 m, z up -2..4.4 m, 0.2 m voxels, in the LiDAR frame of the scan (:data:`SSC_GRID`).
 
 Raw ids map to the 20 SSC classes of :data:`~occplug.data.classes.SEMANTIC_KITTI_CLASSES` with the
-benchmark's ``learning_map`` (:data:`LEARNING_MAP`), adapted for completion as
+benchmark's ``learning_map`` (:data:`~occplug.data.classes.SEMANTIC_KITTI_LEARNING_MAP`), adapted for completion as
 ``evaluate_completion.py`` does: raw 0 stays 0 (empty), every other raw id that the learning map sends
 to 0 ("outlier", "other-structure", "other-object") becomes 255 (ignored), and so does any raw id the
 map does not know. The sample token of ``sequences/08/voxels/000123.label`` is ``08_000123``
@@ -29,12 +29,12 @@ from torch import Tensor
 
 from occplug.geometry import GridSpec
 
-from . import FormatError, as_numpy
+from ..classes import SEMANTIC_KITTI_LEARNING_MAP
+from ..formats import FormatError, as_numpy
 
 __all__ = [
     "IGNORE",
-    "LEARNING_MAP",
-    "LEARNING_MAP_INV",
+    "SPLIT_SEQUENCES",
     "SSC_GRID",
     "SSC_SHAPE",
     "SSCVoxels",
@@ -59,19 +59,12 @@ SSC_SHAPE: tuple[int, int, int] = (256, 256, 32)
 SSC_GRID = GridSpec((0.0, -25.6, -2.0, 51.2, 25.6, 4.4), 0.2)
 #: The id ignored by the SSC benchmark.
 IGNORE = 255
-
-#: Raw SemanticKITTI label id -> SSC class id 0..19 (``learning_map`` of ``semantic-kitti.yaml``).
-LEARNING_MAP: dict[int, int] = {
-    0: 0, 1: 0, 10: 1, 11: 2, 13: 5, 15: 3, 16: 5, 18: 4, 20: 5, 30: 6, 31: 7, 32: 8, 40: 9, 44: 10,
-    48: 11, 49: 12, 50: 13, 51: 14, 52: 0, 60: 9, 70: 15, 71: 16, 72: 17, 80: 18, 81: 19, 99: 0,
-    252: 1, 253: 7, 254: 6, 255: 8, 256: 5, 257: 5, 258: 4, 259: 5,
-}  # fmt: skip
-#: SSC class id -> raw label id (``learning_map_inv``).
-LEARNING_MAP_INV: dict[int, int] = {
-    0: 0, 1: 10, 2: 11, 3: 15, 4: 18, 5: 20, 6: 30, 7: 31, 8: 32, 9: 40, 10: 44, 11: 48, 12: 49,
-    13: 50, 14: 51, 15: 70, 16: 71, 17: 72, 18: 80, 19: 81,
-}  # fmt: skip
-
+#: The standard SSC split: train 00-07, 09, 10; val 08; test 11-21.
+SPLIT_SEQUENCES: dict[str, tuple[str, ...]] = {
+    "train": ("00", "01", "02", "03", "04", "05", "06", "07", "09", "10"),
+    "val": ("08",),
+    "test": tuple(f"{i:02d}" for i in range(11, 22)),
+}
 
 
 def learning_map_lut(completion: bool = True) -> np.ndarray:
@@ -86,7 +79,7 @@ def learning_map_lut(completion: bool = True) -> np.ndarray:
         ``(65536,)`` uint8.
     """
     lut = np.full(1 << 16, IGNORE if completion else 0, dtype=np.uint8)
-    for raw, cls in LEARNING_MAP.items():
+    for raw, cls in SEMANTIC_KITTI_LEARNING_MAP.items():
         lut[raw] = IGNORE if completion and cls == 0 and raw != 0 else cls
     return lut
 
@@ -136,7 +129,8 @@ def voxel_file_problem(suffix: str, size: int, shape: tuple[int, ...] = SSC_SHAP
     count = int(np.prod(shape))
     shape = tuple(shape)
     if suffix == ".label":
-        return None if size == 2 * count else f"{size} bytes; expected {2 * count} ({count} uint16 voxels of a {shape} grid)"
+        expected = f"{2 * count} ({count} uint16 voxels of a {shape} grid)"
+        return None if size == 2 * count else f"{size} bytes; expected {expected}"
     if suffix not in VOXEL_EXTENSIONS:
         raise ValueError(f"unknown voxel file extension {suffix!r} (valid: {', '.join(VOXEL_EXTENSIONS)})")
     return None if size * 8 == count else f"{size} bytes; expected {count // 8} ({count} voxels, 8 per byte)"

@@ -28,8 +28,8 @@ The index ``<out>/nuscenes_index.npz`` (``numpy.savez_compressed``, no pickles) 
 * boxes, concatenated over samples with ``box_offsets`` ``(S + 1,)``: ``boxes`` ``(M, 9)``
   float64 in the ego frame (centre, length, width, height, yaw, vx, vy as ``Frame.boxes``;
   nuScenes stores sizes as width, length, height), ``box_labels`` (Occ3D ids by category,
-  :data:`CATEGORY_TO_OCC3D`), ``box_track_ids``, ``box_num_lidar_pts``, ``box_category`` (index into
-  ``meta.categories``). Velocities follow ``NuScenes.box_velocity``: centred difference of the
+  :data:`~occplug.data.classes.NUSCENES_TO_OCC3D`), ``box_track_ids``, ``box_num_lidar_pts``, ``box_category``
+  (index into ``meta.categories``). Velocities follow ``NuScenes.box_velocity``: centred difference of the
   previous and next annotation of the instance (one-sided at the ends), NaN -> 0 when the instance
   has a single annotation or the gap exceeds 1.5 s (3 s centred), as mmdetection3d does.
 * sweeps, concatenated with ``sweep_offsets`` ``(S + 1,)``: ``sweep_to_lidar`` ``(Q, 4, 4)``
@@ -55,19 +55,17 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from occplug.data.formats import FormatError, read_split_file
+from ..classes import NUSCENES_LIDARSEG_CATEGORIES, nuscenes_to_occ3d
+from ..formats import FormatError, read_split_file
 
 __all__ = [
     "CAMERAS",
-    "CATEGORY_TO_OCC3D",
     "INDEX_FORMAT",
     "INDEX_NAME",
-    "LIDARSEG_CATEGORIES",
     "OPTIONAL_TABLES",
     "REQUIRED_TABLES",
     "NuScenesIndex",
     "build_index",
-    "category_to_occ3d",
     "collect_index",
     "index_path",
     "official_splits",
@@ -82,37 +80,18 @@ INDEX_NAME = "nuscenes_index.npz"
 #: Camera channels in the order of ``Frame``'s camera axis (those present in the data set are used).
 CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
 LIDAR = "LIDAR_TOP"
-REQUIRED_TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor", "sample_annotation",
-                   "instance", "category")
+REQUIRED_TABLES = (
+    "scene",
+    "sample",
+    "sample_data",
+    "ego_pose",
+    "calibrated_sensor",
+    "sensor",
+    "sample_annotation",
+    "instance",
+    "category",
+)
 OPTIONAL_TABLES = ("lidarseg",)
-
-#: nuScenes category -> Occ3D id (the detection classes; flat / static classes for lidarseg);
-#: unlisted categories are 0 ``others``; ``noise`` and ``vehicle.ego`` are 255 (ignored).
-CATEGORY_TO_OCC3D: dict[str, int] = {
-    "noise": 255, "vehicle.ego": 255,
-    "movable_object.barrier": 1, "vehicle.bicycle": 2, "vehicle.bus.bendy": 3, "vehicle.bus.rigid": 3, "vehicle.car": 4,
-    "vehicle.construction": 5, "vehicle.motorcycle": 6, "human.pedestrian.adult": 7, "human.pedestrian.child": 7,
-    "human.pedestrian.construction_worker": 7, "human.pedestrian.police_officer": 7, "movable_object.trafficcone": 8,
-    "vehicle.trailer": 9, "vehicle.truck": 10, "flat.driveable_surface": 11, "flat.other": 12, "flat.sidewalk": 13,
-    "flat.terrain": 14, "static.manmade": 15, "static.vegetation": 16,
-}  # fmt: skip
-
-#: The 32 nuScenes-lidarseg categories, index = the id stored in ``*_lidarseg.bin``.
-LIDARSEG_CATEGORIES: tuple[str, ...] = (
-    "noise", "animal", "human.pedestrian.adult", "human.pedestrian.child", "human.pedestrian.construction_worker",
-    "human.pedestrian.personal_mobility", "human.pedestrian.police_officer", "human.pedestrian.stroller",
-    "human.pedestrian.wheelchair", "movable_object.barrier", "movable_object.debris",
-    "movable_object.pushable_pullable", "movable_object.trafficcone", "static_object.bicycle_rack", "vehicle.bicycle",
-    "vehicle.bus.bendy", "vehicle.bus.rigid", "vehicle.car", "vehicle.construction", "vehicle.emergency.ambulance",
-    "vehicle.emergency.police", "vehicle.motorcycle", "vehicle.trailer", "vehicle.truck", "flat.driveable_surface",
-    "flat.other", "flat.sidewalk", "flat.terrain", "static.manmade", "static.other", "static.vegetation", "vehicle.ego",
-)  # fmt: skip
-
-
-def category_to_occ3d(name: str) -> int:
-    """The Occ3D id of a nuScenes category (:data:`CATEGORY_TO_OCC3D`, else 0 ``others``)."""
-    return CATEGORY_TO_OCC3D.get(name, 0)
-
 
 # The official scene splits (nuscenes-devkit ``nuscenes/utils/splits.py``, Apache-2.0), as scene numbers.
 _TRAIN = (
@@ -188,7 +167,9 @@ def official_splits(version: str) -> dict[str, set[str]]:
         return {"train": names(_MINI_TRAIN), "val": names(_MINI_VAL)}
     if version == "v1.0-test":
         return {"test": names(_TEST)}
-    raise FormatError(f"unknown nuScenes version '{version}' (official splits exist for v1.0-trainval, v1.0-mini, v1.0-test)")
+    raise FormatError(
+        f"unknown nuScenes version '{version}' (official splits exist for v1.0-trainval, v1.0-mini, v1.0-test)"
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -202,11 +183,13 @@ def quaternion_to_matrix(q: Sequence[float]) -> np.ndarray:
     if n == 0:
         raise ValueError("zero quaternion")
     w, x, y, z = w / n, x / n, y / n, z / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def matrix_to_quaternion(r: np.ndarray) -> list[float]:
@@ -283,13 +266,17 @@ class _Tables:
         try:
             return self.by_token[table][token]
         except KeyError:
-            raise FormatError(f"{self.folder / (table + '.json')}: no record with token {token!r} (referenced by {context})") from None
+            raise FormatError(
+                f"{self.folder / (table + '.json')}: no record with token {token!r} (referenced by {context})"
+            ) from None
 
     def field(self, table: str, record: dict[str, Any], key: str) -> Any:
         try:
             return record[key]
         except KeyError:
-            raise FormatError(f"{self.folder / (table + '.json')}: record {record.get('token')!r} has no field '{key}'") from None
+            raise FormatError(
+                f"{self.folder / (table + '.json')}: record {record.get('token')!r} has no field '{key}'"
+            ) from None
 
 
 def _check_split_file(path: Path) -> dict[str, set[str]]:
@@ -369,9 +356,16 @@ def read_index(path: str | Path) -> NuScenesIndex:
     return NuScenesIndex(file, meta, arrays)
 
 
-def build_index(root: str | Path, version: str, out: str | Path, occ_root: str | Path | None = None,
-                splits: str | Path = "official", sweeps: int = 10, check_files: bool = True,
-                progress: bool = True) -> Path:
+def build_index(
+    root: str | Path,
+    version: str,
+    out: str | Path,
+    occ_root: str | Path | None = None,
+    splits: str | Path = "official",
+    sweeps: int = 10,
+    check_files: bool = True,
+    progress: bool = True,
+) -> Path:
     """Read the nuScenes tables under ``root / version`` and write the index into ``out``.
 
     Args:
@@ -399,24 +393,39 @@ def build_index(root: str | Path, version: str, out: str | Path, occ_root: str |
         for rec in index.samples:
             to_check = [] if rec["occ"] is None or occ_root is None else [Path(occ_root) / rec["occ"]]
             if check_files:
-                to_check.extend(root / f for f in (*rec["cams"], rec["lidar"], *([rec["lidarseg"]] if rec["lidarseg"] else [])))
+                to_check.extend(
+                    root / f for f in (*rec["cams"], rec["lidar"], *([rec["lidarseg"]] if rec["lidarseg"] else []))
+                )
             for path in to_check:
                 if not path.is_file():
                     what = "Occ3D labels.npz" if path.name == "labels.npz" else "file"
                     raise FormatError(f"{path}: missing {what}")
                 if path.name.endswith(".pcd.bin") and path.stat().st_size % 20:
-                    raise FormatError(f"{path}: {path.stat().st_size} bytes is not a whole number of 5-float32 points (corrupt .bin?)")
+                    raise FormatError(
+                        f"{path}: {path.stat().st_size} bytes is not a whole number of 5-float32 points (corrupt .bin?)"
+                    )
             for rel in rec["sweeps"] if check_files else ():
                 path = root / rel
                 if not path.is_file():
-                    raise FormatError(f"{path}: missing LiDAR sweep (of sample {rec['token']}; --sweeps 0 records none)")
+                    raise FormatError(
+                        f"{path}: missing LiDAR sweep (of sample {rec['token']}; --sweeps 0 records none)"
+                    )
                 if path.stat().st_size % 20:
-                    raise FormatError(f"{path}: {path.stat().st_size} bytes is not a whole number of 5-float32 points (corrupt .bin?)")
+                    raise FormatError(
+                        f"{path}: {path.stat().st_size} bytes is not a whole number of 5-float32 points (corrupt .bin?)"
+                    )
     return _write_index(Path(out), index.meta, index.arrays)
 
 
-def collect_index(root: str | Path, version: str, occ_root: str | Path | None = None, splits: str | Path = "official",
-                  sweeps: int = 10, progress: bool = True, progress_delay: float = 0.0) -> NuScenesIndex:
+def collect_index(
+    root: str | Path,
+    version: str,
+    occ_root: str | Path | None = None,
+    splits: str | Path = "official",
+    sweeps: int = 10,
+    progress: bool = True,
+    progress_delay: float = 0.0,
+) -> NuScenesIndex:
     """What :func:`build_index` writes, built in memory from the tables only (no data file is opened).
 
     Args: as :func:`build_index`; ``progress_delay``: seconds before the progress bar appears.
@@ -438,14 +447,18 @@ def collect_index(root: str | Path, version: str, occ_root: str | Path | None = 
     scene_split = _scene_splits(tables, version, splits)
     channel_of = {}
     for cs in tables.rows["calibrated_sensor"]:
-        sensor = tables.get("sensor", tables.field("calibrated_sensor", cs, "sensor_token"), f"calibrated_sensor {cs['token']}")
+        sensor = tables.get(
+            "sensor", tables.field("calibrated_sensor", cs, "sensor_token"), f"calibrated_sensor {cs['token']}"
+        )
         channel_of[cs["token"]] = tables.field("sensor", sensor, "channel")
     keyframes: dict[str, dict[str, dict[str, Any]]] = {}
     for sd in tables.rows["sample_data"]:
         if sd.get("is_key_frame"):
             channel = channel_of.get(tables.field("sample_data", sd, "calibrated_sensor_token"))
             if channel is None:
-                raise FormatError(f"{tables.folder / 'sample_data.json'}: record {sd['token']!r} names an unknown calibrated sensor")
+                raise FormatError(
+                    f"{tables.folder / 'sample_data.json'}: record {sd['token']!r} names an unknown calibrated sensor"
+                )
             keyframes.setdefault(sd["sample_token"], {})[channel] = sd
     anns: dict[str, list[dict[str, Any]]] = {}
     for ann in tables.rows["sample_annotation"]:
@@ -455,7 +468,11 @@ def collect_index(root: str | Path, version: str, occ_root: str | Path | None = 
     instance_index = {t: i for i, t in enumerate(instances)}
     categories = [r["name"] for r in tables.rows["category"]]
     seg_index = {int(r["index"]): r["name"] for r in tables.rows["category"] if isinstance(r.get("index"), int)}
-    lidarseg_names = [seg_index.get(i, "noise") for i in range(max(seg_index) + 1)] if seg_index else list(LIDARSEG_CATEGORIES)
+    lidarseg_names = (
+        [seg_index.get(i, "noise") for i in range(max(seg_index) + 1)]
+        if seg_index
+        else list(NUSCENES_LIDARSEG_CATEGORIES)
+    )
     category_index = {r["token"]: i for i, r in enumerate(tables.rows["category"])}
     instance_category = {r["token"]: category_index.get(r.get("category_token"), -1) for r in tables.rows["instance"]}
 
@@ -476,15 +493,30 @@ def collect_index(root: str | Path, version: str, occ_root: str | Path | None = 
         raise FormatError(f"{tables.folder / 'sample_data.json'}: no camera channel is present in every sample")
 
     records: list[dict[str, Any]] = []
-    cols: dict[str, list[Any]] = {k: [] for k in ("timestamp", "scene_start", "ego_to_global", "lidar_to_ego", "cam_to_ego",
-                                                  "intrinsics", "image_hw", "lidar_origin")}
+    cols: dict[str, list[Any]] = {
+        k: []
+        for k in (
+            "timestamp",
+            "scene_start",
+            "ego_to_global",
+            "lidar_to_ego",
+            "cam_to_ego",
+            "intrinsics",
+            "image_hw",
+            "lidar_origin",
+        )
+    }
     boxes: list[np.ndarray] = []
-    box_cols: dict[str, list[Any]] = {k: [] for k in ("box_labels", "box_track_ids", "box_num_lidar_pts", "box_category")}
+    box_cols: dict[str, list[Any]] = {
+        k: [] for k in ("box_labels", "box_track_ids", "box_num_lidar_pts", "box_category")
+    }
     box_offsets, sweep_offsets = [0], [0]
     sweep_to_lidar: list[np.ndarray] = []
     sweep_lag: list[float] = []
     scene_start = 0
-    for sample, frame_index in tqdm(ordered, desc="nuScenes index", unit="sample", disable=not progress, delay=progress_delay):
+    for sample, frame_index in tqdm(
+        ordered, desc="nuScenes index", unit="sample", disable=not progress, delay=progress_delay
+    ):
         scene = tables.get("scene", sample["scene_token"], f"sample {sample['token']}")
         name = scene["name"]
         if frame_index == 0:
@@ -492,7 +524,9 @@ def collect_index(root: str | Path, version: str, occ_root: str | Path | None = 
         data = keyframes[sample["token"]]
         lidar_sd = data[LIDAR]
         ego = _pose(tables.get("ego_pose", lidar_sd["ego_pose_token"], f"sample_data {lidar_sd['token']}"))
-        lidar = _pose(tables.get("calibrated_sensor", lidar_sd["calibrated_sensor_token"], f"sample_data {lidar_sd['token']}"))
+        lidar = _pose(
+            tables.get("calibrated_sensor", lidar_sd["calibrated_sensor_token"], f"sample_data {lidar_sd['token']}")
+        )
         ego_inv = _inv(ego)
         cam_poses, ks, hws, cam_files = [], [], [], []
         for cam in cameras:
@@ -502,7 +536,9 @@ def collect_index(root: str | Path, version: str, occ_root: str | Path | None = 
             cam_poses.append(ego_inv @ cam_ego @ _pose(cal))
             k = np.asarray(cal.get("camera_intrinsic") or [], dtype=np.float64)
             if k.shape != (3, 3):
-                raise FormatError(f"{tables.folder / 'calibrated_sensor.json'}: camera {cal['token']!r} has no 3x3 camera_intrinsic")
+                raise FormatError(
+                    f"{tables.folder / 'calibrated_sensor.json'}: camera {cal['token']!r} has no 3x3 camera_intrinsic"
+                )
             ks.append(k)
             hws.append([int(sd.get("height", 0)), int(sd.get("width", 0))])
             cam_files.append(sd["filename"])
@@ -511,7 +547,9 @@ def collect_index(root: str | Path, version: str, occ_root: str | Path | None = 
         while prev and len(sweep_files) < sweeps:
             sw = tables.get("sample_data", prev, f"sample_data {lidar_sd['token']} (prev)")
             sw_ego = _pose(tables.get("ego_pose", sw["ego_pose_token"], f"sample_data {sw['token']}"))
-            sw_lidar = _pose(tables.get("calibrated_sensor", sw["calibrated_sensor_token"], f"sample_data {sw['token']}"))
+            sw_lidar = _pose(
+                tables.get("calibrated_sensor", sw["calibrated_sensor_token"], f"sample_data {sw['token']}")
+            )
             sweep_to_lidar.append(_inv(lidar) @ ego_inv @ sw_ego @ sw_lidar)
             sweep_lag.append((int(lidar_sd["timestamp"]) - int(sw["timestamp"])) * 1e-6)
             sweep_files.append(sw["filename"])
@@ -529,10 +567,19 @@ def collect_index(root: str | Path, version: str, occ_root: str | Path | None = 
             rel = Path(name) / sample["token"] / "labels.npz"
             occ_file = str((occ_gts / rel).relative_to(occ))
         seg = lidarseg.get(lidar_sd["token"])
-        records.append({
-            "token": sample["token"], "scene": name, "frame_index": frame_index, "split": scene_split[name],
-            "lidar": lidar_sd["filename"], "cams": cam_files, "occ": occ_file, "lidarseg": seg, "sweeps": sweep_files,
-        })
+        records.append(
+            {
+                "token": sample["token"],
+                "scene": name,
+                "frame_index": frame_index,
+                "split": scene_split[name],
+                "lidar": lidar_sd["filename"],
+                "cams": cam_files,
+                "occ": occ_file,
+                "lidarseg": seg,
+                "sweeps": sweep_files,
+            }
+        )
         cols["timestamp"].append(int(sample["timestamp"]))
         cols["scene_start"].append(scene_start)
         cols["ego_to_global"].append(ego)
@@ -611,7 +658,7 @@ def _scene_splits(tables: _Tables, version: str, splits: str | Path) -> dict[str
 
 
 def _occ3d_label(categories: list[str], category: int) -> int:
-    return category_to_occ3d(categories[category]) if 0 <= category < len(categories) else 0
+    return nuscenes_to_occ3d(categories[category]) if 0 <= category < len(categories) else 0
 
 
 def _box_in_ego(tables: _Tables, ann: dict[str, Any], ego: np.ndarray) -> np.ndarray:
@@ -621,8 +668,10 @@ def _box_in_ego(tables: _Tables, ann: dict[str, Any], ego: np.ndarray) -> np.nda
         w, l, h = (float(v) for v in ann["size"])  # noqa: E741
         rot = quaternion_to_matrix(ann["rotation"])
     except (KeyError, ValueError, TypeError):
-        raise FormatError(f"{tables.folder / 'sample_annotation.json'}: record {ann.get('token')!r} lacks a valid "
-                          "translation, size or rotation") from None
+        raise FormatError(
+            f"{tables.folder / 'sample_annotation.json'}: record {ann.get('token')!r} lacks a valid "
+            "translation, size or rotation"
+        ) from None
     r_inv = ego[:3, :3].T
     c = r_inv @ (centre - ego[:3, 3])
     r = r_inv @ rot

@@ -1,4 +1,4 @@
-"""A toy plugin used by the registry and config tests (not installed; registered as an object)."""
+"""The one toy plugin of the registry and config tests (not installed: registered as an object or an entry point)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,9 @@ from occplug.interfaces.model import OccupancyModel
 class ToyEncoder(occplug.ImageEncoder):
     """A toy encoder with typed arguments."""
 
-    def __init__(self, channels: int, scale: float = 1.0, mode: Literal["a", "b"] = "a", name: str | None = None) -> None:
+    def __init__(
+        self, channels: int, scale: float = 1.0, mode: Literal["a", "b"] = "a", name: str | None = None
+    ) -> None:
         super().__init__()
         self.out_channels, self.stride = channels, 1
         self.scale, self.mode = scale, mode

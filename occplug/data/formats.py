@@ -1,10 +1,10 @@
-"""On-disk formats of the real data sets, and occplug's own prediction files.
+"""File helpers shared by every data set, and occplug's own prediction files.
 
-Submodules (import them by name; this package imports neither eagerly):
+The on-disk formats of the real data sets live with their readers:
 
-* :mod:`occplug.data.formats.occ3d` — Occ3D ``labels.npz`` (``semantics``, ``mask_lidar``,
+* :mod:`occplug.data.nuscenes.format` — Occ3D ``labels.npz`` (``semantics``, ``mask_lidar``,
   ``mask_camera``) and the ``gts/<scene>/<token>/`` layout.
-* :mod:`occplug.data.formats.semantickitti` — SemanticKITTI SSC voxel files (bit-packed ``.bin``,
+* :mod:`occplug.data.semantickitti.format` — SemanticKITTI SSC voxel files (bit-packed ``.bin``,
   ``.invalid``, ``.occluded``; ``uint16`` ``.label``), the learning map to the 20 SSC classes and the
   ``sequences/XX/voxels/`` layout.
 
@@ -55,7 +55,9 @@ def load_npz(path: str | Path) -> dict[str, np.ndarray]:
         with np.load(path, allow_pickle=False) as data:
             return {key: data[key] for key in data.files}
     except Exception as exc:  # zipfile, pickle and value errors all mean "not a readable npz"
-        raise FormatError(f"{path}: not a readable .npz file ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+        raise FormatError(
+            f"{path}: not a readable .npz file ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+        ) from None
 
 
 def save_npz(path: str | Path, **arrays: np.ndarray) -> None:
@@ -133,7 +135,9 @@ def read_split_file(path: str | Path, items: str = "scene names") -> dict[str, l
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise FormatError(f"{path}: not valid JSON ({str(exc).splitlines()[0]})") from None
     if not isinstance(data, dict) or not all(isinstance(v, list) for v in data.values()):
-        raise FormatError(f'{path}: a split file maps split names to lists of {items}, e.g. {{"train": [...], "val": [...]}}')
+        raise FormatError(
+            f'{path}: a split file maps split names to lists of {items}, e.g. {{"train": [...], "val": [...]}}'
+        )
     for split in data:
         if split not in ("train", "val", "test"):
             raise FormatError(f"{path}: unknown split '{split}' (valid: train, val, test)")
