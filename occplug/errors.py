@@ -9,9 +9,14 @@ mistake costs seconds and leaves no run directory behind.
 
 from __future__ import annotations
 
-__all__ = ["UserError"]
+__all__ = ["ConfigError", "UserError"]
 
 
 class UserError(ValueError):
     """A user mistake; ``str(err)`` is the one-line message. A ``ValueError``, so older ``except
     ValueError`` handlers keep working."""
+
+
+class ConfigError(UserError):
+    """A user mistake in a config file or override. ``str(err)`` is the one-line message
+    (also importable as ``occplug.config.ConfigError``)."""

@@ -15,7 +15,7 @@ import inspect
 from collections.abc import Mapping
 from typing import Any
 
-from occplug.config.errors import ConfigError
+from occplug.errors import ConfigError
 
 __all__ = ["check_query_config", "check_query_support"]
 

@@ -2,39 +2,14 @@
 
 from __future__ import annotations
 
-from torch import Tensor, nn
+from torch import nn
 
 from occplug.data.frame import Batch
-from occplug.geometry import GridSpec, sample_volume
-from occplug.interfaces import Lifted, Scene, SceneRepresentation
+from occplug.interfaces import DenseVoxelScene, Lifted, SceneRepresentation
 
 from .layers import BasicBlock3d
 
 __all__ = ["DenseVoxelScene", "DenseVoxels"]
-
-
-class DenseVoxelScene(Scene):
-    """A dense feature volume, read trilinearly at continuous points.
-
-    Attributes:
-        features: ``(B, C, X, Y, Z)`` features on ``grid`` (voxel ``[i, j, k]``'s value at its centre).
-        grid: the grid of ``features``, ego frame.
-        channels: ``C``.
-    """
-
-    def __init__(self, features: Tensor, grid: GridSpec) -> None:
-        if features.dim() != 5 or tuple(features.shape[2:]) != grid.shape:
-            raise ValueError(f"DenseVoxelScene: features {tuple(features.shape)} do not match grid shape {grid.shape}")
-        self.features = features
-        self.grid = grid
-        self.channels = int(features.shape[1])
-
-    def sample(self, points: Tensor) -> Tensor:
-        """``(B, P, C)`` trilinear reads at ``(B, P, 3)`` ego-frame points; zero outside the grid.
-
-        Exactly the voxel's feature at a voxel centre (:func:`occplug.geometry.sample_volume`).
-        """
-        return sample_volume(self.features, self.grid, points)
 
 
 class DenseVoxels(SceneRepresentation):

@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-from occplug.errors import UserError
+from occplug.errors import ConfigError
 
 __all__ = ["ConfigError"]
-
-
-class ConfigError(UserError):
-    """A user mistake in a config file or override. ``str(err)`` is the one-line message."""

@@ -12,7 +12,7 @@ from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 
 from .query import QueryResult
-from .scene import Scene
+from .scene import DenseVoxelScene, Scene
 
 __all__ = ["DEFAULT_QUERY_CHUNK", "Head", "OccupancyHead"]
 
@@ -67,8 +67,6 @@ class Head(nn.Module, ABC):
     def conformance_inputs(cls, batch: Batch, grid: GridSpec, channels: int) -> tuple[Any, ...]:
         """Positional ``forward`` inputs for the conformance check: a random dense voxel scene on
         ``grid`` and the batch."""
-        from occplug.components.scenes import DenseVoxelScene
-
         gen = torch.Generator().manual_seed(0)
         volume = torch.randn(len(batch), channels, *grid.shape, generator=gen)
         return (DenseVoxelScene(volume, grid), batch)

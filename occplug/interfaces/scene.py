@@ -9,11 +9,11 @@ import torch
 from torch import Tensor, nn
 
 from occplug.data.frame import Batch
-from occplug.geometry import GridSpec
+from occplug.geometry import GridSpec, sample_volume
 
 from .view_transform import Lifted
 
-__all__ = ["Scene", "SceneRepresentation"]
+__all__ = ["DenseVoxelScene", "Scene", "SceneRepresentation"]
 
 
 class Scene(ABC):
@@ -49,6 +49,30 @@ class Scene(ABC):
         Returns:
             ``(B, P, C)`` features (zero or the representation's "outside" value beyond its range).
         """
+
+
+class DenseVoxelScene(Scene):
+    """A dense feature volume, read trilinearly at continuous points.
+
+    Attributes:
+        features: ``(B, C, X, Y, Z)`` features on ``grid`` (voxel ``[i, j, k]``'s value at its centre).
+        grid: the grid of ``features``, ego frame.
+        channels: ``C``.
+    """
+
+    def __init__(self, features: Tensor, grid: GridSpec) -> None:
+        if features.dim() != 5 or tuple(features.shape[2:]) != grid.shape:
+            raise ValueError(f"DenseVoxelScene: features {tuple(features.shape)} do not match grid shape {grid.shape}")
+        self.features = features
+        self.grid = grid
+        self.channels = int(features.shape[1])
+
+    def sample(self, points: Tensor) -> Tensor:
+        """``(B, P, C)`` trilinear reads at ``(B, P, 3)`` ego-frame points; zero outside the grid.
+
+        Exactly the voxel's feature at a voxel centre (:func:`occplug.geometry.sample_volume`).
+        """
+        return sample_volume(self.features, self.grid, points)
 
 
 class SceneRepresentation(nn.Module, ABC):
