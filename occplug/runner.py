@@ -33,6 +33,7 @@ from occplug.config import ConfigError, compose, validate
 from occplug.data.datamodule import OccDataModule
 from occplug.data.formats import FormatError
 from occplug.plugins import get_registry, plugin_reports
+from occplug.streams import check_streaming
 
 __all__ = [
     "build_datamodule",
@@ -399,6 +400,7 @@ def _build(cfg: dict[str, Any]) -> tuple[OccDataModule, L.LightningModule]:
     try:
         dm = build_datamodule(cfg)
         model = build_model(cfg, dm)
+        check_streaming(model, dm)  # a stateful component needs data.sequential
         dm.require_fields(set(model.required_fields()) | callback_requirements(cfg))
         return dm, model
     except FormatError as exc:
