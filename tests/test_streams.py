@@ -214,3 +214,31 @@ def test_stateful_model_needs_sequential_data(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and err.strip().count("\n") == 0 and "data.sequential" in err and "Traceback" not in err
     assert not run.exists()
+
+
+def test_sanity_check_and_mid_epoch_validation_leave_the_training_stream_alone():
+    import lightning as L
+
+    from occplug.runner import _build, load_config
+
+    cfg = load_config([BASELINE], ["data.preset=tiny", "model.scene.type=dense_voxels_history", "data.sequential=true",
+                                   "data.train_scenes=1", "data.frames_per_scene=3", "data.batch_size=1"])
+    dm, model = _build(cfg)
+    state = model.scene.history
+    seen = []
+    original = state.get
+
+    def spy(batch, current):
+        read = original(batch, current)
+        seen.append((state.stage, int(batch.frame_index[0]), bool(read.reset[0])))
+        return read
+
+    state.get = spy
+    trainer = L.Trainer(accelerator="cpu", max_steps=3, val_check_interval=1, num_sanity_val_steps=1, logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False)
+    trainer.fit(model, datamodule=dm)
+    train = [(f, r) for stage, f, r in seen if stage == "train"]
+    assert train == [(0, True), (1, False), (2, False)]  # continued across the validations in between
+    val = [(f, r) for stage, f, r in seen if stage == "val"]
+    assert val[0] == (0, True) and len(val) == 1 + 3 * 3  # sanity check, then 3 validations of 3 frames
+    assert val[1:4] == [(0, True), (1, False), (2, False)]
