@@ -141,7 +141,7 @@ def test_ddp_streaming_validation_counts_every_frame_once_and_equals_one_process
     # rank 0 plays 2 scenes on 2 lanes, rank 1 one scene (the padded sampler used to count frames twice here)
     cmd = [*occplug_command(), "validate", "--ckpt", ckpt, "--json", str(out), "trainer.accelerator=cpu",
            "trainer.devices=2", "trainer.strategy=ddp", "data.batch_size=2"]
-    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300, check=False)
     assert proc.returncode == 0, proc.stderr[-3000:]
     ddp = json.loads(out.read_text())
     keys = [k for k in single[1] if k == "mIoU" or k.startswith("IoU")]

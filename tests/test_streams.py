@@ -26,8 +26,8 @@ def frames(scene, indices, times=None, starts=None, poses=None):
     scenes = [scene] * b if isinstance(scene, str) else list(scene)
     times = [0.5 * i for i in indices] if times is None else times
     starts = [i == 0 for i in indices] if starts is None else starts
-    fields = dict(scene=scenes, frame_index=torch.tensor(indices), timestamp=torch.tensor(times, dtype=torch.float64),
-                  is_sequence_start=torch.tensor(starts), token=[f"{s}-{i}" for s, i in zip(scenes, indices)])
+    fields = {"scene": scenes, "frame_index": torch.tensor(indices), "timestamp": torch.tensor(times, dtype=torch.float64),
+              "is_sequence_start": torch.tensor(starts), "token": [f"{s}-{i}" for s, i in zip(scenes, indices)]}
     if poses is not None:
         fields["ego_to_global"] = poses
     return hand_batch(b, **fields)

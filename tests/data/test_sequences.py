@@ -1,5 +1,7 @@
 """Scenes, adjacent frames and the stream samplers (training runs per slot, every evaluation frame exactly once)."""
 
+from itertools import pairwise
+
 import pytest
 import torch
 
@@ -61,7 +63,7 @@ def test_eval_sampler_counts_every_frame_once_with_whole_scenes_per_rank(replica
         for b, lane in enumerate(lanes):
             assert [bt[b] for bt in batches if len(bt) > b] == lane  # row b is always lane b
             assert idx.is_start(lane[0])
-            for prev, cur in zip(lane, lane[1:]):  # temporal order; a scene change lands on a first frame
+            for prev, cur in pairwise(lane):  # temporal order; a scene change lands on a first frame
                 assert cur == idx.neighbour(prev, 1) and cur != prev or idx.is_start(cur)
         mine = sorted({idx.locate(i)[0] for bt in batches for i in bt})
         assert sum(len(idx.items[s]) for s in mine) == sum(sizes)  # whole scenes
@@ -149,7 +151,7 @@ def test_sequential_loaders_train_in_runs_and_evaluate_every_frame_once():
     assert all(len(b) == 2 for b in train)
     for b in range(2):
         slot = [(bt.scene[b], int(bt.frame_index[b]), bool(bt.is_sequence_start[b])) for bt in train]
-        for (s0, f0, _), (s1, f1, start) in zip(slot, slot[1:]):
+        for (s0, f0, _), (s1, f1, start) in pairwise(slot):
             assert start or (s1 == s0 and f1 == f0 + 1)
     assert dm.stream_run_length == 2
     with pytest.raises(ValueError, match="data.sequential.run_lenght"):
