@@ -16,6 +16,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -134,6 +135,11 @@ def test_ddp_streaming_validation_counts_every_frame_once_and_equals_one_process
             assert main(["validate", "--ckpt", ckpt, "--json", str(out), "trainer.devices=1", "trainer.strategy=auto",
                          f"data.batch_size={batch}"]) == 0
             single[batch] = json.loads(out.read_text())
+            # predict streams too: one file per frame, the same whatever the batch size
+            assert main(["predict", "--ckpt", ckpt, "--out", str(tmp_path / f"pred{batch}"), f"data.batch_size={batch}"]) == 0
+        preds = [{p.name: np.load(p)["pred"] for p in (tmp_path / f"pred{b}").glob("*.npz")} for b in (1, 2)]
+        assert len(preds[0]) == 6 and preds[0].keys() == preds[1].keys()
+        assert all(np.array_equal(preds[0][k], preds[1][k]) for k in preds[0])
     finally:
         torch.set_num_threads(torch_threads)
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}
