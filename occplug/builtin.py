@@ -20,6 +20,7 @@ if TYPE_CHECKING:
 def occplug_register_components(registry: Registry) -> None:
     """Register the core's encoders, view transforms, scene, head, supervision, data, metric and model."""
     from . import components as c
+    from .components.stateful import DenseVoxelsHistory
     from .data.nuscenes.reader import Occ3DNuScenesDataModule
     from .data.semantickitti.reader import SemanticKITTIDataModule
     from .data.synthetic import SyntheticDataModule
@@ -35,6 +36,7 @@ def occplug_register_components(registry: Registry) -> None:
     registry.add("depth_net", "plain", c.PlainDepthNet)
     registry.add("depth_net", "camera_aware", c.CameraAwareDepthNet)
     registry.add("scene", "dense_voxels", c.DenseVoxels)
+    registry.add("scene", "dense_voxels_history", DenseVoxelsHistory)
     registry.add("head", "voxel_classifier", c.VoxelClassifier)
     registry.add("supervision", "voxel_ce", c.VoxelCrossEntropy)
     registry.add("supervision", "lidar_depth", c.LidarDepthSupervision)

@@ -321,6 +321,12 @@ class OccModel(OccupancyModel):
     def predict_step(self, batch: Batch, batch_idx: int) -> dict[str, Any]:
         return {"token": list(batch.token), "pred": self.predict_occupancy(batch)}
 
+    def configure_callbacks(self) -> list[L.Callback]:
+        """:class:`~occplug.streams.StreamStages` when a component holds a stream state (one store per loop)."""
+        from occplug.streams import StreamStages, find_streams
+
+        return [StreamStages()] if any(True for _ in find_streams(self)) else []
+
     # ---------------------------------------------------------------- optimisation
     def _effective_batch(self) -> EffectiveBatch | None:
         trainer = self._trainer

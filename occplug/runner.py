@@ -37,6 +37,7 @@ from occplug.data.frame import collate_frames
 from occplug.errors import UserError
 from occplug.interfaces.model import OccupancyModel
 from occplug.plugins import get_registry, plugin_reports
+from occplug.streams import check_streaming
 
 __all__ = [
     "build_datamodule",
@@ -442,6 +443,7 @@ def _build(cfg: dict[str, Any]) -> tuple[OccDataModule, OccupancyModel]:
     try:
         dm = build_datamodule(cfg)
         model = build_model(cfg, dm)
+        check_streaming(model, dm)  # a stateful component needs data.sequential
         dm.require_fields(set(model.required_fields()) | callback_requirements(cfg))
         return dm, model
     except FormatError as exc:

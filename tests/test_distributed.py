@@ -16,6 +16,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -113,3 +114,44 @@ def test_rank_zero_follows_the_launcher_environment(monkeypatch: pytest.MonkeyPa
     assert runner.is_rank_zero() is expected
     monkeypatch.setenv(runner.RUN_DIR_ENV, "/some/run")
     assert (runner.default_run_dir(["baseline.yaml"]) == Path("/some/run")) is (not expected)
+
+
+# A stateful model (dense_voxels_history) read sequentially: 3 validation scenes of 2 frames, batch 2.
+STREAM = ["model.scene.type=dense_voxels_history", "data.sequential=true", "data.preset=tiny", "data.train_scenes=1",
+          "data.val_scenes=3", "data.test_scenes=0", "data.batch_size=2"]
+
+
+def test_ddp_streaming_validation_counts_every_frame_once_and_equals_one_process(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    torch_threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as in each DDP worker
+    try:
+        assert main(["fit", "-c", BASELINE, *STREAM, "trainer.accelerator=cpu", "trainer.enable_progress_bar=false",
+                     "trainer.max_steps=2", "--run-dir", str(run)]) == 0
+        ckpt = str(run / "checkpoints" / "last.ckpt")
+        single = {}
+        for batch in (1, 2):
+            out = tmp_path / f"single{batch}.json"
+            assert main(["validate", "--ckpt", ckpt, "--json", str(out), "trainer.devices=1", "trainer.strategy=auto",
+                         f"data.batch_size={batch}"]) == 0
+            single[batch] = json.loads(out.read_text())
+            # predict streams too: one file per frame, the same whatever the batch size
+            assert main(["predict", "--ckpt", ckpt, "--out", str(tmp_path / f"pred{batch}"), f"data.batch_size={batch}"]) == 0
+        preds = [{p.name: np.load(p)["pred"] for p in (tmp_path / f"pred{b}").glob("*.npz")} for b in (1, 2)]
+        assert len(preds[0]) == 6 and preds[0].keys() == preds[1].keys()
+        assert all(np.array_equal(preds[0][k], preds[1][k]) for k in preds[0])
+    finally:
+        torch.set_num_threads(torch_threads)
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    out = tmp_path / "ddp.json"
+    # rank 0 plays 2 scenes on 2 lanes, rank 1 one scene (the padded sampler used to count frames twice here)
+    cmd = [*occplug_command(), "validate", "--ckpt", ckpt, "--json", str(out), "trainer.accelerator=cpu",
+           "trainer.devices=2", "trainer.strategy=ddp", "data.batch_size=2"]
+    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    ddp = json.loads(out.read_text())
+    keys = [k for k in single[1] if k == "mIoU" or k.startswith("IoU")]
+    assert len(keys) == 19 and single[1]["IoU"] > 0
+    for name, other in (("batch 2", single[2]), ("2 processes", ddp)):
+        mismatched = {k: (other[k], single[1][k]) for k in keys if not same(other[k], single[1][k])}
+        assert not mismatched, f"{name} vs one process, batch 1: {mismatched}"

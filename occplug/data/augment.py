@@ -51,9 +51,11 @@ also augment a batch it already holds (e.g. a student view of the teacher's batc
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextvars import ContextVar
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -81,6 +83,7 @@ __all__ = [
     "photometric",
     "resize_matrix",
     "rotate_matrix",
+    "seeded_draws",
 ]
 
 
@@ -525,6 +528,24 @@ class BEVAugConfig:
         return bev_matrix(fx, fy, yaw, s)
 
 
+#: The seed of the stream run being read (:func:`seeded_draws`), or None: draw freely.
+_RUN_SEED: ContextVar[int | None] = ContextVar("occplug_augment_run_seed", default=None)
+
+
+@contextlib.contextmanager
+def seeded_draws(seed: int | None) -> Iterator[None]:
+    """Inside, every :class:`Augmentation` draws its geometric parameters (the per-camera image
+    transforms and the BEV transform) from a generator seeded with ``seed``, so the frames of one
+    stream run get the same draw: the relative pose of consecutive frames stays a rigid ``A T A^-1``
+    (a per-frame BEV scale or rotation would break it). Photometric changes stay per frame.
+    :class:`~occplug.data.sequences.StreamDataset` reads training items inside it."""
+    token = _RUN_SEED.set(seed)
+    try:
+        yield
+    finally:
+        _RUN_SEED.reset(token)
+
+
 class Augmentation:
     """Training-time augmentation of frames: image geometry, photometric preset, BEV.
 
@@ -553,7 +574,12 @@ class Augmentation:
         return bool(self.photometric) or self.image is not None or self.bev is not None
 
     def __call__(self, frame: Frame, generator: torch.Generator | None = None) -> Frame:
-        """Augment ``frame`` and its adjacent frames (same image geometry per camera, same BEV transform)."""
+        """Augment ``frame`` and its adjacent frames (same image geometry per camera, same BEV transform).
+
+        Without a ``generator``, inside :func:`seeded_draws` the draws come from that run's seed.
+        """
+        if generator is None and _RUN_SEED.get() is not None:
+            generator = torch.Generator().manual_seed(int(_RUN_SEED.get()))  # type: ignore[arg-type]
         if self.image is not None:
             transforms = [self.image.sample(frame.image_size, generator) for _ in range(frame.num_cameras)]
             frame = _map_with_adjacent(frame, lambda f: apply_image_transforms(f, _retarget(transforms, f.image_size)))

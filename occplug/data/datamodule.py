@@ -11,6 +11,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 from occplug.geometry import GridSpec
 
 from .frame import Batch, Frame, collate_frames
+from .sequences import SceneEvalSampler, StreamDataset, StreamRunSampler
 
 __all__ = ["EvalShardSampler", "OccDataModule"]
 
@@ -94,13 +95,18 @@ class OccDataModule(L.LightningDataModule):
     def _loader(self, split: str, shuffle: bool) -> DataLoader[Batch]:
         dataset = self.dataset(split)
         sampler = self.sampler(split, dataset)
+        batch_size: int | None = self.batch_size
         if sampler is not None:
             shuffle = False
+            if isinstance(sampler, (StreamRunSampler, SceneEvalSampler)):
+                dataset = StreamDataset(dataset)  # reads StreamItems / index lists
+            if isinstance(sampler, SceneEvalSampler):
+                batch_size = None  # it yields whole (shrinking) batches
         elif split in ("val", "test"):
             sampler = EvalShardSampler.for_current_process(dataset)
         return DataLoader(
             dataset,
-            batch_size=self.batch_size,
+            batch_size=batch_size,
             shuffle=shuffle,
             sampler=sampler,
             num_workers=self.num_workers,

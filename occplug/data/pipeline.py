@@ -35,7 +35,7 @@ from .datamodule import OccDataModule
 from .frame import Frame
 from .pseudo_labels import PseudoLabelSource
 from .records import read_frame, save_frame
-from .sequences import SceneIndex, SceneSequenceSampler
+from .sequences import SceneIndex, stream_sampler
 
 __all__ = [
     "LIDAR_FIELDS",
@@ -236,8 +236,9 @@ class ReaderDataModule(OccDataModule):
         pin_memory: copy batches into pinned memory (faster host-to-GPU transfer).
         image_size: ``[H, W]`` every image is resized to (all splits), or None.
         adjacent_offsets: frame offsets loaded into ``Frame.adjacent`` (e.g. ``[-1, 1]``).
-        sequential: stream every split scene by scene in temporal order (:class:`SceneSequenceSampler`;
-            the training split shuffles the scene order each epoch).
+        sequential: stream the data in temporal order (:mod:`occplug.data.sequences`): true, or
+            ``{run_length: N}`` to train on runs of ``N`` consecutive frames (default whole scenes);
+            training slots each play their own runs, evaluation covers every frame once.
         augment: training augmentation (a photometric preset name or a mapping; see :mod:`occplug.data.augment`).
         pseudo_labels: file-based pseudo labels (see :mod:`occplug.data.pseudo_labels`), or None.
         cache_dir: cache decoded frames on disk under this folder, or None.
@@ -246,7 +247,7 @@ class ReaderDataModule(OccDataModule):
     def __init__(self, *, grid: GridSpec | dict, class_names: Sequence[str], free_label: int, ignore_label: int | None,
                  batch_size: int = 1, num_workers: int = 0, pin_memory: bool = False,
                  image_size: Sequence[int] | None = None, adjacent_offsets: Sequence[int] | None = None,
-                 sequential: bool = False, augment: str | dict | None = None, pseudo_labels: dict | None = None,
+                 sequential: bool | dict = False, augment: str | dict | None = None, pseudo_labels: dict | None = None,
                  cache_dir: str | None = None, pseudo: PseudoLabeler | None = None) -> None:
         super().__init__(grid=grid, batch_size=batch_size, num_workers=num_workers, class_names=class_names,
                          free_label=free_label, ignore_label=ignore_label)
@@ -255,7 +256,7 @@ class ReaderDataModule(OccDataModule):
         self.pin_memory = bool(pin_memory)
         self.image_size = check_image_size(image_size)
         self.adjacent_offsets = check_offsets(adjacent_offsets)
-        self.sequential = bool(sequential)
+        self.sequential, self.stream_run_length = sequential_settings(sequential)
         fill = ignore_label if ignore_label is not None else free_label
         self.augmentation = Augmentation(augment, self.grid, fill_label=fill)
         self.pseudo: PseudoLabeler | None = pseudo or PseudoLabelSource.from_config(pseudo_labels, self.class_names)
@@ -277,8 +278,23 @@ class ReaderDataModule(OccDataModule):
         if trainer is not None:
             replicas, rank = trainer.world_size, trainer.global_rank
         seed = int(torch.initial_seed()) % (1 << 31) if split == "train" else 0
-        return SceneSequenceSampler(scenes, self.batch_size, num_replicas=replicas, rank=rank,
-                                    shuffle=split == "train", seed=seed)
+        return stream_sampler(split, scenes, self.batch_size, run_length=self.stream_run_length, num_replicas=replicas,
+                              rank=rank, seed=seed)
+
+
+def sequential_settings(value: bool | dict | None) -> tuple[bool, int | None]:
+    """``data.sequential`` (true/false or ``{run_length: N}``) -> ``(sequential, run_length)``."""
+    if value is None or isinstance(value, bool):
+        return bool(value), None
+    if not isinstance(value, dict):
+        raise ValueError(f"data.sequential: expected true, false or {{run_length: N}}, got {value!r}")
+    extra = sorted(set(value) - {"run_length"})
+    if extra:
+        raise ValueError(f"data.sequential.{extra[0]}: unknown key (valid: run_length)")
+    length = value.get("run_length")
+    if length is not None and (not isinstance(length, int) or isinstance(length, bool) or length < 1):
+        raise ValueError(f"data.sequential.run_length: expected a positive integer or null, got {length!r}")
+    return True, length
 
 
 def stat_files(paths: Sequence[tuple[Path, Callable[[int], str | None]] | Path]) -> None:

@@ -229,7 +229,7 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
         load_occupancy: read the Occ3D labels.
         min_box_points: drop boxes with fewer LiDAR points (nuScenes ``num_lidar_pts``).
         adjacent_offsets: sample offsets loaded into ``Frame.adjacent`` (e.g. ``[-1, 1]``).
-        sequential: read scenes in temporal order (:class:`~occplug.data.sequences.SceneSequenceSampler`).
+        sequential: read scenes in temporal order (:mod:`occplug.data.sequences`; or ``{run_length: N}``).
         augment: training augmentation (:mod:`occplug.data.augment`).
         pseudo_labels: file-based pseudo labels (:mod:`occplug.data.pseudo_labels`).
         batch_size: samples per batch on each device.
@@ -256,7 +256,7 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
         load_occupancy: bool = True,
         min_box_points: int = 0,
         adjacent_offsets: list[int] | None = None,
-        sequential: bool = False,
+        sequential: bool | dict = False,
         augment: str | dict | None = None,
         pseudo_labels: dict | None = None,
         batch_size: int = 1,

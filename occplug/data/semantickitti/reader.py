@@ -277,7 +277,7 @@ class SemanticKITTIDataModule(ReaderDataModule):
             (default, auto): iff the model reads ``points`` or ``point_labels`` (see
             :meth:`~occplug.data.datamodule.OccDataModule.require_fields`; loaded when undeclared).
         adjacent_offsets: sample offsets loaded into ``Frame.adjacent`` (labelled scans, 0.5 s apart).
-        sequential: read sequences in temporal order (:class:`~occplug.data.sequences.SceneSequenceSampler`).
+        sequential: read sequences in temporal order (:mod:`occplug.data.sequences`; or ``{run_length: N}``).
         augment: training augmentation (:mod:`occplug.data.augment`; mirror with ``bev.flip_y``: the grid is
             not symmetric in x).
         pseudo_labels: file-based pseudo labels (:mod:`occplug.data.pseudo_labels`; camera name ``image_2``).
@@ -301,7 +301,7 @@ class SemanticKITTIDataModule(ReaderDataModule):
         image_size: list[int] | None = None,
         load_points: bool | None = None,
         adjacent_offsets: list[int] | None = None,
-        sequential: bool = False,
+        sequential: bool | dict = False,
         augment: str | dict | None = None,
         pseudo_labels: dict | None = None,
         batch_size: int = 1,

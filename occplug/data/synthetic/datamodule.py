@@ -43,7 +43,7 @@ class SyntheticDataModule(ReaderDataModule):
         batch_size: samples per batch on each device.
         num_workers: data-loader worker processes.
         pin_memory: pin batches in memory (for GPU training).
-        sequential: read scenes in temporal order (:class:`~occplug.data.sequences.SceneSequenceSampler`).
+        sequential: read scenes in temporal order (:mod:`occplug.data.sequences`; or ``{run_length: N}``).
         augment: training augmentation (:mod:`occplug.data.augment`).
         pseudo_labels: ``{synthetic: <realism>}`` makes the world's own imperfect pseudo labels on the
             fly (:mod:`occplug.data.synthetic.pseudo`; realism = ``perfect``, ``default``, ``noisy`` or a
@@ -73,7 +73,7 @@ class SyntheticDataModule(ReaderDataModule):
         batch_size: int = 1,
         num_workers: int = 0,
         pin_memory: bool = False,
-        sequential: bool = False,
+        sequential: bool | dict = False,
         augment: str | dict | None = None,
         pseudo_labels: dict | None = None,
     ) -> None:
