@@ -22,6 +22,8 @@ KINDS: dict[str, str] = {
     "data": "a LightningDataModule yielding occplug Frames",
     "metric": "a torchmetrics Metric over predicted and true occupancy",
     "callback": "a Lightning Callback added to the Trainer (config section 'callbacks')",
+    "transform": "a frame transform every data module runs after augmentation (config data.transforms)",
+    "label_source": "attaches labels to decoded frames in every data module (config data.label_sources)",
 }
 
 

@@ -10,7 +10,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 
 from occplug.geometry import GridSpec
 
-from .frame import Batch, Frame, collate_frames
+from .frame import Batch, FieldRule, Frame, FrameCollator
 
 __all__ = ["EvalShardSampler", "OccDataModule"]
 
@@ -84,6 +84,14 @@ class OccDataModule(L.LightningDataModule):
     #: Copy batches into pinned (page-locked) memory in the loader, for faster host-to-GPU copies.
     pin_memory: bool = False
 
+    #: Collate rules of the ``Frame.extras`` fields this data module's frames carry (plugins' fields:
+    #: :mod:`occplug.data.extensions`); undeclared extras are collated as lists.
+    field_rules: dict[str, FieldRule] = {}
+
+    def collate(self, frames: list[Frame]) -> Batch:
+        """Collate frames as this data module's loaders do (with :attr:`field_rules`)."""
+        return FrameCollator(self.field_rules)(frames)
+
     def sampler(self, split: str, dataset: Dataset[Frame]) -> Sampler | None:
         """A sampler replacing the default one of ``split`` (e.g. a sequential sampler), or None.
 
@@ -104,7 +112,7 @@ class OccDataModule(L.LightningDataModule):
             shuffle=shuffle,
             sampler=sampler,
             num_workers=self.num_workers,
-            collate_fn=collate_frames,
+            collate_fn=FrameCollator(self.field_rules),
             persistent_workers=self.num_workers > 0,
             pin_memory=self.pin_memory,
         )

@@ -49,6 +49,8 @@ class SyntheticDataModule(ReaderDataModule):
             fly (:mod:`occplug.data.synthetic.pseudo`; realism = ``perfect``, ``default``, ``noisy`` or a
             knob mapping; optional ``kinds: [depth, semantics, features]``), or file sources as for any
             reader (:mod:`occplug.data.pseudo_labels`).
+        label_sources, transforms, fields: plugins' label sources, frame transforms and field collate
+            rules (:mod:`occplug.data.extensions`).
 
     Attributes:
         world_config: the resolved :class:`~occplug.data.synthetic.SyntheticWorldConfig`.
@@ -76,6 +78,9 @@ class SyntheticDataModule(ReaderDataModule):
         sequential: bool = False,
         augment: str | dict | None = None,
         pseudo_labels: dict | None = None,
+        label_sources: dict | None = None,
+        transforms: list | None = None,
+        fields: dict | None = None,
     ) -> None:
         knobs = {
             "grid": grid,
@@ -114,6 +119,9 @@ class SyntheticDataModule(ReaderDataModule):
             augment=augment,
             pseudo_labels=pseudo_labels,
             pseudo=generated,
+            label_sources=label_sources,
+            transforms=transforms,
+            fields=fields,
         )
         self.preset = preset
         self.world_config: SyntheticWorldConfig = config
