@@ -137,3 +137,36 @@ def test_feature_maps_read_from_npz_under_the_features_key(frame, tmp_path):
     np.savez_compressed(victim, feats=np.zeros((2, 3, 4), np.float16))
     with pytest.raises(FormatError, match=rf"{victim.name}: no 'features' array \(keys: feats\)"):
         PseudoLabelSource({"features": str(tmp_path / "features")}, OCC3D_CLASSES).attach(frame)
+
+
+def test_several_semantic_sources_merge_by_precedence_through_their_tables(tmp_path):
+    from occplug.data import Frame
+    from occplug.data.pseudo_labels import merge_semantics
+
+    targets = ["road", "car", "cone", "tree"]  # ids 0..3
+    # the primary (dataset-specific) lacks cones; the auxiliary (open-vocabulary) has them, in its own ids
+    (tmp_path / "primary.yaml").write_text(
+        "classes: {0: unlabeled, 1: street, 2: automobile, 3: plant}\n"
+        "map: {street: road, automobile: car, plant: tree, unlabeled: ignore}\n")
+    (tmp_path / "aux.yaml").write_text(
+        "classes: {10: traffic cone, 11: vehicle, 12: background}\nmap: {traffic cone: cone, vehicle: car}\n")
+    primary = np.array([[1, 2, 0], [3, 0, 2]], dtype=np.int64)
+    aux = np.array([[12, 11, 10], [10, 12, 12]], dtype=np.int64)
+    for name, ids in (("primary", primary), ("aux", aux)):
+        (tmp_path / name / "tok").mkdir(parents=True)
+        np.save(tmp_path / name / "tok" / "CAM.npy", ids)
+    frame = Frame(images=torch.zeros(1, 3, 2, 3), intrinsics=torch.eye(3)[None], cam_to_ego=torch.eye(4)[None],
+                  img_aug=torch.eye(3)[None], ego_to_global=torch.eye(4, dtype=torch.float64), timestamp=0.0,
+                  scene="s", frame_index=0, token="tok", camera_names=("CAM",))
+    both = [{"dir": "primary", "mapping": "primary.yaml"}, {"dir": "aux", "mapping": "aux.yaml"}]
+    merged = PseudoLabelSource({"semantics": both}, targets, base=tmp_path).attach(frame).pseudo_semantics
+    # cone only from the auxiliary (where the primary is silent); the primary's tree wins over the auxiliary's
+    # cone at [1, 0]; nobody speaks at [1, 1]
+    assert merged.tolist() == [[[0, 1, 2], [3, 255, 1]]]
+    reverse = PseudoLabelSource({"semantics": both[::-1]}, targets, base=tmp_path).attach(frame).pseudo_semantics
+    assert reverse.tolist() == [[[0, 1, 2], [2, 255, 1]]]
+    single = PseudoLabelSource({"semantics": both[0]}, targets, base=tmp_path).attach(frame).pseudo_semantics
+    assert single.tolist() == [[[0, 1, 255], [3, 255, 1]]]
+    assert merge_semantics([torch.tensor([255, 255, 4]), torch.tensor([1, 255, 2]), torch.tensor([3, 5, 3])]).tolist() == [1, 5, 4]
+    with pytest.raises(ValueError, match=r"pseudo_labels.semantics\[1\]: needs 'mapping'"):
+        PseudoLabelSource({"semantics": [both[0], {"dir": "aux"}]}, targets, base=tmp_path)
