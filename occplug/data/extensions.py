@@ -9,7 +9,7 @@ and a config names them by registered ``type:`` under the data node, for every d
 (``synthetic``, ``occ3d_nuscenes``, ``semantickitti``)::
 
     data:
-      label_sources:                       # name -> node; attached in this order
+      label_sources:                       # name -> node (null: off); attached in this order
         boxes_2d: {type: my_boxes_2d, dir: boxes2d/}
       transforms:                          # applied in this order, after the augmentation
         - {type: point_subsample, max_points: 20000, splits: [train]}
@@ -128,6 +128,8 @@ class DataExtensions:
             raise ValueError(f"data.transforms: expected a list of {{type: ...}} nodes, got {type(transforms).__name__}")
         self.label_sources: dict[str, Any] = {}
         for name, node in (label_sources or {}).items():
+            if node is None:  # `name: null` switches a layered entry off
+                continue
             source = _build("label_source", node, f"data.label_sources.{name}", context)
             if not callable(getattr(source, "attach", None)):
                 raise ValueError(f"data.label_sources.{name}: '{node['type']}' has no attach(frame) method")

@@ -43,7 +43,7 @@ def test_collate_rules_stack_pad_and_list():
 def test_plugin_label_source_transform_and_field_reach_the_synthetic_batches(toy_extensions, tmp_path):
     dm = SyntheticDataModule(
         preset="tiny", cache_dir=str(tmp_path), batch_size=3, adjacent_offsets=[-1],
-        label_sources={"ids": {"type": "toy_ids", "offset": 10}},
+        label_sources={"ids": {"type": "toy_ids", "offset": 10}, "off": None},
         transforms=[{"type": "toy_tag", "scale": 2.0, "splits": ["train"]}],
         fields={"toy_tag": "stack"},
     )
@@ -90,3 +90,26 @@ def test_every_core_data_module_takes_the_extension_arguments():
     for name in ("synthetic", "occ3d_nuscenes", "semantickitti"):
         params = inspect.signature(get_registry().get("data", name).factory).parameters
         assert {"label_sources", "transforms", "fields"} <= set(params), name
+
+
+def test_a_config_names_them_by_registered_type(toy_extensions, tmp_path):
+    import yaml
+
+    from occplug.config.validate import validate
+
+    cfg = yaml.safe_load(f"""
+data:
+  type: synthetic
+  preset: tiny
+  cache_dir: {tmp_path}
+  label_sources: {{ids: {{type: toy_ids}}}}
+  transforms: [{{type: toy_tag, scale: 3.0, splits: [val]}}]
+  fields: {{toy_tag: stack}}
+model: {{type: occ_model, encoder: {{type: small_cnn}}, view_transform: {{type: lss, grid: {{range: [-16, -16, -1, 16, 16, 5.4], voxel_size: 0.8}}}}, scene: {{type: dense_voxels}},
+        heads: {{occupancy: {{type: voxel_classifier}}}}, supervision: {{voxel_labels: {{type: voxel_ce}}}}}}
+""")
+    validate(cfg, toy_extensions)
+    dm = toy_extensions.build("data", cfg["data"])
+    batch = dm.collate([dm.dataset("val")[1]])
+    assert torch.equal(batch.extras["toy_tag"], torch.tensor([[3.0, 0.0]]))
+    assert torch.equal(batch.extras["toy_ids"], torch.tensor([[0, 1]]))
