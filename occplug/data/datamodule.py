@@ -32,6 +32,8 @@ class OccDataModule(L.LightningDataModule):
     Attributes:
         required_fields: the optional :class:`~occplug.data.Frame` fields the model reads, as declared
             through :meth:`require_fields` (None until then = unknown: every field is loaded).
+        field_rules: collate rules of extra per-sample fields (``Frame.extras``), used by the loaders
+            and :meth:`collate`.
     """
 
     def __init__(
@@ -52,6 +54,8 @@ class OccDataModule(L.LightningDataModule):
         self.ignore_label = ignore_label
         self._datasets: dict[str, Dataset[Frame]] = {}
         self.required_fields: frozenset[str] | None = None
+        # plugins' extra fields (occplug.data.extensions); undeclared extras are collated as lists
+        self.field_rules: dict[str, FieldRule] = {}
 
     def require_fields(self, fields: Collection[str]) -> None:
         """Declare the optional frame fields the model's components, metrics and callbacks read.
@@ -83,10 +87,6 @@ class OccDataModule(L.LightningDataModule):
 
     #: Copy batches into pinned (page-locked) memory in the loader, for faster host-to-GPU copies.
     pin_memory: bool = False
-
-    #: Collate rules of the ``Frame.extras`` fields this data module's frames carry (plugins' fields:
-    #: :mod:`occplug.data.extensions`); undeclared extras are collated as lists.
-    field_rules: dict[str, FieldRule] = {}
 
     def collate(self, frames: list[Frame]) -> Batch:
         """Collate frames as this data module's loaders do (with :attr:`field_rules`)."""

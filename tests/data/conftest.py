@@ -2,6 +2,7 @@
 
 import builtins
 import os
+from typing import ClassVar
 
 import pytest
 
@@ -36,7 +37,7 @@ def touched(monkeypatch):
 class ToyCameraCount(LabelSource):
     """Label source of the tests: ``extras["toy_ids"]`` = ``arange(frame_index + 1) + offset`` (a ragged field, padded)."""
 
-    fields = {"toy_ids": FieldRule("pad", -1)}
+    fields: ClassVar = {"toy_ids": FieldRule("pad", -1)}
 
     def __init__(self, offset: int = 0, class_names=()) -> None:
         self.offset = offset

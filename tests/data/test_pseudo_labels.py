@@ -230,7 +230,7 @@ def test_features_cluster_by_class_but_are_no_one_to_one_code():
         s = labeler.realism.feature_stride
         for f in frames:
             x = labeler.attach(f).pseudo_features  # (N, F, h, w)
-            n, c, h, w = x.shape
+            _, c, h, w = x.shape
             y = f.semantics_2d[:, s // 2 :: s, s // 2 :: s][:, :h, :w]  # the class at each cell's centre
             xs.append(x.permute(0, 2, 3, 1).reshape(-1, c))
             ys.append(y.reshape(-1))
