@@ -17,7 +17,6 @@ from occplug.geometry import GridSpec
 from occplug.interfaces.encoder import feature_levels
 from occplug.interfaces.model import OccupancyModel
 from occplug.kinds import KINDS
-from occplug.metrics.base import OccMetric
 from occplug.plugins import get_registry
 from occplug.queries import check_query_support
 from occplug.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr

@@ -33,7 +33,6 @@ from lightning.fabric.utilities.exceptions import MisconfigurationException
 from occplug.config import ConfigError, compose, validate
 from occplug.data.datamodule import OccDataModule
 from occplug.data.formats import FormatError
-from occplug.data.frame import collate_frames
 from occplug.errors import UserError
 from occplug.interfaces.model import OccupancyModel
 from occplug.plugins import get_registry, plugin_reports
@@ -496,7 +495,7 @@ def first_batch_check(model: OccupancyModel, dm: OccDataModule) -> None:
     py_state, np_state = random.getstate(), np.random.get_state()
     try:
         with torch.random.fork_rng(devices=[]), torch.no_grad(), _data_errors():
-            batch = collate_frames([dataset[i] for i in range(count)])
+            batch = dm.collate([dataset[i] for i in range(count)])
             probe = copy.deepcopy(model)
             probe.train()
             probe.dry_run(batch)

@@ -11,7 +11,6 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from occplug.config.errors import ConfigError
 from occplug.errors import UserError
 from occplug.registry import ComponentClashError, UnknownComponentError
 

@@ -1,11 +1,12 @@
 """Augmentation of :class:`~occplug.data.Frame` objects, geometry-exact, on kornia.
 
-Three independent parts, configured by one mapping (the ``augment`` argument of the data modules)::
+Four independent parts, configured by one mapping (the ``augment`` argument of the data modules)::
 
     augment:
       photometric: strong          # none | weak | middle | strong (or a mapping, see PHOTOMETRIC_PRESETS)
       image: {size: [256, 704], scale: [0.9, 1.1], crop: random, flip: 0.5, rotate: [-5.4, 5.4]}
       bev: {flip_x: 0.5, flip_y: 0.5, rotate: [-22.5, 22.5], scale: [0.95, 1.05]}
+      lidar: {dropout: 0.1, jitter: 0.02}
 
 A plain string is the photometric preset alone (``augment: weak``).
 
@@ -42,6 +43,13 @@ which keeps all poses rigid and the images valid as they are:
 After a flip the rotation parts have determinant -1; they are still orthogonal, which is all that
 occplug's geometry (``invert_pose``, projection) relies on.
 
+**LiDAR augmentation** (before the BEV transform, per frame, adjacent frames drawn independently):
+point dropout keeps each point with probability ``1 - dropout``; jitter adds Gaussian noise of std
+``jitter`` metres to the kept points' x, y, z in the LiDAR frame (intensity untouched);
+``point_labels`` follow the kept points. Like ``img_aug`` it is recorded:
+``extras["lidar_aug"]`` = ``{"keep": (P,) bool over the frame's original points, "offset": (P', 3)
+float32 added to the kept points}``, and :func:`apply_lidar` re-applies a record exactly.
+
 **Photometric presets** for teacher-student training change pixel values only (``img_aug`` is
 untouched): ``weak`` = brightness / contrast / saturation / hue jitter; ``middle`` = stronger jitter
 + motion blur + weather (rain, snow or haze); ``strong`` = ``middle`` + cutout patches + sensor
@@ -75,7 +83,9 @@ __all__ = [
     "BEVAugConfig",
     "ImageAugConfig",
     "ImageTransform",
+    "LidarAugConfig",
     "apply_bev",
+    "apply_lidar",
     "apply_image_transforms",
     "bev_matrix",
     "crop_matrix",
@@ -528,6 +538,59 @@ class BEVAugConfig:
         return bev_matrix(fx, fy, yaw, s)
 
 
+@dataclass(frozen=True)
+class LidarAugConfig:
+    """Random LiDAR augmentation (one draw per frame).
+
+    Attributes:
+        dropout: probability that a point is dropped.
+        jitter: std of the Gaussian noise added to x, y, z, metres.
+    """
+
+    dropout: float = 0.0
+    jitter: float = 0.0
+
+    @classmethod
+    def from_config(cls, cfg: dict[str, Any]) -> LidarAugConfig:
+        _check_keys(cfg, ("dropout", "jitter"), "augment.lidar")
+        out = cls(dropout=float(cfg.get("dropout", 0.0)), jitter=float(cfg.get("jitter", 0.0)))
+        if not 0 <= out.dropout < 1:
+            raise ValueError(f"augment.lidar.dropout: expected a probability in [0, 1), got {cfg.get('dropout')}")
+        if out.jitter < 0:
+            raise ValueError(f"augment.lidar.jitter: expected a std >= 0 (metres), got {cfg.get('jitter')}")
+        return out
+
+    def sample(self, num_points: int, g: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+        """Draw ``(keep (P,) bool, offset (P', 3) float32)`` for a scan of ``num_points``."""
+        keep = torch.rand(num_points, generator=g) >= self.dropout
+        offset = torch.randn(int(keep.sum()), 3, generator=g) * self.jitter
+        return keep, offset
+
+
+def apply_lidar(frame: Frame, keep: Tensor, offset: Tensor) -> Frame:
+    """A copy of ``frame`` with its LiDAR points dropped / jittered as recorded (see the module docstring).
+
+    Args:
+        frame: a frame with ``points`` ``(P, 4)`` (lidar frame); ``point_labels`` ``(P,)`` follow.
+        keep: ``(P,)`` bool, the points kept.
+        offset: ``(P', 3)`` float32 added to the kept points' x, y, z, ``P' = keep.sum()``.
+
+    Returns:
+        The frame with ``extras["lidar_aug"] = {"keep": keep, "offset": offset}``.
+    """
+    if frame.points is None:
+        raise ValueError(f"frame {frame.token}: LiDAR augmentation needs points")
+    if keep.shape != (frame.points.shape[0],) or offset.shape != (int(keep.sum()), 3):
+        raise ValueError(f"frame {frame.token}: a LiDAR record of {tuple(keep.shape)} / {tuple(offset.shape)} "
+                         f"does not fit {frame.points.shape[0]} points")
+    points = frame.points[keep].clone()
+    points[:, :3] += offset.to(points.dtype)
+    labels = None if frame.point_labels is None else frame.point_labels[keep]
+    out = replace(frame, points=points, point_labels=labels, extras=dict(frame.extras))
+    out.extras["lidar_aug"] = {"keep": keep, "offset": offset}
+    return out
+
+
 #: The seed of the stream run being read (:func:`seeded_draws`), or None: draw freely.
 _RUN_SEED: ContextVar[int | None] = ContextVar("occplug_augment_run_seed", default=None)
 
@@ -547,11 +610,11 @@ def seeded_draws(seed: int | None) -> Iterator[None]:
 
 
 class Augmentation:
-    """Training-time augmentation of frames: image geometry, photometric preset, BEV.
+    """Training-time augmentation of frames: image geometry, photometric preset, LiDAR, BEV.
 
     Args:
-        config: a photometric preset name, or a mapping with keys ``photometric``, ``image``, ``bev``
-            (see the module docstring); None or ``{}`` does nothing.
+        config: a photometric preset name, or a mapping with keys ``photometric``, ``image``, ``bev``,
+            ``lidar`` (see the module docstring); None or ``{}`` does nothing.
         grid: the voxel grid of the labels (for BEV augmentation).
         fill_label: label of voxels a BEV transform brings in from outside the grid.
 
@@ -561,17 +624,18 @@ class Augmentation:
 
     def __init__(self, config: str | dict[str, Any] | None, grid: GridSpec | None = None, fill_label: int = 255) -> None:
         cfg: dict[str, Any] = {"photometric": config} if isinstance(config, str) else dict(config or {})
-        _check_keys(cfg, ("photometric", "image", "bev"), "augment")
+        _check_keys(cfg, ("photometric", "image", "bev", "lidar"), "augment")
         self.photometric = photometric_settings(cfg.get("photometric"))
         self.image = None if cfg.get("image") is None else ImageAugConfig.from_config(cfg["image"])
         self.bev = None if cfg.get("bev") is None else BEVAugConfig.from_config(cfg["bev"])
+        self.lidar = None if cfg.get("lidar") is None else LidarAugConfig.from_config(cfg["lidar"])
         self.grid = grid
         self.fill_label = fill_label
 
     @property
     def active(self) -> bool:
         """Whether any part is configured."""
-        return bool(self.photometric) or self.image is not None or self.bev is not None
+        return bool(self.photometric) or self.image is not None or self.bev is not None or self.lidar is not None
 
     def __call__(self, frame: Frame, generator: torch.Generator | None = None) -> Frame:
         """Augment ``frame`` and its adjacent frames (same image geometry per camera, same BEV transform).
@@ -585,6 +649,10 @@ class Augmentation:
             frame = _map_with_adjacent(frame, lambda f: apply_image_transforms(f, _retarget(transforms, f.image_size)))
         if self.photometric:
             frame = _map_with_adjacent(frame, lambda f: replace(f, images=photometric(f.images, self.photometric)))
+        if self.lidar is not None:
+            lidar = self.lidar
+            frame = _map_with_adjacent(
+                frame, lambda f: f if f.points is None else apply_lidar(f, *lidar.sample(f.points.shape[0], generator)))
         if self.bev is not None:
             frame = apply_bev(frame, self.bev.sample(generator), self.grid, self.fill_label)
         return frame

@@ -3,20 +3,26 @@
 from __future__ import annotations
 
 __all__ = [
+    "CLASS_GROUPS",
     "OCC3D_CLASSES",
     "OCC3D_COLORS",
+    "OCC3D_DYNAMIC",
     "OCC3D_FREE",
     "NUSCENES_LIDARSEG_CATEGORIES",
     "NUSCENES_TO_OCC3D",
     "OCC3D_NUM_CLASSES",
+    "class_colors",
+    "class_groups",
+    "nuscenes_to_occ3d",
+    "OCC3D_STATIC",
     "OCC3D_TO_NUSCENES",
     "OCC3D_TO_SEMANTIC_KITTI",
     "SEMANTIC_KITTI_CLASSES",
     "SEMANTIC_KITTI_COLORS",
+    "SEMANTIC_KITTI_DYNAMIC",
     "SEMANTIC_KITTI_LEARNING_MAP",
     "SEMANTIC_KITTI_LEARNING_MAP_INV",
-    "class_colors",
-    "nuscenes_to_occ3d",
+    "SEMANTIC_KITTI_STATIC",
 ]
 
 #: Occ3D-nuScenes class names indexed by id; id 17 is ``free`` (empty space).
@@ -67,6 +73,50 @@ SEMANTIC_KITTI_CLASSES: tuple[str, ...] = (
     "pole",
     "traffic-sign",
 )
+
+
+# ---------------------------------------------------------------- dynamic / static groups
+# The one definition of each taxonomy's dynamic (object) and static (surface / structure) classes;
+# metrics report ``mIoU_dynamic`` / ``mIoU_static`` over them.
+
+#: Occ3D-nuScenes object classes (the ten nuScenes detection classes, barrier and traffic cone
+#: included: they are objects, not scene structure, even when they do not move).
+OCC3D_DYNAMIC: tuple[str, ...] = (
+    "barrier", "bicycle", "bus", "car", "construction_vehicle", "motorcycle", "pedestrian", "traffic_cone", "trailer",
+    "truck",
+)  # fmt: skip
+#: Occ3D-nuScenes surface and structure classes. ``others`` and ``free`` are in neither group.
+OCC3D_STATIC: tuple[str, ...] = ("driveable_surface", "other_flat", "sidewalk", "terrain", "manmade", "vegetation")
+
+#: SemanticKITTI movable classes: vehicles and road users (the classes that SemanticKITTI's
+#: moving-object labels can mark as moving).
+SEMANTIC_KITTI_DYNAMIC: tuple[str, ...] = (
+    "car", "bicycle", "motorcycle", "truck", "other-vehicle", "person", "bicyclist", "motorcyclist",
+)  # fmt: skip
+#: SemanticKITTI ground, structure and nature classes (poles, signs, fences and trunks are fixed
+#: structure here, unlike Occ3D's barrier / cone objects). ``empty`` is in neither group.
+SEMANTIC_KITTI_STATIC: tuple[str, ...] = (
+    "road", "parking", "sidewalk", "other-ground", "building", "fence", "vegetation", "trunk", "terrain", "pole",
+    "traffic-sign",
+)  # fmt: skip
+
+#: Taxonomy (its class-name tuple) -> ``{"dynamic": names, "static": names}``.
+CLASS_GROUPS: dict[tuple[str, ...], dict[str, tuple[str, ...]]] = {
+    OCC3D_CLASSES: {"dynamic": OCC3D_DYNAMIC, "static": OCC3D_STATIC},
+    SEMANTIC_KITTI_CLASSES: {"dynamic": SEMANTIC_KITTI_DYNAMIC, "static": SEMANTIC_KITTI_STATIC},
+}
+
+
+def class_groups(class_names: tuple[str, ...] | list[str]) -> dict[str, tuple[int, ...]] | None:
+    """``{"dynamic": ids, "static": ids}`` of a known taxonomy (Occ3D-nuScenes, SemanticKITTI), else None.
+
+    Ids index ``class_names``; a name list that is not exactly one of the two taxonomies has no groups.
+    """
+    groups = CLASS_GROUPS.get(tuple(class_names))
+    if groups is None:
+        return None
+    index = {n: i for i, n in enumerate(class_names)}
+    return {k: tuple(index[n] for n in names) for k, names in groups.items()}
 
 
 # ---------------------------------------------------------------- colours

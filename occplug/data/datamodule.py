@@ -10,7 +10,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 
 from occplug.geometry import GridSpec
 
-from .frame import Batch, Frame, collate_frames
+from .frame import Batch, FieldRule, Frame, FrameCollator
 from .sequences import SceneEvalSampler, StreamDataset, StreamRunSampler
 
 __all__ = ["EvalShardSampler", "OccDataModule"]
@@ -33,6 +33,8 @@ class OccDataModule(L.LightningDataModule):
     Attributes:
         required_fields: the optional :class:`~occplug.data.Frame` fields the model reads, as declared
             through :meth:`require_fields` (None until then = unknown: every field is loaded).
+        field_rules: collate rules of extra per-sample fields (``Frame.extras``), used by the loaders
+            and :meth:`collate`.
     """
 
     def __init__(
@@ -53,6 +55,8 @@ class OccDataModule(L.LightningDataModule):
         self.ignore_label = ignore_label
         self._datasets: dict[str, Dataset[Frame]] = {}
         self.required_fields: frozenset[str] | None = None
+        # plugins' extra fields (occplug.data.extensions); undeclared extras are collated as lists
+        self.field_rules: dict[str, FieldRule] = {}
 
     def require_fields(self, fields: Collection[str]) -> None:
         """Declare the optional frame fields the model's components, metrics and callbacks read.
@@ -85,6 +89,10 @@ class OccDataModule(L.LightningDataModule):
     #: Copy batches into pinned (page-locked) memory in the loader, for faster host-to-GPU copies.
     pin_memory: bool = False
 
+    def collate(self, frames: list[Frame]) -> Batch:
+        """Collate frames as this data module's loaders do (with :attr:`field_rules`)."""
+        return FrameCollator(self.field_rules)(frames)
+
     def sampler(self, split: str, dataset: Dataset[Frame]) -> Sampler | None:
         """A sampler replacing the default one of ``split`` (e.g. a sequential sampler), or None.
 
@@ -110,7 +118,7 @@ class OccDataModule(L.LightningDataModule):
             shuffle=shuffle,
             sampler=sampler,
             num_workers=self.num_workers,
-            collate_fn=collate_frames,
+            collate_fn=FrameCollator(self.field_rules),
             persistent_workers=self.num_workers > 0,
             pin_memory=self.pin_memory,
         )

@@ -18,13 +18,14 @@ so in its docstring and fails with a clear error when it is missing.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any
 
 import torch
 from torch import Tensor
 
-__all__ = ["Batch", "Frame", "collate_frames"]
+__all__ = ["COLLATE_RULES", "Batch", "FieldRule", "Frame", "FrameCollator", "collate_frames", "field_rule"]
 
 
 @dataclass
@@ -70,7 +71,9 @@ class Frame:
             frame's scene, in **this** frame's ego frame (RayIoU casts its query rays from them).
         adjacent: frames of the same scene at other times, keyed by frame offset
             (``-1`` = previous, ``+1`` = next). Their poses give the relative ego motion.
-        extras: data-set-specific additions; keep tensors out of here where a field exists.
+        extras: data-set-specific and plugin-declared per-sample fields (collated by their
+            :class:`FieldRule`, see :mod:`occplug.data.extensions`); keep tensors out of here where a
+            field exists.
     """
 
     images: Tensor
@@ -151,7 +154,8 @@ class Batch:
     ``(B, X, Y, Z)`` ...); fields whose length varies per sample (``points``, ``point_labels``,
     ``boxes``, ``box_labels``, ``box_track_ids``, ``sequence_lidar_origins``) are lists of ``B`` tensors. ``timestamp`` is a
     ``(B,)`` float64 tensor, ``frame_index`` a ``(B,)`` int64 tensor, ``has_voxel_labels`` a
-    ``(B,)`` bool tensor. ``is_sequence_start`` is ``(B,)`` bool: the frame is the first of its
+    ``(B,)`` bool tensor. ``extras[name]`` is a list of ``B`` values, or what the field's
+    :class:`FieldRule` makes of them (a stacked / padded tensor). ``is_sequence_start`` is ``(B,)`` bool: the frame is the first of its
     scene in the data set (``Frame.extras["is_sequence_start"]``, else ``frame_index == 0``), so
     stream state must be reset; frames missing within a scene are not detected. ``adjacent`` maps an offset to the
     :class:`Batch` of those adjacent frames (every frame of a batch has the same offsets).
@@ -186,7 +190,7 @@ class Batch:
     pseudo_features: Tensor | None = None
     sequence_lidar_origins: list[Tensor] | None = None
     adjacent: dict[int, Batch] = field(default_factory=dict)
-    extras: dict[str, list[Any]] = field(default_factory=dict)
+    extras: dict[str, Any] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.images.shape[0])
@@ -235,8 +239,91 @@ class Batch:
             raise ValueError(f"{by} needs batch field(s) {', '.join(missing)}, which the data set does not provide")
 
 
-def collate_frames(frames: list[Frame]) -> Batch:
-    """Collate frames into a :class:`Batch` (the ``collate_fn`` of every occplug data loader)."""
+#: The collate rules of a per-sample field in ``Frame.extras``.
+COLLATE_RULES = ("stack", "list", "pad")
+
+
+@dataclass(frozen=True)
+class FieldRule:
+    """How ``Frame.extras[name]`` of the frames of a batch becomes ``Batch.extras[name]``.
+
+    Attributes:
+        collate: ``stack`` (equal-shape tensors -> one tensor with a leading ``B`` axis), ``list``
+            (a list of ``B`` values) or ``pad`` (tensors of shape ``(L_i, ...)`` -> ``(B, max L_i, ...)``
+            filled with ``pad_value``, plus ``extras[name + "_mask"]`` ``(B, max L_i)`` bool).
+        pad_value: the fill of ``pad``.
+    """
+
+    collate: str = "list"
+    pad_value: float = 0
+
+    def __post_init__(self) -> None:
+        if self.collate not in COLLATE_RULES:
+            raise ValueError(f"unknown collate rule '{self.collate}' (valid: {', '.join(COLLATE_RULES)})")
+
+
+def field_rule(spec: FieldRule | str | Mapping[str, Any], where: str = "field") -> FieldRule:
+    """A :class:`FieldRule` from itself, a rule name or ``{collate: ..., pad_value: ...}``; errors name ``where``."""
+    if isinstance(spec, FieldRule):
+        return spec
+    try:
+        if isinstance(spec, str):
+            return FieldRule(spec)
+        if isinstance(spec, Mapping):
+            unknown = sorted(set(spec) - {"collate", "pad_value"})
+            if unknown:
+                raise ValueError(f"unknown key '{unknown[0]}' (valid: collate, pad_value)")
+            return FieldRule(str(spec.get("collate", "list")), float(spec.get("pad_value", 0)))
+    except ValueError as exc:
+        raise ValueError(f"{where}: {exc}") from None
+    raise ValueError(f"{where}: expected one of {', '.join(COLLATE_RULES)} or {{collate, pad_value}}, got {spec!r}")
+
+
+def _collate_extra(name: str, values: list[Any], rule: FieldRule | None) -> dict[str, Any]:
+    if rule is None or rule.collate == "list":
+        return {name: values}
+    if any(v is None for v in values):
+        raise ValueError(f"extras field '{name}' ({rule.collate}) is missing in some frames of a batch")
+    tensors = [torch.as_tensor(v) for v in values]
+    if rule.collate == "stack":
+        shapes = {tuple(t.shape) for t in tensors}
+        if len(shapes) > 1:
+            raise ValueError(f"extras field '{name}' is collated by 'stack' but has shapes {sorted(shapes)}; use 'pad'")
+        return {name: torch.stack(tensors)}
+    tails = {tuple(t.shape[1:]) for t in tensors}
+    if any(t.dim() == 0 for t in tensors) or len(tails) > 1:
+        raise ValueError(f"extras field '{name}' is collated by 'pad' but its shapes {[tuple(t.shape) for t in tensors]} "
+                         "differ beyond the first axis")
+    longest = max(int(t.shape[0]) for t in tensors)
+    out = tensors[0].new_full((len(tensors), longest, *tensors[0].shape[1:]), rule.pad_value)
+    mask = torch.zeros(len(tensors), longest, dtype=torch.bool)
+    for i, t in enumerate(tensors):
+        out[i, : t.shape[0]] = t
+        mask[i, : t.shape[0]] = True
+    return {name: out, f"{name}_mask": mask}
+
+
+class FrameCollator:
+    """``collate_fn`` with collate rules for extra fields (picklable, for loader workers).
+
+    Args:
+        fields: ``Frame.extras`` field name -> :class:`FieldRule` (undeclared extras become lists).
+    """
+
+    def __init__(self, fields: Mapping[str, FieldRule] | None = None) -> None:
+        self.fields = dict(fields or {})
+
+    def __call__(self, frames: list[Frame]) -> Batch:
+        return collate_frames(frames, self.fields)
+
+
+def collate_frames(frames: list[Frame], fields: Mapping[str, FieldRule] | None = None) -> Batch:
+    """Collate frames into a :class:`Batch` (the ``collate_fn`` of every occplug data loader).
+
+    Args:
+        frames: the samples.
+        fields: collate rules of ``Frame.extras`` fields; an undeclared extra becomes a list.
+    """
     if not frames:
         raise ValueError("cannot collate an empty list of frames")
     first = frames[0]
@@ -264,7 +351,10 @@ def collate_frames(frames: list[Frame]) -> Batch:
     offsets = set(first.adjacent)
     if any(set(f.adjacent) != offsets for f in frames):
         raise ValueError("every frame of a batch must carry the same adjacent-frame offsets")
-    out["adjacent"] = {k: collate_frames([f.adjacent[k] for f in frames]) for k in sorted(offsets)}
+    out["adjacent"] = {k: collate_frames([f.adjacent[k] for f in frames], fields) for k in sorted(offsets)}
     keys = set().union(*(f.extras for f in frames)) - {"is_sequence_start"}
-    out["extras"] = {k: [f.extras.get(k) for f in frames] for k in sorted(keys)}
+    rules = fields or {}
+    out["extras"] = {}
+    for k in sorted(keys):
+        out["extras"].update(_collate_extra(k, [f.extras.get(k) for f in frames], rules.get(k)))
     return Batch(**out)

@@ -2,18 +2,20 @@
 
 Per item, in this order (:class:`FramePipeline`), for the frame and each of its adjacent frames:
 
-1. pseudo labels are attached from files (:mod:`occplug.data.pseudo_labels`), at the original
-   image resolution;
+1. pseudo labels are attached from files (:mod:`occplug.data.pseudo_labels`), then the plugins'
+   label sources (:mod:`occplug.data.extensions`), at the original image resolution;
 2. the images are resized to ``image_size`` (every split; recorded in ``img_aug``);
 3. training only: the augmentation (:mod:`occplug.data.augment`); adjacent frames share the
-   sample's image geometry per camera and its BEV transform.
+   sample's image geometry per camera and its BEV transform;
+4. the plugins' frame transforms of the split (:mod:`occplug.data.extensions`), on the whole sample.
 
 :class:`ReaderDataset` adds lazy per-item decoding (subclasses implement :meth:`ReaderDataset.load`),
 adjacent frames through a :class:`~occplug.data.sequences.SceneIndex`, the
 ``is_sequence_start`` flag, and an optional on-disk cache of decoded frames (before resizing, so
 cached and uncached items are identical). :class:`ReaderDataModule` holds the arguments every
 reader takes (batching, workers, pinned memory, image size, adjacent offsets, sequential sampling,
-augmentation, pseudo labels, cache) and hands out the sequential sampler.
+augmentation, pseudo labels, label sources, transforms, field rules, cache) and hands out the
+sequential sampler.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from occplug.geometry import GridSpec
 
 from .augment import Augmentation, ImageTransform, apply_image_transforms
 from .datamodule import OccDataModule
+from .extensions import DataExtensions
 from .frame import Frame
 from .pseudo_labels import PseudoLabelSource
 from .records import read_frame, save_frame
@@ -88,29 +91,37 @@ def default_cache_root() -> Path:
 
 
 class FramePipeline:
-    """Pseudo labels -> resize -> augmentation (see the module docstring).
+    """Pseudo labels and label sources -> resize -> augmentation -> transforms (see the module docstring).
 
     Args:
         image_size: ``(H, W)`` every image is resized to, or None to keep it.
         pseudo: pseudo-label source, or None.
         augment: training augmentation, or None.
+        label_sources: further labelers (``attach(frame) -> frame``), run after ``pseudo`` in order.
+        transforms: callables ``frame -> frame`` run last, in order.
     """
 
     def __init__(self, image_size: Sequence[int] | None = None, pseudo: PseudoLabeler | None = None,
-                 augment: Augmentation | None = None) -> None:
+                 augment: Augmentation | None = None, label_sources: Sequence[PseudoLabeler] = (),
+                 transforms: Sequence[Callable[[Frame], Frame]] = ()) -> None:
         self.image_size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
         self.pseudo = pseudo
         self.augment = augment if augment is not None and augment.active else None
+        self.label_sources = tuple(label_sources)
+        self.transforms = tuple(transforms)
 
     @property
     def active(self) -> bool:
         """Whether the pipeline changes frames at all."""
-        return self.image_size is not None or self.pseudo is not None or self.augment is not None
+        return (self.image_size is not None or self.pseudo is not None or self.augment is not None
+                or bool(self.label_sources) or bool(self.transforms))
 
     def prepare(self, frame: Frame) -> Frame:
         """Steps 1-2 on one frame (not its adjacent frames)."""
         if self.pseudo is not None:
             frame = self.pseudo.attach(frame)
+        for source in self.label_sources:
+            frame = source.attach(frame)
         if self.image_size is not None and frame.image_size != self.image_size:
             t = ImageTransform.resize(frame.image_size, self.image_size)
             frame = apply_image_transforms(frame, [t] * frame.num_cameras)
@@ -122,6 +133,8 @@ class FramePipeline:
         frame.adjacent = adjacent
         if self.augment is not None:
             frame = self.augment(frame)
+        for transform in self.transforms:
+            frame = transform(frame)
         return frame
 
 
@@ -242,13 +255,19 @@ class ReaderDataModule(OccDataModule):
         augment: training augmentation (a photometric preset name or a mapping; see :mod:`occplug.data.augment`).
         pseudo_labels: file-based pseudo labels (see :mod:`occplug.data.pseudo_labels`), or None.
         cache_dir: cache decoded frames on disk under this folder, or None.
+        label_sources: plugins' label sources, name -> ``{type: <label_source>, ...}``
+            (:mod:`occplug.data.extensions`).
+        transforms: plugins' frame transforms, a list of ``{type: <transform>, splits: [...], ...}``.
+        fields: collate rules of extra per-sample fields, name -> ``stack`` | ``list`` | ``pad``
+            (or ``{collate, pad_value}``); the label sources' and transforms' own rules are added.
     """
 
     def __init__(self, *, grid: GridSpec | dict, class_names: Sequence[str], free_label: int, ignore_label: int | None,
                  batch_size: int = 1, num_workers: int = 0, pin_memory: bool = False,
                  image_size: Sequence[int] | None = None, adjacent_offsets: Sequence[int] | None = None,
                  sequential: bool | dict = False, augment: str | dict | None = None, pseudo_labels: dict | None = None,
-                 cache_dir: str | None = None, pseudo: PseudoLabeler | None = None) -> None:
+                 cache_dir: str | None = None, pseudo: PseudoLabeler | None = None,
+                 label_sources: dict | None = None, transforms: list | None = None, fields: dict | None = None) -> None:
         super().__init__(grid=grid, batch_size=batch_size, num_workers=num_workers, class_names=class_names,
                          free_label=free_label, ignore_label=ignore_label)
         if batch_size < 1 or num_workers < 0:
@@ -261,10 +280,14 @@ class ReaderDataModule(OccDataModule):
         self.augmentation = Augmentation(augment, self.grid, fill_label=fill)
         self.pseudo: PseudoLabeler | None = pseudo or PseudoLabelSource.from_config(pseudo_labels, self.class_names)
         self.cache_dir = cache_dir
+        self.extensions = DataExtensions(label_sources, transforms, fields, class_names=self.class_names,
+                                         grid=self.grid, free_label=free_label, ignore_label=ignore_label)
+        self.field_rules = dict(self.extensions.fields)
 
     def pipeline(self, split: str) -> FramePipeline:
-        """The pipeline of ``split`` (augmentation in ``train`` only)."""
-        return FramePipeline(self.image_size, self.pseudo, self.augmentation if split == "train" else None)
+        """The pipeline of ``split`` (augmentation in ``train`` only; the transforms of ``split``)."""
+        return FramePipeline(self.image_size, self.pseudo, self.augmentation if split == "train" else None,
+                             tuple(self.extensions.label_sources.values()), self.extensions.transforms_for(split))
 
     def sampler(self, split: str, dataset: Dataset[Frame]) -> Sampler | None:
         """The sequential sampler when ``sequential`` is on (scene order shuffled per epoch in ``train``)."""

@@ -35,11 +35,21 @@ Several foreign classes may map to one target class (a split in the foreign taxo
 class covering several target classes (a merge) cannot be undone and is the table's author's choice,
 as in OccLE's Table B.1.
 
+**Several 2D semantic sources** (OccLE: a dataset-specific segmenter for the classes it shares with
+the target taxonomy, an open-vocabulary one for the classes it lacks) are a list in precedence
+order, each with its own mapping table. Every map is mapped to the target classes first; then each
+pixel takes the first source (in list order) that gives it a target class (:func:`merge_semantics`).
+The tables decide what each source may supply: an auxiliary table that maps only the classes the
+primary lacks fills exactly those pixels where the primary is silent (the primary first); to let an
+auxiliary class override the primary (OccLE's SAM2 trunk masks drawn over MSeg), list that source
+first with a table mapping only that class.
+
 The ``pseudo_labels`` argument::
 
     pseudo_labels:
       depth: DIR                      # or {dir: DIR, scale: 256.0}
       semantics: {dir: DIR, mapping: FILE.yaml}
+                                      # or a list [{dir, mapping}, {dir, mapping}, ...], in precedence order
       features: DIR                   # or {dir: DIR}
       missing: error                  # error | empty (a missing file gives an empty map instead)
 
@@ -66,7 +76,7 @@ from .formats import FormatError, load_npz
 from .frame import Frame
 from .imageio import read_map
 
-__all__ = ["FEATURES_KEY", "IGNORE", "PseudoLabelSource", "load_mapping"]
+__all__ = ["FEATURES_KEY", "IGNORE", "PseudoLabelSource", "load_mapping", "merge_semantics"]
 
 #: ``Frame.pseudo_semantics`` id of pixels without a target class.
 IGNORE = 255
@@ -128,6 +138,29 @@ def load_mapping(path: str | Path, class_names: Sequence[str]) -> np.ndarray:
     return lut
 
 
+def merge_semantics(maps: Sequence[Tensor], ignore: int = IGNORE) -> Tensor:
+    """Merge semantic maps already in the target taxonomy, by precedence.
+
+    Args:
+        maps: equal-shape integer maps (any shape, e.g. ``(N, H, W)``), highest precedence first;
+            ``ignore`` marks a pixel the source says nothing about.
+        ignore: the id of "no class".
+
+    Returns:
+        The maps' shape and dtype: each pixel's value from the first map that is not ``ignore`` there
+        (``ignore`` where none speaks).
+    """
+    if not maps:
+        raise ValueError("merge_semantics: no maps")
+    shapes = {tuple(m.shape) for m in maps}
+    if len(shapes) > 1:
+        raise ValueError(f"merge_semantics: maps of different shapes {sorted(shapes)}")
+    out = maps[0].clone()
+    for m in maps[1:]:
+        out = torch.where(out == ignore, m.to(out.dtype), out)
+    return out
+
+
 @dataclass(frozen=True)
 class _Source:
     kind: str
@@ -166,26 +199,46 @@ class PseudoLabelSource:
             raise ValueError(f"pseudo_labels.missing: expected 'error' or 'empty', got {self.missing!r}")
         root = Path(base) if base else Path()
         self.sources: dict[str, _Source] = {}
+        #: The semantic sources in precedence order (``sources["semantics"]`` is the first).
+        self.semantic_sources: list[_Source] = []
         for kind in _KINDS:
             spec = sources.get(kind)
             if spec is None or spec is False:
                 continue
-            cfg = {"dir": spec} if isinstance(spec, str) else dict(spec)
-            valid = {"depth": ("dir", "scale"), "semantics": ("dir", "mapping"), "features": ("dir",)}[kind]
-            for key in cfg:
-                if key not in valid:
-                    raise ValueError(f"pseudo_labels.{kind}.{key}: unknown key (valid: {', '.join(valid)})")
-            if "dir" not in cfg:
-                raise ValueError(f"pseudo_labels.{kind}: needs 'dir', the folder holding <token>/<camera> files")
-            folder = root / str(cfg["dir"])
-            if not folder.is_dir():
-                raise FileNotFoundError(f"pseudo_labels.{kind}.dir: {folder} is not a folder")
-            lut = None
-            if kind == "semantics":
-                if "mapping" not in cfg:
-                    raise ValueError("pseudo_labels.semantics: needs 'mapping', the YAML class-mapping table")
-                lut = load_mapping(root / str(cfg["mapping"]), class_names)
-            self.sources[kind] = _Source(kind, folder, float(cfg.get("scale", 256.0)), lut)
+            if kind == "semantics" and isinstance(spec, list):
+                if not spec:
+                    raise ValueError("pseudo_labels.semantics: an empty list (give at least one {dir, mapping})")
+                for i, item in enumerate(spec):
+                    self.semantic_sources.append(self._source(kind, item, root, class_names, f"pseudo_labels.semantics[{i}]"))
+            else:
+                source = self._source(kind, spec, root, class_names, f"pseudo_labels.{kind}")
+                if kind == "semantics":
+                    self.semantic_sources.append(source)
+                else:
+                    self.sources[kind] = source
+        if self.semantic_sources:
+            self.sources["semantics"] = self.semantic_sources[0]
+
+    @staticmethod
+    def _source(kind: str, spec: Any, root: Path, class_names: Sequence[str], where: str) -> _Source:
+        if not isinstance(spec, (str, dict)):
+            raise ValueError(f"{where}: expected a folder or a mapping {{dir, ...}}, got {type(spec).__name__}")
+        cfg = {"dir": spec} if isinstance(spec, str) else dict(spec)
+        valid = {"depth": ("dir", "scale"), "semantics": ("dir", "mapping"), "features": ("dir",)}[kind]
+        for key in cfg:
+            if key not in valid:
+                raise ValueError(f"{where}.{key}: unknown key (valid: {', '.join(valid)})")
+        if "dir" not in cfg:
+            raise ValueError(f"{where}: needs 'dir', the folder holding <token>/<camera> files")
+        folder = root / str(cfg["dir"])
+        if not folder.is_dir():
+            raise FileNotFoundError(f"{where}.dir: {folder} is not a folder")
+        lut = None
+        if kind == "semantics":
+            if "mapping" not in cfg:
+                raise ValueError(f"{where}: needs 'mapping', the YAML class-mapping table")
+            lut = load_mapping(root / str(cfg["mapping"]), class_names)
+        return _Source(kind, folder, float(cfg.get("scale", 256.0)), lut)
 
     @classmethod
     def from_config(cls, sources: dict[str, Any] | None, class_names: Sequence[str],
@@ -230,21 +283,8 @@ class PseudoLabelSource:
                 torch.zeros(h, w) if m is None else _resize_nearest(torch.from_numpy(m.astype(np.float32)), (h, w))
                 for m in maps
             ])
-        if "semantics" in self.sources:
-            src = self.sources["semantics"]
-            assert src.lut is not None
-            maps = [self._read(src, frame.token, cam) for cam in frame.camera_names]
-            sem = []
-            for m in maps:
-                if m is None:
-                    sem.append(torch.full((h, w), IGNORE, dtype=torch.int64))
-                    continue
-                ids = m.astype(np.int64)
-                if ids.size and (ids.min() < 0 or ids.max() > 65535):
-                    raise FormatError(f"{src.dir / frame.token}: semantic ids outside 0..65535")
-                mapped = torch.from_numpy(src.lut[ids].astype(np.int64))
-                sem.append(_resize_nearest(mapped, (h, w)))
-            out.pseudo_semantics = torch.stack(sem)
+        if self.semantic_sources:
+            out.pseudo_semantics = merge_semantics([self._semantics(src, frame) for src in self.semantic_sources])
         if "features" in self.sources:
             maps = [self._read(self.sources["features"], frame.token, cam) for cam in frame.camera_names]
             shapes = {m.shape for m in maps if m is not None}
@@ -258,6 +298,24 @@ class PseudoLabelSource:
                     torch.zeros(shape) if m is None else torch.from_numpy(m.astype(np.float32)) for m in maps
                 ])
         return out
+
+
+    def _semantics(self, src: _Source, frame: Frame) -> Tensor:
+        """``(N, H, W)`` int64 target ids of one semantic source (255 where it has no target class)."""
+        assert src.lut is not None
+        h, w = frame.image_size
+        sem = []
+        for cam in frame.camera_names:
+            m = self._read(src, frame.token, cam)
+            if m is None:
+                sem.append(torch.full((h, w), IGNORE, dtype=torch.int64))
+                continue
+            ids = m.astype(np.int64)
+            if ids.size and (ids.min() < 0 or ids.max() > 65535):
+                raise FormatError(f"{src.dir / frame.token}: semantic ids outside 0..65535")
+            mapped = torch.from_numpy(src.lut[ids].astype(np.int64))
+            sem.append(_resize_nearest(mapped, (h, w)))
+        return torch.stack(sem)
 
 
 def _resize_nearest(x: Tensor, hw: tuple[int, int]) -> Tensor:

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from occplug.data.classes import class_groups
 from occplug.data.frame import Batch
 
 from .base import EvalMask, OccMetric, check_class_ids, evaluation_mask
@@ -49,12 +50,19 @@ class Occ3DMIoU(OccMetric):
     free over the same voxels. Only voxels inside the evaluation mask count; the Occ3D default is
     the camera mask. Values are reported in percent, as the benchmark prints them.
 
+    ``mIoU_dynamic`` / ``mIoU_static`` are the same NaN-mean over the dynamic (object) and static
+    (surface / structure) classes, as :func:`occplug.data.classes.class_groups` defines them for the
+    Occ3D-nuScenes and SemanticKITTI taxonomies (Occ3D: ``others`` is in neither); other taxonomies
+    report them only when ``dynamic_classes`` / ``static_classes`` are given.
+
     Args:
         num_classes: ``K``, ids ``0..K-1`` including ``free_label``.
         class_names: names for the per-class keys ``IoU_<name>`` (defaults to ``class_<id>``).
         free_label: the id of empty space (Occ3D: 17).
         mask: which voxels are evaluated: ``none``, ``camera`` (Occ3D default), ``lidar`` or
             ``camera_and_lidar``.
+        dynamic_classes, static_classes: class names of the two groups, replacing the taxonomy's
+            (both or neither).
     """
 
     def __init__(
@@ -64,6 +72,8 @@ class Occ3DMIoU(OccMetric):
         free_label: int = 17,
         mask: EvalMask = "camera",
         ignore_label: int | None = 255,
+        dynamic_classes: Sequence[str] | None = None,
+        static_classes: Sequence[str] | None = None,
     ) -> None:
         super().__init__()
         self.num_classes = num_classes
@@ -72,7 +82,22 @@ class Occ3DMIoU(OccMetric):
             raise ValueError(f"class_names has {len(self.class_names)} names for {num_classes} classes")
         self.free_label = free_label
         self.mask = mask
+        self.groups = self._groups(dynamic_classes, static_classes)
         self.add_state("confmat", torch.zeros(num_classes, num_classes, dtype=torch.int64), dist_reduce_fx="sum")
+
+    def _groups(self, dynamic: Sequence[str] | None, static: Sequence[str] | None) -> dict[str, list[int]]:
+        if (dynamic is None) != (static is None):
+            raise ValueError("occ3d_miou: give both dynamic_classes and static_classes, or neither")
+        if dynamic is None:
+            found = class_groups(self.class_names)
+            return {k: list(v) for k, v in found.items()} if found else {}
+        out: dict[str, list[int]] = {}
+        for key, names in (("dynamic", dynamic), ("static", static)):
+            for n in names:
+                if n not in self.class_names:
+                    raise ValueError(f"occ3d_miou.{key}_classes: unknown class '{n}' (classes: {', '.join(self.class_names)})")
+            out[key] = [self.class_names.index(n) for n in names]
+        return out
 
     def update(self, pred: Tensor, batch: Batch) -> None:  # type: ignore[override]
         """Add ``pred`` ``(B, X, Y, Z)`` against ``batch.voxel_labels`` inside the evaluation mask."""
@@ -87,10 +112,13 @@ class Occ3DMIoU(OccMetric):
         return iou_from_confusion(self.confmat)
 
     def compute(self) -> dict[str, Tensor]:
-        """``mIoU``, ``IoU`` (geometric) and ``IoU_<class>`` for each semantic class, in percent."""
+        """``mIoU``, ``IoU`` (geometric), ``IoU_<class>`` for each semantic class and, where the taxonomy
+        has groups, ``mIoU_dynamic`` / ``mIoU_static``; in percent."""
         iou = self.per_class_iou()
         semantic = [c for c in range(self.num_classes) if c != self.free_label]
         out = {"mIoU": torch.nanmean(iou[semantic]) * 100}
+        for key, ids in self.groups.items():
+            out[f"mIoU_{key}"] = torch.nanmean(iou[ids]) * 100
         cm = self.confmat.to(torch.float64)
         occ = torch.ones(self.num_classes, dtype=torch.bool, device=cm.device)
         occ[self.free_label] = False
@@ -112,5 +140,7 @@ class Occ3DMIoU(OccMetric):
                 continue
             lines.append(f"{self.class_names[c]:<24}{res[f'IoU_{self.class_names[c]}'].item():>8.2f}")
         lines.append(f"{'mIoU':<24}{res['mIoU'].item():>8.2f}")
+        for key in self.groups:
+            lines.append(f"{'mIoU ' + key:<24}{res[f'mIoU_{key}'].item():>8.2f}")
         lines.append(f"{'IoU (geometry)':<24}{res['IoU'].item():>8.2f}")
         return "\n".join(lines)

@@ -202,7 +202,8 @@ def _per_class(key: str) -> tuple[str, str] | None:
     """``(family, class)`` of a per-class key (``IoU_car`` -> ``("IoU", "car")``, class names may
     hold ``_``), None for a summary key (``mIoU``, ``RayIoU_1m``) or bookkeeping (``global_step``)."""
     family, sep, cls = key.partition("_")
-    if not (family and sep and cls) or key in _BOOKKEEPING or _THRESHOLD.fullmatch(cls):
+    # mIoU_dynamic / mIoU_static are means over class groups: summaries, not classes
+    if not (family and sep and cls) or key in _BOOKKEEPING or _THRESHOLD.fullmatch(cls) or family == "mIoU":
         return None
     return family, cls
 

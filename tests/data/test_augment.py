@@ -174,3 +174,49 @@ def test_projection_honours_a_rotated_img_aug(frame):
     assert torch.allclose(uv[front], (hom[:, :2] / hom[:, 2:3])[front], atol=1e-3)
     back = unproject_from_image(uv[front], depth[front], frame.intrinsics[0], frame.cam_to_ego[0], a)
     assert torch.allclose(back, pts[front], atol=1e-3)
+
+
+def test_lidar_dropout_and_jitter_are_recorded_and_replayable(frame):
+    from occplug.data.augment import apply_lidar
+
+    aug = Augmentation({"lidar": {"dropout": 0.25, "jitter": 0.05}})
+    assert aug.active
+    g = torch.Generator().manual_seed(3)
+    out = aug(frame, generator=g)
+    rec = out.extras["lidar_aug"]
+    keep, offset = rec["keep"], rec["offset"]
+    p = frame.points.shape[0]
+    assert keep.shape == (p,) and keep.dtype == torch.bool
+    assert 0.7 < float(keep.float().mean()) < 0.8  # dropout 0.25 of thousands of points
+    assert out.points.shape == (int(keep.sum()), 4) and out.point_labels.shape == (int(keep.sum()),)
+    # the record is what happened: kept points moved by the offset, intensity and labels untouched
+    assert torch.equal(out.points[:, :3], frame.points[keep][:, :3] + offset)
+    assert torch.equal(out.points[:, 3], frame.points[keep][:, 3])
+    assert torch.equal(out.point_labels, frame.point_labels[keep])
+    assert abs(float(offset.std()) - 0.05) < 0.005
+    # replaying the record on the original frame reproduces the augmented scan exactly
+    again = apply_lidar(frame, keep, offset)
+    assert torch.equal(again.points, out.points) and torch.equal(again.point_labels, out.point_labels)
+    # the same generator seed draws the same augmentation; the original frame is untouched
+    same = aug(frame, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(same.points, out.points)
+    assert frame.points.shape[0] == p and "lidar_aug" not in frame.extras
+    # images, poses and voxels are untouched by a LiDAR-only augmentation
+    assert torch.equal(out.images, frame.images) and torch.equal(out.voxel_labels, frame.voxel_labels)
+    # zero dropout and jitter: the identity, still recorded
+    ident = Augmentation({"lidar": {}})(frame)
+    assert torch.equal(ident.points, frame.points) and bool(ident.extras["lidar_aug"]["keep"].all())
+    with pytest.raises(ValueError, match=r"augment.lidar.dropout: expected a probability in \[0, 1\)"):
+        Augmentation({"lidar": {"dropout": 1.5}})
+    with pytest.raises(ValueError, match="augment.lidar"):
+        Augmentation({"lidar": {"jiter": 0.1}})
+    with pytest.raises(ValueError, match="does not fit"):
+        apply_lidar(frame, keep[:-1], offset)
+
+
+def test_lidar_augmentation_happens_in_the_lidar_frame_before_the_bev_transform(frame):
+    g = torch.Generator().manual_seed(0)
+    out = Augmentation({"lidar": {"dropout": 0.5, "jitter": 0.1}, "bev": {"scale": [2.0, 2.0]}}, TINY.grid)(frame, generator=g)
+    rec = out.extras["lidar_aug"]
+    # the BEV scale applies to the jittered points: xyz = 2 * (original + offset)
+    assert torch.allclose(out.points[:, :3], 2 * (frame.points[rec["keep"]][:, :3] + rec["offset"]), atol=1e-5)

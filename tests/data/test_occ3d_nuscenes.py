@@ -210,11 +210,18 @@ def test_a_bad_label_file_met_during_fit_is_one_line_from_the_cli(copy, tmp_path
 
 def test_pseudo_labels_from_the_tree(tree):
     p = tree / "pseudo"
+    primary = {"dir": str(p / "semantics"), "mapping": str(p / "semantics_mapping.yaml")}
+    auxiliary = {"dir": str(p / "semantics_aux"), "mapping": str(p / "semantics_aux_mapping.yaml")}
     dm = module(tree, pseudo_labels={"depth": str(p / "depth"), "features": str(p / "features"),
-                                     "semantics": {"dir": str(p / "semantics"), "mapping": str(p / "semantics_mapping.yaml")}},
-                image_size=[24, 48])
+                                     "semantics": [primary, auxiliary]}, image_size=[24, 48])
     f = dm.dataset("val")[0]
     assert f.pseudo_depth.shape == (6, 24, 48) and f.pseudo_semantics.shape == (6, 24, 48)
+    # the tree's two sources merged as the on-the-fly labeler merges them
+    from occplug.data.synthetic.pseudo import SyntheticPseudoLabels
+
+    made = SyntheticPseudoLabels("default").attach(SyntheticDataset(TINY, "val", cache_dir=default_cache_dir())[0])
+    raw = module(tree, pseudo_labels={"semantics": [primary, auxiliary]}).dataset("val")[0]
+    assert torch.equal(raw.pseudo_semantics, made.pseudo_semantics)
     assert f.pseudo_features.shape[:2] == (6, 16)
 
 

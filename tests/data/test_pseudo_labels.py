@@ -21,7 +21,8 @@ def frame():
 def sources(root):
     return {
         "depth": str(root / "depth"),
-        "semantics": {"dir": str(root / "semantics"), "mapping": str(root / "mapping.yaml")},
+        "semantics": [{"dir": str(root / "semantics"), "mapping": str(root / "mapping.yaml")},
+                      {"dir": str(root / "semantics_aux"), "mapping": str(root / "mapping_aux.yaml")}],
         "features": str(root / "features"),
     }
 
@@ -30,7 +31,9 @@ def test_written_pseudo_labels_read_back_through_the_mapping_table(frame, tmp_pa
     labeler = SyntheticPseudoLabels("default")
     labeler.write(frame, tmp_path)
     (tmp_path / "mapping.yaml").write_text(mapping_table("occ3d"))
+    (tmp_path / "mapping_aux.yaml").write_text(mapping_table("occ3d", source="auxiliary"))
     assert (tmp_path / "depth" / frame.token / "CAM_FRONT.npy").is_file()
+    assert (tmp_path / "semantics_aux" / frame.token / "CAM_BACK.png").is_file()
     assert (tmp_path / "semantics" / frame.token / "CAM_BACK.png").is_file()
     read = PseudoLabelSource(sources(tmp_path), OCC3D_CLASSES).attach(frame)
     made = labeler.attach(frame)
@@ -65,9 +68,9 @@ def test_realism_knobs(frame):
     assert 0.02 < float(rel.median()) < 0.5
     truth = frame.semantics_2d
     # the foreign taxonomy merges classes no table can split again (as in OccLE's Table B.1) ...
-    merged = (truth == 5) | (truth == 8) | (truth == 0) | (truth == 255)
+    merged = (truth == 5) | (truth == 0) | (truth == 255)
     agree = lambda p: float((p.pseudo_semantics == truth)[~merged].float().mean())  # noqa: E731
-    assert agree(perfect) == 1.0
+    assert agree(perfect) == 1.0  # cones (8) included: the perfect auxiliary supplies them
     assert torch.equal(perfect.pseudo_semantics[truth == 5], torch.full_like(truth[truth == 5], 10))  # construction -> truck
     # ... and noise / boundary errors cost accuracy
     assert 0.6 < agree(noisy) < agree(SyntheticPseudoLabels("default").attach(frame)) < 1.0
@@ -137,3 +140,110 @@ def test_feature_maps_read_from_npz_under_the_features_key(frame, tmp_path):
     np.savez_compressed(victim, feats=np.zeros((2, 3, 4), np.float16))
     with pytest.raises(FormatError, match=rf"{victim.name}: no 'features' array \(keys: feats\)"):
         PseudoLabelSource({"features": str(tmp_path / "features")}, OCC3D_CLASSES).attach(frame)
+
+
+def test_several_semantic_sources_merge_by_precedence_through_their_tables(tmp_path):
+    from occplug.data import Frame
+    from occplug.data.pseudo_labels import merge_semantics
+
+    targets = ["road", "car", "cone", "tree"]  # ids 0..3
+    # the primary (dataset-specific) lacks cones; the auxiliary (open-vocabulary) has them, in its own ids
+    (tmp_path / "primary.yaml").write_text(
+        "classes: {0: unlabeled, 1: street, 2: automobile, 3: plant}\n"
+        "map: {street: road, automobile: car, plant: tree, unlabeled: ignore}\n")
+    (tmp_path / "aux.yaml").write_text(
+        "classes: {10: traffic cone, 11: vehicle, 12: background}\nmap: {traffic cone: cone, vehicle: car}\n")
+    primary = np.array([[1, 2, 0], [3, 0, 2]], dtype=np.int64)
+    aux = np.array([[12, 11, 10], [10, 12, 12]], dtype=np.int64)
+    for name, ids in (("primary", primary), ("aux", aux)):
+        (tmp_path / name / "tok").mkdir(parents=True)
+        np.save(tmp_path / name / "tok" / "CAM.npy", ids)
+    frame = Frame(images=torch.zeros(1, 3, 2, 3), intrinsics=torch.eye(3)[None], cam_to_ego=torch.eye(4)[None],
+                  img_aug=torch.eye(3)[None], ego_to_global=torch.eye(4, dtype=torch.float64), timestamp=0.0,
+                  scene="s", frame_index=0, token="tok", camera_names=("CAM",))
+    both = [{"dir": "primary", "mapping": "primary.yaml"}, {"dir": "aux", "mapping": "aux.yaml"}]
+    merged = PseudoLabelSource({"semantics": both}, targets, base=tmp_path).attach(frame).pseudo_semantics
+    # cone only from the auxiliary (where the primary is silent); the primary's tree wins over the auxiliary's
+    # cone at [1, 0]; nobody speaks at [1, 1]
+    assert merged.tolist() == [[[0, 1, 2], [3, 255, 1]]]
+    reverse = PseudoLabelSource({"semantics": both[::-1]}, targets, base=tmp_path).attach(frame).pseudo_semantics
+    assert reverse.tolist() == [[[0, 1, 2], [2, 255, 1]]]
+    single = PseudoLabelSource({"semantics": both[0]}, targets, base=tmp_path).attach(frame).pseudo_semantics
+    assert single.tolist() == [[[0, 1, 255], [3, 255, 1]]]
+    assert merge_semantics([torch.tensor([255, 255, 4]), torch.tensor([1, 255, 2]), torch.tensor([3, 5, 3])]).tolist() == [1, 5, 4]
+    with pytest.raises(ValueError, match=r"pseudo_labels.semantics\[1\]: needs 'mapping'"):
+        PseudoLabelSource({"semantics": [both[0], {"dir": "aux"}]}, targets, base=tmp_path)
+
+
+def _train_frames():
+    ds = SyntheticDataset(TINY, "train", cache_dir=default_cache_dir())
+    return [ds[i] for i in range(len(ds))]
+
+
+def test_two_semantic_sources_the_primary_lacks_cones_the_auxiliary_supplies_them():
+    frames = _train_frames()
+    cone, barrier = OCC3D_CLASSES.index("traffic_cone"), OCC3D_CLASSES.index("barrier")
+    assert any((f.semantics_2d == cone).any() for f in frames)
+    default = SyntheticPseudoLabels("default")
+    primary_only = SyntheticPseudoLabels({"auxiliary": False})
+    found = wrong = 0
+    for f in frames:
+        maps = default.maps(f)
+        truth = f.semantics_2d
+        # two taxonomies: the primary never says cone (no such foreign class), the auxiliary has it
+        assert not (default._lut[maps["semantics"]] == cone).any()
+        assert set(maps["semantics_aux"].unique().tolist()) <= set(range(7))
+        merged = default.attach(f).pseudo_semantics
+        alone = primary_only.attach(f).pseudo_semantics
+        assert not (alone == cone).any()
+        # the auxiliary only fills what the primary leaves unknown: wherever the primary speaks, it wins
+        speaks = alone != 255
+        assert torch.equal(merged[speaks], alone[speaks])
+        found += int(((merged == cone) & (truth == cone)).sum())
+        wrong += int(((maps["semantics_aux"] == 1) != (truth == cone)).sum())
+    assert found >= 10  # tiny cones: the primary's boundary errors cover many of their pixels
+    assert wrong > 0  # imperfect: the auxiliary's cone masks are not exactly the cones
+    perfect = SyntheticPseudoLabels("perfect")
+    f = next(f for f in frames if (f.semantics_2d == cone).any())
+    assert torch.equal(perfect.attach(f).pseudo_semantics[f.semantics_2d == cone],
+                       torch.full_like(f.semantics_2d[f.semantics_2d == cone], cone))
+    assert barrier != cone
+    table = mapping_table("occ3d", source="auxiliary")
+    lut = load_mapping(_write_tmp(table), OCC3D_CLASSES)
+    assert lut[1] == cone and (lut[[0, 2, 3, 4, 5, 6]] == 255).all()
+
+
+def _write_tmp(text):
+    import tempfile
+    from pathlib import Path
+
+    path = Path(tempfile.mkdtemp()) / "aux.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_features_cluster_by_class_but_are_no_one_to_one_code():
+    frames = _train_frames()
+
+    def nearest_centroid_accuracy(labeler):
+        xs, ys = [], []
+        s = labeler.realism.feature_stride
+        for f in frames:
+            x = labeler.attach(f).pseudo_features  # (N, F, h, w)
+            _, c, h, w = x.shape
+            y = f.semantics_2d[:, s // 2 :: s, s // 2 :: s][:, :h, :w]  # the class at each cell's centre
+            xs.append(x.permute(0, 2, 3, 1).reshape(-1, c))
+            ys.append(y.reshape(-1))
+        x, y = torch.cat(xs), torch.cat(ys)
+        x, y = x[y != 255], y[y != 255]
+        classes = y.unique()
+        centroids = torch.stack([x[y == k].mean(0) for k in classes])
+        pred = classes[torch.cdist(x, centroids).argmin(1)]
+        majority = max(float((y == k).float().mean()) for k in classes)
+        return float((pred == y).float().mean()), majority, len(classes)
+
+    acc, majority, k = nearest_centroid_accuracy(SyntheticPseudoLabels("default", kinds=("features",)))
+    assert k >= 10 and acc > majority + 0.3  # far above chance (1 / k) and above always-the-biggest-class
+    assert acc < 0.9  # but classes overlap: no one-to-one code of the true class
+    noisy, _, _ = nearest_centroid_accuracy(SyntheticPseudoLabels("noisy", kinds=("features",)))
+    assert noisy < acc

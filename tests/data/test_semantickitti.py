@@ -209,3 +209,12 @@ def test_baseline_trains_on_the_tree_and_reports_ssc_scores(tree, tmp_path, caps
     assert {"IoU", "mIoU", "Precision", "Recall", "IoU_car"} <= set(metrics) and "RayIoU" not in metrics
     assert metrics["eval_mask"] == "none" and metrics["train_masks"] == {"voxel_labels": "none"}
     assert "SemanticKITTI SSC (semantic-kitti-api scorer" in capsys.readouterr().out
+
+
+def test_plugin_label_sources_and_transforms_run_in_the_reader(tree, toy_extensions):
+    dm = module(tree, label_sources={"ids": {"type": "toy_ids", "offset": 3}}, transforms=[{"type": "toy_tag"}])
+    batch = dm.collate([dm.dataset("train")[i] for i in range(2)])
+    assert torch.equal(batch.extras["toy_ids"], torch.tensor([[3, -1], [3, 4]]))
+    assert batch.extras["toy_num_classes"] == [20, 20]
+    tags = batch.extras["toy_tag"]  # no rule declared: a list
+    assert isinstance(tags, list) and torch.equal(torch.stack(tags), torch.tensor([[0.0, 0.0], [1.0, 0.0]]))

@@ -17,6 +17,7 @@ from occplug.data.synthetic import (
     SyntheticDataModule,
     SyntheticDataset,
     build_scene,
+    default_cache_dir,
     generate_frame,
     preset,
     read_frame,
@@ -471,3 +472,32 @@ def test_culling_does_not_change_camera_rendering(train_frames):
         full = intersect_rays(prims, origins[c], d, cull=False)
         fast = intersect_rays(prims, origins[c], d, bundles=tiles)
         assert torch.equal(full.index, fast.index) and torch.equal(full.t, fast.t)
+
+
+def test_long_range_preset_reaches_200_m_in_scene_lidar_and_pseudo_depth():
+    from occplug.data.synthetic.pseudo import SyntheticPseudoLabels
+
+    lr = preset("long_range")
+    assert lr.lidar_max_range >= 200 and lr.world_margin >= 200
+    # a cheaper rendering of the same world (fewer pixels and firings; same ranges, beams and margin)
+    cfg = lr.replace(image_size=(32, 88), num_cameras=1, lidar_azimuth_steps=360, label_subsamples=1, train_scenes=1,
+                     frames_per_scene=1)
+    frame = SyntheticDataset(cfg, "train", cache_dir=default_cache_dir())[0]
+    scene = build_scene(cfg, "train", 0)
+    # the town (its ground map, lots and traffic) reaches >= 200 m from the ego on every side
+    ex, ey = scene.ego_to_world(0.0)[:2, 3].tolist()
+    x0, y0 = scene.ground.origin
+    nx, ny = scene.ground.classes.shape
+    res = scene.ground.resolution
+    assert min(ex - x0, x0 + nx * res - ex, ey - y0, y0 + ny * res - ey) >= 200
+    ranges = frame.points[:, :3].norm(dim=1)
+    assert 200 < float(ranges.max()) <= cfg.lidar_max_range
+    assert float(frame.depth.max()) > 200
+    # the data module keeps the synthetic pseudo depth to the LiDAR range (default realism would cut it at 80 m)
+    dm = SyntheticDataModule(preset="long_range", cache=False, pseudo_labels={"synthetic": "default", "kinds": ["depth"]})
+    assert dm.pseudo.realism.depth_max == 250.0
+    pseudo = dm.pseudo.attach(frame).pseudo_depth
+    assert 200 < float(pseudo.max()) <= 250.0
+    assert float(SyntheticPseudoLabels("default", kinds=("depth",)).attach(frame).pseudo_depth.max()) <= 80.0
+    # the default world is unchanged by this: its pseudo depth still stops at 80 m
+    assert SyntheticDataModule(preset="default", cache=False, pseudo_labels={"synthetic": "default"}).pseudo.realism.depth_max == 80.0

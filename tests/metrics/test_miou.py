@@ -101,3 +101,43 @@ def test_a_predicted_id_outside_the_classes_is_an_error():
     m = Occ3DMIoU(num_classes=4, free_label=3, mask="none")
     with pytest.raises(ValueError, match="the prediction holds class id 255, outside 0..3"):
         m.update(torch.full((1, 1, 2, 2), 255), make_batch(torch.zeros(1, 1, 2, 2, dtype=torch.long)))
+
+
+def test_dynamic_and_static_miou_by_hand():
+    from occplug.data.classes import OCC3D_CLASSES, OCC3D_DYNAMIC, OCC3D_STATIC, SEMANTIC_KITTI_CLASSES, class_groups
+
+    # the one definition: ten objects dynamic, six surfaces static, others and free in neither
+    groups = class_groups(OCC3D_CLASSES)
+    assert groups == {"dynamic": tuple(range(1, 11)), "static": tuple(range(11, 17))}
+    assert "barrier" in OCC3D_DYNAMIC and "traffic_cone" in OCC3D_DYNAMIC and "others" not in OCC3D_STATIC
+    kitti = class_groups(SEMANTIC_KITTI_CLASSES)
+    assert kitti["dynamic"] == tuple(range(1, 9)) and kitti["static"] == tuple(range(9, 20))
+    assert class_groups(["a", "b"]) is None
+    # Occ3D ids: 0 others, 4 car, 7 pedestrian, 11 driveable_surface, 16 vegetation, 17 free
+    gt = torch.tensor([0, 4, 4, 7, 11, 11, 16, 17])
+    pred = torch.tensor([4, 4, 17, 7, 11, 16, 16, 17])
+    m = Occ3DMIoU(num_classes=18, class_names=OCC3D_CLASSES, free_label=17, mask="none")
+    m.update(pred.reshape(1, 2, 2, 2), make_batch(gt.reshape(1, 2, 2, 2)))
+    res = m.compute()
+    # car: tp 1, fp 1 (others voxel), fn 1 -> 1/3; pedestrian 1; other dynamic classes absent (NaN, skipped)
+    assert math.isclose(res["mIoU_dynamic"].item(), 100 * (1 / 3 + 1) / 2, rel_tol=1e-5)
+    # driveable: tp 1, fn 1 -> 1/2; vegetation: tp 1, fp 1 -> 1/2
+    assert math.isclose(res["mIoU_static"].item(), 50.0, rel_tol=1e-5)
+    # others: tp 0, fn 1 -> 0 counts in mIoU but in neither group
+    assert math.isclose(res["mIoU"].item(), 100 * (0 + 1 / 3 + 1 + 0.5 + 0.5) / 5, rel_tol=1e-5)
+    assert "mIoU dynamic" in m.table()
+    # explicit groups for another taxonomy; no groups -> no keys
+    custom = Occ3DMIoU(num_classes=4, class_names=["a", "b", "c", "free"], free_label=3, mask="none",
+                       dynamic_classes=["a"], static_classes=["b", "c"])
+    g = torch.tensor([0, 0, 1, 1, 3, 3, 2, 3]).reshape(1, 2, 2, 2)
+    p = torch.tensor([0, 1, 1, 1, 3, 0, 3, 3]).reshape(1, 2, 2, 2)
+    custom.update(p, make_batch(g))
+    out = custom.compute()
+    assert math.isclose(out["mIoU_dynamic"].item(), 100 / 3, rel_tol=1e-5)
+    assert math.isclose(out["mIoU_static"].item(), 100 / 3, rel_tol=1e-5)  # (2/3 + 0) / 2
+    plain = Occ3DMIoU(num_classes=4, free_label=3, mask="none")
+    plain.update(p, make_batch(g))
+    assert "mIoU_dynamic" not in plain.compute()
+    with pytest.raises(ValueError, match="unknown class 'x'"):
+        Occ3DMIoU(num_classes=4, class_names=["a", "b", "c", "free"], free_label=3, dynamic_classes=["x"],
+                  static_classes=["a"])

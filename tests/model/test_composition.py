@@ -8,7 +8,6 @@ checkpoint or predict code outside the core.
 
 from __future__ import annotations
 
-from typing import Annotated
 
 import numpy as np
 import pytest
@@ -20,8 +19,7 @@ from occplug import runner
 from occplug.components import SmallCNN, VoxelPoints
 from occplug.components.point_encoders import voxel_point_statistics
 from occplug.config import ConfigError, validate
-from occplug.config.slots import Slot
-from occplug.geometry import GridSpec, sample_volume
+from occplug.geometry import GridSpec
 from occplug.interfaces import ModelOutputs, OccupancyHead, Scene, SupervisionSource
 from occplug.interfaces.model import OccupancyModel
 from occplug.kinds import KINDS, given_arguments

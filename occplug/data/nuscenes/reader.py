@@ -232,6 +232,8 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
         sequential: read scenes in temporal order (:mod:`occplug.data.sequences`; or ``{run_length: N}``).
         augment: training augmentation (:mod:`occplug.data.augment`).
         pseudo_labels: file-based pseudo labels (:mod:`occplug.data.pseudo_labels`).
+        label_sources, transforms, fields: plugins' label sources, frame transforms and field collate rules
+            (:mod:`occplug.data.extensions`).
         batch_size: samples per batch on each device.
         num_workers: loader worker processes.
         pin_memory: pin batches in memory (for GPU training).
@@ -264,12 +266,16 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
         pin_memory: bool = False,
         cache_dir: str | None = None,
         check_files: bool = True,
+        label_sources: dict | None = None,
+        transforms: list | None = None,
+        fields: dict | None = None,
     ) -> None:
         super().__init__(
             grid=grid if grid is not None else OCC3D_GRID, class_names=OCC3D_CLASSES, free_label=OCC3D_FREE,
             ignore_label=255, batch_size=batch_size, num_workers=num_workers, pin_memory=pin_memory,
             image_size=image_size, adjacent_offsets=adjacent_offsets, sequential=sequential, augment=augment,
-            pseudo_labels=pseudo_labels, cache_dir=cache_dir,
+            pseudo_labels=pseudo_labels, cache_dir=cache_dir, label_sources=label_sources, transforms=transforms,
+            fields=fields,
         )
         self.root = Path(root)
         if not self.root.is_dir():

@@ -281,6 +281,8 @@ class SemanticKITTIDataModule(ReaderDataModule):
         augment: training augmentation (:mod:`occplug.data.augment`; mirror with ``bev.flip_y``: the grid is
             not symmetric in x).
         pseudo_labels: file-based pseudo labels (:mod:`occplug.data.pseudo_labels`; camera name ``image_2``).
+        label_sources, transforms, fields: plugins' label sources, frame transforms and field collate rules
+            (:mod:`occplug.data.extensions`).
         batch_size: samples per batch on each device.
         num_workers: loader worker processes.
         pin_memory: pin batches in memory (for GPU training).
@@ -309,12 +311,15 @@ class SemanticKITTIDataModule(ReaderDataModule):
         pin_memory: bool = False,
         cache_dir: str | None = None,
         check_files: bool = True,
+        label_sources: dict | None = None,
+        transforms: list | None = None,
+        fields: dict | None = None,
     ) -> None:
         super().__init__(
             grid=grid if grid is not None else SSC_GRID, class_names=SEMANTIC_KITTI_CLASSES, free_label=0, ignore_label=IGNORE,
             batch_size=batch_size, num_workers=num_workers, pin_memory=pin_memory, image_size=image_size,
             adjacent_offsets=adjacent_offsets, sequential=sequential, augment=augment, pseudo_labels=pseudo_labels,
-            cache_dir=cache_dir,
+            cache_dir=cache_dir, label_sources=label_sources, transforms=transforms, fields=fields,
         )
         self.root = Path(root)
         if not (self.root / "sequences").is_dir():

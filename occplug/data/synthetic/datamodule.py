@@ -28,7 +28,8 @@ class SyntheticDataModule(ReaderDataModule):
     front with a progress bar.
 
     Args:
-        preset: ``tiny`` (tests), ``default`` (a CPU run of minutes) or ``occ3d`` (Occ3D size).
+        preset: ``tiny`` (tests), ``default`` (a CPU run of minutes), ``occ3d`` (Occ3D size) or
+            ``long_range`` (scene, LiDAR and pseudo depth to 250 m).
         grid: ``{range, voxel_size}`` of the label grid, replacing the preset's.
         seed: world seed.
         train_scenes, val_scenes, test_scenes: scenes per split.
@@ -47,8 +48,11 @@ class SyntheticDataModule(ReaderDataModule):
         augment: training augmentation (:mod:`occplug.data.augment`).
         pseudo_labels: ``{synthetic: <realism>}`` makes the world's own imperfect pseudo labels on the
             fly (:mod:`occplug.data.synthetic.pseudo`; realism = ``perfect``, ``default``, ``noisy`` or a
-            knob mapping; optional ``kinds: [depth, semantics, features]``), or file sources as for any
+            knob mapping; optional ``kinds: [depth, semantics, features]``; ``depth_max`` defaults to at
+            least the world's LiDAR range), or file sources as for any
             reader (:mod:`occplug.data.pseudo_labels`).
+        label_sources, transforms, fields: plugins' label sources, frame transforms and field collate
+            rules (:mod:`occplug.data.extensions`).
 
     Attributes:
         world_config: the resolved :class:`~occplug.data.synthetic.SyntheticWorldConfig`.
@@ -76,6 +80,9 @@ class SyntheticDataModule(ReaderDataModule):
         sequential: bool | dict = False,
         augment: str | dict | None = None,
         pseudo_labels: dict | None = None,
+        label_sources: dict | None = None,
+        transforms: list | None = None,
+        fields: dict | None = None,
     ) -> None:
         knobs = {
             "grid": grid,
@@ -100,7 +107,7 @@ class SyntheticDataModule(ReaderDataModule):
             if extra:
                 raise ValueError(f"data.pseudo_labels.{extra[0]}: with 'synthetic' only 'kinds' may be given")
             kinds = tuple(pseudo_labels.get("kinds") or ("depth", "semantics", "features"))
-            generated = SyntheticPseudoLabels(pseudo_labels["synthetic"], kinds=kinds)
+            generated = SyntheticPseudoLabels(_realism(pseudo_labels["synthetic"], config), kinds=kinds)
             pseudo_labels = None
         super().__init__(
             grid=config.grid,
@@ -114,6 +121,9 @@ class SyntheticDataModule(ReaderDataModule):
             augment=augment,
             pseudo_labels=pseudo_labels,
             pseudo=generated,
+            label_sources=label_sources,
+            transforms=transforms,
+            fields=fields,
         )
         self.preset = preset
         self.world_config: SyntheticWorldConfig = config
@@ -142,6 +152,19 @@ class SyntheticDataModule(ReaderDataModule):
                 dataset = dataset.base
             assert isinstance(dataset, SyntheticDataset)
             dataset.pregenerate(progress=True)
+
+
+def _realism(spec: object, config: SyntheticWorldConfig) -> object:
+    """The pseudo-label realism, its ``depth_max`` raised to the LiDAR range unless the spec sets it
+    (so the ``long_range`` world's pseudo depth reaches as far as its LiDAR)."""
+    from dataclasses import replace
+
+    from .pseudo import pseudo_realism
+
+    realism = pseudo_realism(spec)  # type: ignore[arg-type]
+    if isinstance(spec, dict) and "depth_max" in spec:
+        return realism
+    return replace(realism, depth_max=max(realism.depth_max, config.lidar_max_range))
 
 
 def _scenes(dataset: SyntheticDataset) -> SceneIndex:

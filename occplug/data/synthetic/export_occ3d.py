@@ -16,7 +16,8 @@ can be tested end to end::
       splits.json                         {"train": [scene names], "val": [...], "test": [...]}
       pseudo/                             (optional) pseudo labels, see occplug.data.pseudo_labels:
         depth/<token>/<CAM>.npy, semantics/<token>/<CAM>.png, features/<token>/<CAM>.npy,
-        semantics_mapping.yaml
+        semantics_mapping.yaml; the auxiliary segmenter's semantics_aux/<token>/<CAM>.png and
+        semantics_aux_mapping.yaml
 
 Sample tokens are the generated frames' tokens (``synth-0-train-0000-000``); every other token is
 an MD5 hex digest of a descriptive name. Timestamps are microseconds (each scene starts at its own
@@ -144,6 +145,8 @@ def write_occ3d_nuscenes(config: SyntheticWorldConfig, out: str | Path, version:
     (out / "splits.json").write_text(json.dumps(scene_names, indent=2))
     if labeler is not None:
         (out / "pseudo" / "semantics_mapping.yaml").write_text(mapping_table("occ3d", labeler.realism.foreign_taxonomy))
+        if labeler.has_auxiliary:
+            (out / "pseudo" / "semantics_aux_mapping.yaml").write_text(mapping_table("occ3d", source="auxiliary"))
     return written
 
 

@@ -15,7 +15,8 @@
       times.txt                       per scan, seconds since the sequence start
     <out>/splits.json                 {"train": [sequences], "val": [...], "test": [...]}
     <out>/pseudo/...                  (optional) pseudo labels of image_2 (see occplug.data.pseudo_labels),
-                                      with semantics_mapping.yaml to the SemanticKITTI classes
+                                      with semantics_mapping.yaml to the SemanticKITTI classes (and the
+                                      auxiliary segmenter's semantics_aux/ with semantics_aux_mapping.yaml)
 
 As in SemanticKITTI, scans run at 10 Hz and every 5th scan is labelled: with the world's 2 Hz frames,
 frame ``k`` is scan ``5 k`` (other frame rates: stride ``round(10 / fps)``, at least 1); ``poses.txt``
@@ -146,6 +147,8 @@ def write_semantickitti(config: SyntheticWorldConfig, out: str | Path, splits: S
     (out / "splits.json").write_text(json.dumps(names, indent=2))
     if labeler is not None:
         (out / "pseudo" / "semantics_mapping.yaml").write_text(mapping_table("semantickitti", labeler.realism.foreign_taxonomy))
+        if labeler.has_auxiliary:
+            (out / "pseudo" / "semantics_aux_mapping.yaml").write_text(mapping_table("semantickitti", source="auxiliary"))
     return names
 
 

@@ -8,19 +8,32 @@ realism set by :class:`PseudoRealism`:
   ``depth_scale_error``, as monocular metric depth mis-estimates the focal scale) and a spatially
   smooth relative error ``n`` (std ``depth_noise``); 0 where the ground truth has no surface (sky) or
   beyond ``depth_max``.
-* **semantics** in a *foreign taxonomy* (:data:`FOREIGN_CLASSES`, ids in the style of MSeg's universal
-  taxonomy as OccLE's Table B.1 lists them), with the splits and merges of that table: man-made
-  structure splits into ``building`` (above 2.5 m) and ``wall``; a bicycle / motorcycle splits into
-  the vehicle and its ``bicyclist`` / ``motorcyclist`` rider (above 1 m); construction vehicles merge
-  into ``truck`` and traffic cones into ``road_barrier`` (errors no mapping table can undo); sky and
-  ``others`` have no target class. Label noise: blobs (``semantic_noise`` of the pixels) relabelled
-  with a random foreign class; boundary errors: pixels within ``boundary_error`` px of a class
-  boundary take a neighbour's label. :func:`mapping_table` writes the YAML table back to the target
-  taxonomy (Occ3D or SemanticKITTI).
-* **features**: ``feature_dim`` channels at ``1 / feature_stride`` resolution: a fixed random
-  embedding of the pixel's true class plus half a fixed random Fourier embedding of its global
-  position (so a static surface keeps its features across frames), area-averaged, plus Gaussian
-  noise (std ``feature_noise``).
+* **semantics** from two imperfect segmenters with different taxonomies, merged through their
+  mapping tables by :func:`~occplug.data.pseudo_labels.merge_semantics` (the primary first):
+
+  - the *primary*, dataset-specific one in a *foreign taxonomy* (:data:`FOREIGN_CLASSES`, ids in the
+    style of MSeg's universal taxonomy as OccLE's Table B.1 lists them), with the splits and merges
+    of that table: man-made structure splits into ``building`` (above 2.5 m) and ``wall``; a
+    bicycle / motorcycle splits into the vehicle and its ``bicyclist`` / ``motorcyclist`` rider
+    (above 1 m); construction vehicles merge into ``truck`` (an error no mapping table can undo);
+    it has **no traffic-cone class** (cones are ``unlabeled``); sky and ``others`` have no target
+    class. Label noise: blobs (``semantic_noise`` of the pixels) relabelled with a random foreign
+    class; boundary errors: pixels within ``boundary_error`` px of a class boundary take a
+    neighbour's label. :func:`mapping_table` writes the YAML table back to the target taxonomy
+    (Occ3D or SemanticKITTI).
+  - the *auxiliary*, open-vocabulary one (``auxiliary``; :data:`AUXILIARY_CLASSES`, a few prompted
+    names) that has the cone: coarse (every vehicle is ``vehicle``), with over-reaching masks
+    (``auxiliary_boundary_error``) and missed regions (``auxiliary_miss`` of the pixels become
+    ``background``). Its table (``mapping_table(..., source="auxiliary")``) maps only what the
+    primary lacks (``traffic cone``), so it fills exactly those pixels.
+
+* **features**: ``feature_dim`` channels at ``1 / feature_stride`` resolution, like a vision
+  foundation model's: they cluster by class but are no one-to-one code of it. A fixed random
+  embedding of the pixel's *coarse group* (vehicles, road users, flat ground, structure, nature)
+  plus a smaller one of its class (``feature_class_weight``; classes of a group overlap), plus a
+  fixed random Fourier embedding of its global position (weight ``feature_position_weight``; a
+  static surface keeps its features across frames, and a class spreads out in space),
+  area-averaged (boundary cells mix classes), plus Gaussian noise (std ``feature_noise``).
 
 Everything is deterministic in ``(realism.seed, token, camera)``.
 """
@@ -46,6 +59,7 @@ from occplug.data.frame import Frame
 from occplug.geometry import camera_rays
 
 __all__ = [
+    "AUXILIARY_CLASSES",
     "FOREIGN_CLASSES",
     "PSEUDO_PRESETS",
     "PseudoRealism",
@@ -78,10 +92,10 @@ FOREIGN_CLASSES: dict[int, str] = {
 }
 _ID = {name: i for i, name in FOREIGN_CLASSES.items()}
 
-# Occ3D id -> foreign name (before the height splits); 255 (no surface) -> sky.
+# Occ3D id -> foreign name (before the height splits); 255 (no surface) -> sky. No cone class: unlabeled.
 _OCC3D_TO_FOREIGN = {
     0: "unlabeled", 1: "road_barrier", 2: "bicycle", 3: "bus", 4: "car", 5: "truck", 6: "motorcycle", 7: "person",
-    8: "road_barrier", 9: "trailer", 10: "truck", 11: "road", 12: "gravel", 13: "sidewalk_pavement", 14: "terrain",
+    8: "unlabeled", 9: "trailer", 10: "truck", 11: "road", 12: "gravel", 13: "sidewalk_pavement", 14: "terrain",
     15: "wall", 16: "vegetation", 255: "sky",
 }  # fmt: skip
 # (Occ3D id, foreign name below the height, foreign name at/above it, height in metres of the ego frame)
@@ -106,6 +120,24 @@ _TO_TARGET: dict[str, dict[str, str | None]] = {
 }  # fmt: skip
 _TAXONOMIES = {"occ3d": OCC3D_CLASSES, "semantickitti": SEMANTIC_KITTI_CLASSES}
 
+#: The open-vocabulary auxiliary segmenter's prompts: id -> name.
+AUXILIARY_CLASSES: dict[int, str] = {
+    0: "background", 1: "traffic cone", 2: "vehicle", 3: "person", 4: "tree", 5: "building", 6: "road",
+}  # fmt: skip
+_AUX_ID = {name: i for i, name in AUXILIARY_CLASSES.items()}
+# Occ3D id -> auxiliary name (anything else: background).
+_OCC3D_TO_AUX = {
+    2: "vehicle", 3: "vehicle", 4: "vehicle", 5: "vehicle", 6: "vehicle", 9: "vehicle", 10: "vehicle", 7: "person",
+    8: "traffic cone", 11: "road", 15: "building", 16: "tree",
+}  # fmt: skip
+#: Auxiliary name -> target class per taxonomy: only what the primary lacks (SemanticKITTI has no cone class).
+_AUX_TO_TARGET: dict[str, dict[str, str]] = {"occ3d": {"traffic cone": "traffic_cone"}, "semantickitti": {}}
+
+# Occ3D id -> coarse feature group (0 others, 1 vehicles, 2 road users, 3 flat ground, 4 structure, 5 nature).
+_FEATURE_GROUP = {
+    1: 4, 2: 2, 3: 1, 4: 1, 5: 1, 6: 2, 7: 2, 8: 4, 9: 1, 10: 1, 11: 3, 12: 3, 13: 3, 14: 5, 15: 4, 16: 5,
+}  # fmt: skip
+
 
 @dataclass(frozen=True)
 class PseudoRealism:
@@ -118,9 +150,15 @@ class PseudoRealism:
         semantic_noise: fraction of pixels in relabelled blobs.
         boundary_error: pixels a class boundary may shift by.
         foreign_taxonomy: False writes target-class ids (identity table) instead of the foreign taxonomy.
+        auxiliary: also make the auxiliary open-vocabulary semantics (foreign taxonomy only) and merge
+            them after the primary's.
+        auxiliary_boundary_error: pixels the auxiliary's masks reach beyond their objects (into background).
+        auxiliary_miss: fraction of pixels (in blobs) the auxiliary leaves as background.
         feature_dim: feature channels.
         feature_stride: image pixels per feature cell.
         feature_noise: std of the feature noise.
+        feature_class_weight: weight of the class embedding against the (unit) group embedding.
+        feature_position_weight: weight of the position embedding.
         seed: seed of the noise and of the fixed embeddings.
     """
 
@@ -130,19 +168,24 @@ class PseudoRealism:
     semantic_noise: float = 0.03
     boundary_error: int = 1
     foreign_taxonomy: bool = True
+    auxiliary: bool = True
+    auxiliary_boundary_error: int = 1
+    auxiliary_miss: float = 0.1
     feature_dim: int = 16
     feature_stride: int = 4
-    feature_noise: float = 0.1
+    feature_noise: float = 0.4
+    feature_class_weight: float = 0.4
+    feature_position_weight: float = 0.9
     seed: int = 0
 
 
 #: ``perfect`` (no noise; the foreign taxonomy's merges remain), ``default`` and ``noisy``.
 PSEUDO_PRESETS: dict[str, PseudoRealism] = {
     "perfect": PseudoRealism(depth_noise=0.0, depth_scale_error=0.0, depth_max=1e9, semantic_noise=0.0, boundary_error=0,
-                             feature_noise=0.0),
+                             auxiliary_boundary_error=0, auxiliary_miss=0.0, feature_noise=0.0),
     "default": PseudoRealism(),
     "noisy": PseudoRealism(depth_noise=0.15, depth_scale_error=0.15, depth_max=60.0, semantic_noise=0.1, boundary_error=2,
-                           feature_noise=0.3),
+                           auxiliary_boundary_error=2, auxiliary_miss=0.25, feature_noise=0.6),
 }
 
 
@@ -165,12 +208,20 @@ def pseudo_realism(spec: str | dict[str, Any] | PseudoRealism | None) -> PseudoR
     return PseudoRealism(**{**asdict(base), **spec})
 
 
-def mapping_table(taxonomy: str = "occ3d", foreign: bool = True) -> str:
+def mapping_table(taxonomy: str = "occ3d", foreign: bool = True, source: str = "primary") -> str:
     """The YAML class-mapping table (see :mod:`occplug.data.pseudo_labels`) from the synthetic
     segmenter's maps to ``taxonomy`` (``occ3d`` or ``semantickitti``); ``foreign=False`` gives the
-    identity table of maps written in target ids."""
+    identity table of maps written in target ids; ``source="auxiliary"`` the auxiliary segmenter's
+    table (only the classes the primary lacks are mapped)."""
     if taxonomy not in _TAXONOMIES:
         raise ValueError(f"unknown target taxonomy '{taxonomy}' (valid: {', '.join(_TAXONOMIES)})")
+    if source not in ("primary", "auxiliary"):
+        raise ValueError(f"unknown semantic source '{source}' (valid: primary, auxiliary)")
+    if source == "auxiliary":
+        mapped = _AUX_TO_TARGET[taxonomy]
+        data = {"classes": dict(AUXILIARY_CLASSES), "map": {n: mapped.get(n, "ignore") for n in AUXILIARY_CLASSES.values()}}
+        header = f"# the synthetic open-vocabulary segmenter -> {taxonomy}: only the classes the primary lacks\n"
+        return header + yaml.safe_dump(data, sort_keys=False)
     if not foreign:
         names = _TAXONOMIES[taxonomy]
         data = {"classes": dict(enumerate(names)), "map": {n: n for n in names}}
@@ -228,9 +279,18 @@ class SyntheticPseudoLabels:
         else:
             lut[: len(_TAXONOMIES[taxonomy])] = np.arange(len(_TAXONOMIES[taxonomy]))
         self._lut = torch.from_numpy(lut.astype(np.int64))
+        aux = torch.full((256,), 255, dtype=torch.int64)
+        targets = {n: i for i, n in enumerate(_TAXONOMIES[taxonomy])}
+        for name, target in _AUX_TO_TARGET[taxonomy].items():
+            aux[_AUX_ID[name]] = targets[target]
+        self._aux_lut = aux
         g = _generator(self.realism.seed, "embeddings")
         dim = self.realism.feature_dim
         self._class_embedding = torch.randn(257, dim, generator=g)
+        # group (unit) + weighted class embedding: classes of a group overlap
+        groups = torch.tensor([_FEATURE_GROUP.get(c, 0) for c in range(257)])
+        group_embedding = F.normalize(torch.randn(6, dim, generator=g), dim=-1) * math.sqrt(dim)
+        self._class_embedding = (group_embedding[groups] + self.realism.feature_class_weight * self._class_embedding)
         self._freq = torch.randn(3, max(1, dim // 2), generator=g, dtype=torch.float64) / 10.0
         self._phase = torch.rand(max(1, dim // 2), generator=g, dtype=torch.float64) * 2 * math.pi
 
@@ -297,6 +357,32 @@ class SyntheticPseudoLabels:
             out = torch.where(blobs, replacement, out)
         return out
 
+    @property
+    def has_auxiliary(self) -> bool:
+        """Whether the auxiliary semantics are made (``auxiliary`` with the foreign taxonomy)."""
+        return self.realism.auxiliary and self.realism.foreign_taxonomy
+
+    def auxiliary_semantics(self, frame: Frame, cam: int) -> Tensor:
+        """``(H, W)`` int64 auxiliary (open-vocabulary) class ids (:data:`AUXILIARY_CLASSES`)."""
+        r = self.realism
+        truth = frame.semantics_2d[cam].long().clamp(0, 255)
+        lut = torch.zeros(256, dtype=torch.int64)
+        for occ, name in _OCC3D_TO_AUX.items():
+            lut[occ] = _AUX_ID[name]
+        out = lut[truth]
+        g = _generator(r.seed, frame.token, frame.camera_names[cam], "auxiliary")
+        h, w = out.shape
+        b = r.auxiliary_boundary_error
+        if b > 0:
+            # over-reaching masks: background within b px of a prompted class takes its (largest) id
+            grown = F.max_pool2d(out[None, None].double(), 2 * b + 1, 1, b)[0, 0].long()
+            out = torch.where(out == 0, grown, out)
+        if r.auxiliary_miss > 0:
+            field = _smooth_noise(h, w, g, cell=6)
+            missed = field > torch.quantile(field.flatten(), 1 - r.auxiliary_miss)
+            out = torch.where(missed, torch.zeros_like(out), out)
+        return out
+
     def features(self, frame: Frame, cam: int, glob: Tensor) -> Tensor:
         """``(F, h, w)`` float32 features of camera ``cam``."""
         r = self.realism
@@ -307,7 +393,7 @@ class SyntheticPseudoLabels:
         pos = torch.cat([phase.sin(), phase.cos()], -1)[..., : r.feature_dim].float() / math.sqrt(max(1, r.feature_dim // 2))
         if pos.shape[-1] < r.feature_dim:
             pos = F.pad(pos, (0, r.feature_dim - pos.shape[-1]))
-        full = (emb + 0.5 * pos * surface).permute(2, 0, 1)
+        full = (emb + r.feature_position_weight * math.sqrt(r.feature_dim) * pos * surface).permute(2, 0, 1)
         h, w = truth.shape
         size = (max(1, h // r.feature_stride), max(1, w // r.feature_stride))
         low = F.interpolate(full[None], size=size, mode="area")[0]
@@ -322,7 +408,8 @@ class SyntheticPseudoLabels:
             raise ValueError(f"frame {frame.token}: make synthetic pseudo labels before any image augmentation")
 
     def maps(self, frame: Frame) -> dict[str, Tensor]:
-        """``{"depth": (N, H, W), "semantics": (N, H, W) raw ids, "features": (N, F, h, w)}`` (the configured kinds)."""
+        """``{"depth": (N, H, W), "semantics": (N, H, W) raw ids, "semantics_aux": (N, H, W) auxiliary ids,
+        "features": (N, F, h, w)}`` (the configured kinds; ``semantics_aux`` with :attr:`has_auxiliary`)."""
         self._check(frame)
         ego, glob = self._points(frame)
         n = frame.num_cameras
@@ -331,6 +418,8 @@ class SyntheticPseudoLabels:
             out["depth"] = torch.stack([self.depth(frame, c) for c in range(n)])
         if "semantics" in self.kinds:
             out["semantics"] = torch.stack([self.semantics(frame, c, ego[c]) for c in range(n)])
+            if self.has_auxiliary:
+                out["semantics_aux"] = torch.stack([self.auxiliary_semantics(frame, c) for c in range(n)])
         if "features" in self.kinds:
             out["features"] = torch.stack([self.features(frame, c, glob) for c in range(n)])
         return out
@@ -342,7 +431,12 @@ class SyntheticPseudoLabels:
         if "depth" in maps:
             out.pseudo_depth = maps["depth"]
         if "semantics" in maps:
-            out.pseudo_semantics = self._lut[maps["semantics"].clamp(0, 65535)]
+            from occplug.data.pseudo_labels import merge_semantics
+
+            sources = [self._lut[maps["semantics"].clamp(0, 65535)]]
+            if "semantics_aux" in maps:
+                sources.append(self._aux_lut[maps["semantics_aux"].clamp(0, 255)])
+            out.pseudo_semantics = merge_semantics(sources)
         if "features" in maps:
             out.pseudo_features = maps["features"]
         return out
@@ -352,7 +446,8 @@ class SyntheticPseudoLabels:
         """Write the frame's pseudo labels under ``root`` in the layout of :mod:`occplug.data.pseudo_labels`.
 
         ``root/depth/<token>/<camera>.npy`` (float32), ``root/semantics/<token>/<camera>.png``
-        (uint8 foreign ids), ``root/features/<token>/<camera>.npy`` (float16).
+        (uint8 foreign ids), ``root/semantics_aux/<token>/<camera>.png`` (uint8 auxiliary ids, with
+        :attr:`has_auxiliary`), ``root/features/<token>/<camera>.npy`` (float16).
 
         Args:
             frame: the generated frame.
@@ -372,5 +467,7 @@ class SyntheticPseudoLabels:
                 write_npy(root / "depth" / token / f"{name}.npy", maps["depth"][c].numpy().astype(np.float32))
             if "semantics" in maps:
                 write_map(root / "semantics" / token / f"{name}.png", maps["semantics"][c].numpy())
+            if "semantics_aux" in maps:
+                write_map(root / "semantics_aux" / token / f"{name}.png", maps["semantics_aux"][c].numpy())
             if "features" in maps:
                 write_npy(root / "features" / token / f"{name}.npy", maps["features"][c].numpy().astype(np.float16))
