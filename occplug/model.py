@@ -35,7 +35,9 @@ def build_component(kind: str, spec: dict[str, Any] | str, **defaults: Any) -> A
     base = KINDS[kind].interface() if kind in KINDS else None
     if base is not None and not isinstance(obj, base):
         entry = get_registry().get(kind, node["type"])
-        raise TypeError(f"{kind} '{entry.name}' (plugin {entry.plugin}) built a {type(obj).__name__}, not a {base.__name__}")
+        raise TypeError(
+            f"{kind} '{entry.name}' (plugin {entry.plugin}) built a {type(obj).__name__}, not a {base.__name__}"
+        )
     return obj
 
 
@@ -156,7 +158,11 @@ class OccModel(OccupancyModel):
         self.heads = nn.ModuleDict(
             {
                 name: build_component(
-                    "head", spec, in_channels=self.scene.out_channels, num_classes=self.num_classes, free_label=free_label
+                    "head",
+                    spec,
+                    in_channels=self.scene.out_channels,
+                    num_classes=self.num_classes,
+                    free_label=free_label,
                 )
                 for name, spec in heads.items()
                 if spec is not None
@@ -233,7 +239,11 @@ class OccModel(OccupancyModel):
         """
         head = self.heads[self.occupancy_head]
         logits = outputs.heads[self.occupancy_head].get("logits")
-        if logits is not None and getattr(outputs.scene, "grid", None) == self.grid and tuple(logits.shape[2:]) == self.grid.shape:
+        if (
+            logits is not None
+            and getattr(outputs.scene, "grid", None) == self.grid
+            and tuple(logits.shape[2:]) == self.grid.shape
+        ):
             return logits.argmax(dim=1)
         return head.occupancy_logits(outputs.scene, self.grid).argmax(dim=1)
 
@@ -264,7 +274,10 @@ class OccModel(OccupancyModel):
     def on_train_start(self) -> None:
         if self.effective_batch is not None and self.logger is not None:
             self.logger.log_metrics(
-                {"train/effective_batch": float(self.effective_batch.total), "train/effective_lr": float(self.effective_lr or 0.0)},
+                {
+                    "train/effective_batch": float(self.effective_batch.total),
+                    "train/effective_lr": float(self.effective_lr or 0.0),
+                },
                 step=self.global_step,
             )
 

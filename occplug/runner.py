@@ -26,9 +26,9 @@ import lightning as L
 import numpy as np
 import torch
 import yaml
+from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import BasePredictionWriter, Callback, ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger
-from lightning.fabric.utilities.exceptions import MisconfigurationException
 
 from occplug.config import ConfigError, compose, validate
 from occplug.data.datamodule import OccDataModule
@@ -177,8 +177,14 @@ def run_info(cfg: dict[str, Any], model: OccupancyModel, dm: OccDataModule) -> d
         "masks": mask_settings(cfg, model),
         "plugins": versions,
         "components": [
-            {"path": u.path, "kind": u.kind, "type": u.type, "plugin": u.plugin, "distribution": u.distribution,
-             "version": versions.get(u.plugin)}
+            {
+                "path": u.path,
+                "kind": u.kind,
+                "type": u.type,
+                "plugin": u.plugin,
+                "distribution": u.distribution,
+                "version": versions.get(u.plugin),
+            }
             for u in used
         ],
     }
@@ -219,13 +225,19 @@ def build_callbacks(cfg: dict[str, Any]) -> list[Callback]:
             continue
         callback = get_registry().build("callback", node)
         if not isinstance(callback, Callback):
-            raise TypeError(f"callbacks.{name}: '{node['type']}' built a {type(callback).__name__}, not a lightning Callback")
+            raise TypeError(
+                f"callbacks.{name}: '{node['type']}' built a {type(callback).__name__}, not a lightning Callback"
+            )
         out.append(callback)
     return out
 
 
 def _trainer(
-    cfg: dict[str, Any], root: Path | None, callbacks: list[Callback], logger: Any = False, train_batches: int | None = None
+    cfg: dict[str, Any],
+    root: Path | None,
+    callbacks: list[Callback],
+    logger: Any = False,
+    train_batches: int | None = None,
 ) -> L.Trainer:
     kwargs = dict(cfg.get("trainer") or {})
     if train_batches is not None:  # log at least once per epoch: no "fewer batches than the logging interval" warning
@@ -307,7 +319,9 @@ def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, f
         raise RunError(f"--resume {run_dir}: no checkpoint at {last}")
     if is_rank_zero():
         if not resume and run_dir.exists() and any(run_dir.iterdir()):
-            raise RunError(f"run directory {run_dir} already exists and is not empty; choose another --run-dir or --resume it")
+            raise RunError(
+                f"run directory {run_dir} already exists and is not empty; choose another --run-dir or --resume it"
+            )
         os.environ[RUN_DIR_ENV] = str(run_dir.absolute())  # inherited by the ranks a DDP launcher starts
     L.seed_everything(int(cfg.get("seed", 0)), workers=True, verbose=False)
     dm, model = _build(cfg)
@@ -338,8 +352,9 @@ def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, f
             "epoch": trainer.current_epoch,
             **masks,
             "effective_batch": None if batch is None else batch.total,
-            "effective_batch_parts": None if batch is None else {
-                "devices": batch.devices, "per_device": batch.per_device, "accumulation": batch.accumulation},
+            "effective_batch_parts": None
+            if batch is None
+            else {"devices": batch.devices, "per_device": batch.per_device, "accumulation": batch.accumulation},
             "lr": model.effective_lr,
         }
         write_json(run_dir / "metrics.json", payload)
@@ -403,7 +418,9 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
-        raise RunError(f"checkpoint {path} cannot be read safely (weights_only=True): {str(exc).splitlines()[0]}") from None
+        raise RunError(
+            f"checkpoint {path} cannot be read safely (weights_only=True): {str(exc).splitlines()[0]}"
+        ) from None
 
 
 def checkpoint_info(ckpt: dict[str, Any], path: Path) -> dict[str, Any]:
@@ -469,8 +486,10 @@ def check_trainable(model: OccupancyModel) -> None:
     """Refuse to fit a model that would learn nothing: no supervision, or every weight <= 0."""
     weights = model.loss_weights()
     if not weights:
-        raise RunError("model.supervision: the model has no supervision source, so fit would train nothing; "
-                       "add one (e.g. model.supervision.voxel_labels={type: voxel_ce})")
+        raise RunError(
+            "model.supervision: the model has no supervision source, so fit would train nothing; "
+            "add one (e.g. model.supervision.voxel_labels={type: voxel_ce})"
+        )
     if all(w <= 0 for w in weights.values()):
         shown = ", ".join(f"{name}: {w:g}" for name, w in weights.items())
         raise RunError(f"model.supervision: every loss weight is <= 0 ({shown}), so fit would train nothing")

@@ -41,7 +41,9 @@ def no_schedule(optimizer: Optimizer, total_steps: int) -> None:
     return None
 
 
-def cosine_schedule(optimizer: Optimizer, total_steps: int, warmup_steps: int = 0, min_lr_ratio: float = 0.0) -> LRScheduler:
+def cosine_schedule(
+    optimizer: Optimizer, total_steps: int, warmup_steps: int = 0, min_lr_ratio: float = 0.0
+) -> LRScheduler:
     """Linear warm-up over ``warmup_steps`` optimizer steps, then cosine decay to ``min_lr_ratio * lr``."""
 
     def factor(step: int) -> float:
@@ -92,7 +94,9 @@ class EffectiveBatch:
         return self.devices * self.per_device * self.accumulation
 
     def describe(self) -> str:
-        return f"{self.total} ({self.devices} device(s) x {self.per_device} per device x {self.accumulation} accumulation)"
+        return (
+            f"{self.total} ({self.devices} device(s) x {self.per_device} per device x {self.accumulation} accumulation)"
+        )
 
 
 def base_lr(spec: dict[str, Any] | None) -> float:
@@ -121,7 +125,10 @@ def batch_notice(spec: dict[str, Any] | None, batch: EffectiveBatch) -> str | No
     lr, used = base_lr(spec), scaled_lr(spec, batch)
     if spec.get("lr_scaling", "none") == "linear":  # type: ignore[union-attr]
         return head + f"learning rate scaled linearly {lr:g} -> {used:g} (optimizer.lr_scaling=linear)"
-    return head + f"learning rate kept at {lr:g} (optimizer.lr_scaling=linear would scale it to {lr * batch.total / int(ref):g})"
+    return (
+        head
+        + f"learning rate kept at {lr:g} (optimizer.lr_scaling=linear would scale it to {lr * batch.total / int(ref):g})"
+    )
 
 
 def build_optimizer(params: Any, spec: dict[str, Any] | None, batch: EffectiveBatch | None = None) -> Optimizer:

@@ -22,14 +22,13 @@ generated first (slow on a CPU for the default world: keep ``--train-scenes`` sm
 from __future__ import annotations
 
 import argparse
+import logging
 import shutil
 import sys
 import tempfile
 import time
-from pathlib import Path
-
-import logging
 import warnings
+from pathlib import Path
 
 import lightning as L
 
@@ -78,17 +77,25 @@ def _wait_fraction(preset: str, train_scenes: int, workers: int, steps: int) -> 
 
     cfg = runner.load_config(
         [str(ROOT / "configs" / "baseline.yaml")],
-        [f"data.preset={preset}", f"data.train_scenes={train_scenes}", "data.val_scenes=1", "data.test_scenes=0",
-         f"data.num_workers={workers}",
-         f"trainer.max_steps={steps}", "trainer.limit_val_batches=0", "trainer.enable_progress_bar=false",
-         "trainer.accelerator=cpu"],
+        [
+            f"data.preset={preset}",
+            f"data.train_scenes={train_scenes}",
+            "data.val_scenes=1",
+            "data.test_scenes=0",
+            f"data.num_workers={workers}",
+            f"trainer.max_steps={steps}",
+            "trainer.limit_val_batches=0",
+            "trainer.enable_progress_bar=false",
+            "trainer.accelerator=cpu",
+        ],
     )
     L.seed_everything(0, verbose=False)
     dm = runner.build_datamodule(cfg)
     model = runner.build_model(cfg, dm)
     timer = _WaitTimer()
-    trainer = L.Trainer(callbacks=[timer], logger=False, enable_checkpointing=False, enable_model_summary=False,
-                        **cfg["trainer"])
+    trainer = L.Trainer(
+        callbacks=[timer], logger=False, enable_checkpointing=False, enable_model_summary=False, **cfg["trainer"]
+    )
     trainer.fit(model, datamodule=dm)
     waits = timer.waits[1:]  # waits[0] precedes step 2; skip steps 1-2
     steps_t = timer.steps[2:]
@@ -122,9 +129,11 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         base.dataset("train").pregenerate(progress=True)  # type: ignore[attr-defined]
         world = base.world_config
-        print(f"synthetic world '{args.preset}' ({args.train_scenes} training scenes x {world.frames_per_scene} frames, "
-              f"{world.num_cameras} cameras {world.image_size[0]}x{world.image_size[1]}, grid {world.grid.shape}); "
-              f"cache ready in {time.perf_counter() - t0:.1f} s")
+        print(
+            f"synthetic world '{args.preset}' ({args.train_scenes} training scenes x {world.frames_per_scene} frames, "
+            f"{world.num_cameras} cameras {world.image_size[0]}x{world.image_size[1]}, grid {world.grid.shape}); "
+            f"cache ready in {time.perf_counter() - t0:.1f} s"
+        )
         ns, kitti = tmp / "nuscenes", tmp / "semantickitti"
         if not (ns / "index").exists():
             write_occ3d_nuscenes(world, ns, splits=("train",), progress=False)
@@ -134,22 +143,35 @@ def main(argv: list[str] | None = None) -> int:
         # only training sequences are written: no val sequence (a split none of whose sequences is present fails)
         splits = {"train": [f"{i:02d}" for i in range(args.train_scenes)], "val": []}
         modules = {
-            "synthetic": lambda w: SyntheticDataModule(preset=args.preset, train_scenes=args.train_scenes,
-                                                       batch_size=args.batch_size, num_workers=w),
-            "occ3d_nuscenes": lambda w: Occ3DNuScenesDataModule(root=str(ns), index=str(ns / "index"),
-                                                                grid=world.grid.to_dict(), batch_size=args.batch_size,
-                                                                num_workers=w),
+            "synthetic": lambda w: SyntheticDataModule(
+                preset=args.preset, train_scenes=args.train_scenes, batch_size=args.batch_size, num_workers=w
+            ),
+            "occ3d_nuscenes": lambda w: Occ3DNuScenesDataModule(
+                root=str(ns),
+                index=str(ns / "index"),
+                grid=world.grid.to_dict(),
+                batch_size=args.batch_size,
+                num_workers=w,
+            ),
             "semantickitti": lambda w: SemanticKITTIDataModule(
-                root=str(kitti), grid=lidar_grid(world).to_dict(), batch_size=args.batch_size, num_workers=w,
-                splits=splits),
+                root=str(kitti),
+                grid=lidar_grid(world).to_dict(),
+                batch_size=args.batch_size,
+                num_workers=w,
+                splits=splits,
+            ),
         }
-        print(f"\nthroughput (training loader, batch size {args.batch_size}, {args.batches} batches after a warm-up batch)")
+        print(
+            f"\nthroughput (training loader, batch size {args.batch_size}, {args.batches} batches after a warm-up batch)"
+        )
         print(f"{'data module':<16} {'workers':>7} {'frames/s':>9}")
         for name, make in modules.items():
             for w in args.workers:
                 fps, _ = _throughput(make(w), args.batches)
                 print(f"{name:<16} {w:>7} {fps:>9.1f}")
-        print(f"\nwaiting for data during training (configs/baseline.yaml on '{args.preset}', {args.steps} steps, first 2 left out)")
+        print(
+            f"\nwaiting for data during training (configs/baseline.yaml on '{args.preset}', {args.steps} steps, first 2 left out)"
+        )
         print(f"{'workers':>7} {'step s':>8} {'wait s':>8} {'waiting':>8}")
         for w in args.workers:
             frac, step, wait = _wait_fraction(args.preset, args.train_scenes, w, args.steps)

@@ -77,8 +77,14 @@ def main() -> None:
 
     trainer_args = dict(cfg.get("trainer") or {})
     trainer_args.update(
-        max_steps=args.steps, max_epochs=-1, limit_val_batches=0, num_sanity_val_steps=0, logger=False,
-        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+        max_steps=args.steps,
+        max_epochs=-1,
+        limit_val_batches=0,
+        num_sanity_val_steps=0,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
     )
     clock = StepClock()
     with tempfile.TemporaryDirectory() as tmp:
@@ -120,14 +126,18 @@ def main() -> None:
 
     dm_cfg = cfg["data"]
     vt = cfg["model"]["view_transform"]
-    print(f"config={args.config} overrides={args.overrides} preset={dm_cfg.get('preset')} batch_size={dm_cfg.get('batch_size')} "
-          f"num_workers={dm_cfg.get('num_workers')} view_transform={vt.get('type')} splat={vt.get('splat', 'fast')} "
-          f"precision={trainer_args.get('precision', '32-true')} threads={torch.get_num_threads()}")
+    print(
+        f"config={args.config} overrides={args.overrides} preset={dm_cfg.get('preset')} batch_size={dm_cfg.get('batch_size')} "
+        f"num_workers={dm_cfg.get('num_workers')} view_transform={vt.get('type')} splat={vt.get('splat', 'fast')} "
+        f"precision={trainer_args.get('precision', '32-true')} threads={torch.get_num_threads()}"
+    )
     print(f"steps measured: {steps} (after {args.warmup} warm-up) in {wall:.2f} s")
     print(f"steps/s: {steps / wall:.3f}   ({wall / steps * 1e3:.0f} ms/step)")
     peak_process = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"peak RSS: process {peak_process:.0f} MB; during training {rss_peak_fit / 1024:.0f} MB "
-          f"({(rss_peak_fit - rss_before) / 1024:+.0f} MB above the {rss_before / 1024:.0f} MB before fit)")
+    print(
+        f"peak RSS: process {peak_process:.0f} MB; during training {rss_peak_fit / 1024:.0f} MB "
+        f"({(rss_peak_fit - rss_before) / 1024:+.0f} MB above the {rss_before / 1024:.0f} MB before fit)"
+    )
     print("share of step time:")
     for name, seconds in parts.items():
         print(f"  {name:<28}{100 * seconds / wall:6.1f} %   {seconds / steps * 1e3:8.1f} ms/step")

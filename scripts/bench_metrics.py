@@ -21,12 +21,12 @@ import time
 
 import torch
 
+from occplug.data.frame import Batch
 from occplug.data.nuscenes.format import OCC3D_GRID
 from occplug.data.synthetic.config import preset
 from occplug.data.synthetic.labels import voxel_labels
 from occplug.data.synthetic.render import LIDAR_TO_EGO
 from occplug.data.synthetic.world import build_scene
-from occplug.data.frame import Batch
 from occplug.geometry import invert_pose
 from occplug.geometry.raycast import first_hits
 from occplug.metrics import RayIoU
@@ -44,9 +44,9 @@ def occ3d_sample(frame: int = 10) -> tuple[torch.Tensor, torch.Tensor, torch.Ten
     prims = scene.primitives_at(frame / config.fps).transformed(world_to_ego)
     labels = voxel_labels(prims, scene.ground, ego_to_world, config.grid, config.label_subsamples).long()
     lidar = torch.cat([LIDAR_TO_EGO[:3, 3].double(), torch.ones(1, dtype=torch.float64)])
-    origins = torch.stack([
-        (world_to_ego @ scene.ego_to_world(k / config.fps) @ lidar)[:3] for k in range(config.frames("val"))
-    ]).float()
+    origins = torch.stack(
+        [(world_to_ego @ scene.ego_to_world(k / config.fps) @ lidar)[:3] for k in range(config.frames("val"))]
+    ).float()
     gen = torch.Generator().manual_seed(0)
     pred = torch.roll(labels, 1, 0)
     relabel = (torch.rand(labels.shape, generator=gen) < 0.05) & (pred != FREE)
@@ -56,11 +56,19 @@ def occ3d_sample(frame: int = 10) -> tuple[torch.Tensor, torch.Tensor, torch.Ten
 
 def batch_of(labels: torch.Tensor, origins: torch.Tensor) -> Batch:
     return Batch(
-        images=torch.zeros(1, 0, 3, 1, 1), intrinsics=torch.zeros(1, 0, 3, 3), cam_to_ego=torch.zeros(1, 0, 4, 4),
-        img_aug=torch.zeros(1, 0, 3, 3), ego_to_global=torch.eye(4, dtype=torch.float64)[None],
-        timestamp=torch.zeros(1, dtype=torch.float64), frame_index=torch.zeros(1, dtype=torch.int64),
-        has_voxel_labels=torch.ones(1, dtype=torch.bool), is_sequence_start=torch.ones(1, dtype=torch.bool),
-        scene=["s"], token=["t"], voxel_labels=labels[None], sequence_lidar_origins=[origins],
+        images=torch.zeros(1, 0, 3, 1, 1),
+        intrinsics=torch.zeros(1, 0, 3, 3),
+        cam_to_ego=torch.zeros(1, 0, 4, 4),
+        img_aug=torch.zeros(1, 0, 3, 3),
+        ego_to_global=torch.eye(4, dtype=torch.float64)[None],
+        timestamp=torch.zeros(1, dtype=torch.float64),
+        frame_index=torch.zeros(1, dtype=torch.int64),
+        has_voxel_labels=torch.ones(1, dtype=torch.bool),
+        is_sequence_start=torch.ones(1, dtype=torch.bool),
+        scene=["s"],
+        token=["t"],
+        voxel_labels=labels[None],
+        sequence_lidar_origins=[origins],
     )
 
 
@@ -93,9 +101,11 @@ def main() -> None:
     origins = select_origins(sequence)
     directions = query_ray_directions()
     rays = origins.shape[0] * directions.shape[0]
-    print(f"sample: {tuple(labels.shape)} voxels of {OCC3D_GRID.voxel_size[0]} m, {origins.shape[0]} origins "
-          f"(of {sequence.shape[0]}), {rays} query rays, each cast through prediction and ground truth; "
-          f"torch threads: {torch.get_num_threads()}")
+    print(
+        f"sample: {tuple(labels.shape)} voxels of {OCC3D_GRID.voxel_size[0]} m, {origins.shape[0]} origins "
+        f"(of {sequence.shape[0]}), {rays} query rays, each cast through prediction and ground truth; "
+        f"torch threads: {torch.get_num_threads()}"
+    )
 
     metric = RayIoU(grid=OCC3D_GRID)
     batch = batch_of(labels, sequence)
@@ -106,8 +116,11 @@ def main() -> None:
         metric.update(pred[None], batch)
         times.append(time.perf_counter() - start)
     fast = statistics.median(times)
-    print(f"RayIoU (vectorised, empty-space skipping): {fast:.3f} s/sample (median of {args.repeats}: "
-          + ", ".join(f"{t:.3f}" for t in times) + f"); RayIoU of this prediction {metric.compute()['RayIoU']:.2f}")
+    print(
+        f"RayIoU (vectorised, empty-space skipping): {fast:.3f} s/sample (median of {args.repeats}: "
+        + ", ".join(f"{t:.3f}" for t in times)
+        + f"); RayIoU of this prediction {metric.compute()['RayIoU']:.2f}"
+    )
 
     o = origins[:, None].expand(-1, directions.shape[0], 3).reshape(-1, 3)
     d = directions.repeat(origins.shape[0], 1)
@@ -123,18 +136,25 @@ def main() -> None:
     lower, size = OCC3D_GRID.lower, OCC3D_GRID.voxel_size[0]
     start = time.perf_counter()
     results = [
-        [reference_ray(grid, labels.shape, lower, size, o[r].tolist(), d[r].tolist()) for grid in lists] for r in pick.tolist()
+        [reference_ray(grid, labels.shape, lower, size, o[r].tolist(), d[r].tolist()) for grid in lists]
+        for r in pick.tolist()
     ]
     spent = time.perf_counter() - start
     per_sample = spent / len(pick) * rays
     agree = sum(
-        (p[0] == int(cast.pred_class[r]) and g[0] == int(cast.gt_class[r])
-         and math.isclose(p[1], float(cast.pred_depth[r]), abs_tol=1e-6) and math.isclose(g[1], float(cast.gt_depth[r]), abs_tol=1e-6))
+        (
+            p[0] == int(cast.pred_class[r])
+            and g[0] == int(cast.gt_class[r])
+            and math.isclose(p[1], float(cast.pred_depth[r]), abs_tol=1e-6)
+            and math.isclose(g[1], float(cast.gt_depth[r]), abs_tol=1e-6)
+        )
         for (p, g), r in zip(results, pick.tolist(), strict=True)
     )
-    print(f"per-ray Python reference: {spent:.2f} s for {len(pick)} random rays x 2 grids, extrapolated to "
-          f"{per_sample:.1f} s/sample; vectorised speed-up {per_sample / fast:.0f}x; "
-          f"{agree}/{len(pick)} rays agree exactly (class, depth within 1e-6 m)")
+    print(
+        f"per-ray Python reference: {spent:.2f} s for {len(pick)} random rays x 2 grids, extrapolated to "
+        f"{per_sample:.1f} s/sample; vectorised speed-up {per_sample / fast:.0f}x; "
+        f"{agree}/{len(pick)} rays agree exactly (class, depth within 1e-6 m)"
+    )
     print(f"goal < 1 s/sample: {'met' if fast < 1 else 'NOT met'}")
 
 

@@ -189,8 +189,13 @@ def main() -> None:
         return run
 
     rows = []
-    methods = (("naive", naive), ("fast", fast), ("naive_points", naive_points), ("fast_points", fast_points),
-               ("backward_projection", backward_projection))
+    methods = (
+        ("naive", naive),
+        ("fast", fast),
+        ("naive_points", naive_points),
+        ("fast_points", fast_points),
+        ("backward_projection", backward_projection),
+    )
     for name, fn in methods:
         fwd = time_ms(lambda fn=fn: (torch.no_grad()(fn))(), args.repeat)
         both = time_ms(with_backward(fn), args.repeat)
@@ -224,22 +229,38 @@ def main() -> None:
 
     geo_ms = time_ms(lambda: geometry(), args.repeat)
     kept = sum(p.num_points_inside for p in plans)
-    print(f"device={device} threads={torch.get_num_threads()} batch={b} cameras={n} depth_bins={d} "
-          f"feature_map={h}x{w} channels={c} grid={x}x{y}x{z} frustum_points={b * n * d * h * w} "
-          f"inside_grid={kept} voxel_cell_pairs={sum(p.nnz for p in plans)}")
-    what = ("peak CUDA memory allocated above the level before the call" if device.type == "cuda"
-            else "peak RSS above the level before the call (VmHWM after clear_refs)")
+    print(
+        f"device={device} threads={torch.get_num_threads()} batch={b} cameras={n} depth_bins={d} "
+        f"feature_map={h}x{w} channels={c} grid={x}x{y}x{z} frustum_points={b * n * d * h * w} "
+        f"inside_grid={kept} voxel_cell_pairs={sum(p.nnz for p in plans)}"
+    )
+    what = (
+        "peak CUDA memory allocated above the level before the call"
+        if device.type == "cuda"
+        else "peak RSS above the level before the call (VmHWM after clear_refs)"
+    )
     print(f"peak memory = {what}, output volume {b * c * v * 4 / 2**20:.0f} MB included")
-    print(f"{'method':<22}{'fwd ms (med/best)':>20}{'fwd+bwd ms (med/best)':>24}{'fwd peak MB':>13}{'fwd+bwd peak MB':>17}")
+    print(
+        f"{'method':<22}{'fwd ms (med/best)':>20}{'fwd+bwd ms (med/best)':>24}{'fwd peak MB':>13}{'fwd+bwd peak MB':>17}"
+    )
     for name, fwd, both, mem_fwd, mem_both in rows:
-        print(f"{name:<22}{fwd[0]:>11.1f} /{fwd[1]:>7.1f}{both[0]:>15.1f} /{both[1]:>7.1f}{mem_fwd:>13.0f}{mem_both:>17.0f}")
-    print(f"geometry (frustum index; the reference LSS recomputes it every forward): {geo_ms[0]:.1f} ms; "
-          f"fast-splat plan build (once per geometry, then cached): {plan_ms:.1f} ms")
+        print(
+            f"{name:<22}{fwd[0]:>11.1f} /{fwd[1]:>7.1f}{both[0]:>15.1f} /{both[1]:>7.1f}{mem_fwd:>13.0f}{mem_both:>17.0f}"
+        )
+    print(
+        f"geometry (frustum index; the reference LSS recomputes it every forward): {geo_ms[0]:.1f} ms; "
+        f"fast-splat plan build (once per geometry, then cached): {plan_ms:.1f} ms"
+    )
     print(f"max |fast - naive|: volume {diff:.3g}, d/d depth {gdiff[0]:.3g}, d/d context {gdiff[1]:.3g}")
     print(f"max |fast_points - naive_points|: volume {pdiff[0]:.3g}, d/d features {pdiff[1]:.3g}")
-    for label, naive_row, fast_row in (("naive / fast", rows[0], rows[1]), ("naive_points / fast_points", rows[2], rows[3])):
-        print(f"ratio {label} (median ms): forward {naive_row[1][0] / fast_row[1][0]:.2f}x, "
-              f"forward+backward {naive_row[2][0] / fast_row[2][0]:.2f}x")
+    for label, naive_row, fast_row in (
+        ("naive / fast", rows[0], rows[1]),
+        ("naive_points / fast_points", rows[2], rows[3]),
+    ):
+        print(
+            f"ratio {label} (median ms): forward {naive_row[1][0] / fast_row[1][0]:.2f}x, "
+            f"forward+backward {naive_row[2][0] / fast_row[2][0]:.2f}x"
+        )
 
 
 if __name__ == "__main__":

@@ -40,6 +40,8 @@ def test_view_transform_ablation_swaps_with_one_override(view_transform, tmp_pat
     assert cfg["model"]["view_transform"]["type"] == view_transform
     assert cfg["model"]["view_transform"]["grid"] == cfg["grid"]
     metrics = run_config(
-        str(ROOT / "configs" / "baseline.yaml"), run_dir=tmp_path / "run", overrides=[f"model.view_transform.type={view_transform}"]
+        str(ROOT / "configs" / "baseline.yaml"),
+        run_dir=tmp_path / "run",
+        overrides=[f"model.view_transform.type={view_transform}"],
     )
     assert metrics["IoU"] >= 0

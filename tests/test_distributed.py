@@ -29,8 +29,13 @@ BASELINE = str(ROOT / "configs" / "baseline.yaml")
 DATA = ["data.preset=tiny", "data.frames_per_scene=3", "data.train_scenes=1", "data.test_scenes=0", "data.batch_size=1"]
 # Validation runs inside fit after epoch 2 (uneven batches through the DDP-wrapped model), and
 # again after fit (epoch 3 ended without one): the runner's final trainer.validate.
-RUN = ["trainer.accelerator=cpu", "trainer.enable_progress_bar=false", "trainer.max_epochs=3",
-       "trainer.check_val_every_n_epoch=2", "trainer.log_every_n_steps=1"]
+RUN = [
+    "trainer.accelerator=cpu",
+    "trainer.enable_progress_bar=false",
+    "trainer.max_epochs=3",
+    "trainer.check_val_every_n_epoch=2",
+    "trainer.log_every_n_steps=1",
+]
 
 
 def occplug_command() -> list[str]:
@@ -65,7 +70,13 @@ def test_ddp_fit_on_two_processes_equals_single_process_validation(tmp_path: Pat
     runs = list((tmp_path / "runs").iterdir())
     assert len(runs) == 1, runs
     run = runs[0]
-    assert sorted(p.name for p in run.iterdir()) == ["checkpoints", "config.yaml", "logs", "metrics.json", "plugins.json"]
+    assert sorted(p.name for p in run.iterdir()) == [
+        "checkpoints",
+        "config.yaml",
+        "logs",
+        "metrics.json",
+        "plugins.json",
+    ]
     assert [p.name for p in (run / "logs").iterdir()] == ["version_0"]
     assert (run / "checkpoints" / "last.ckpt").is_file()
     assert proc.stdout.count("run directory:") == 1 and proc.stdout.count("metrics:") == 1
@@ -82,8 +93,17 @@ def test_ddp_fit_on_two_processes_equals_single_process_validation(tmp_path: Pat
     torch_threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as in each DDP worker (Lightning gives each process cores / processes)
     try:
-        code = main(["validate", "--ckpt", str(run / "checkpoints" / "last.ckpt"), "--json", str(out),
-                     "trainer.devices=1", "trainer.strategy=auto"])
+        code = main(
+            [
+                "validate",
+                "--ckpt",
+                str(run / "checkpoints" / "last.ckpt"),
+                "--json",
+                str(out),
+                "trainer.devices=1",
+                "trainer.strategy=auto",
+            ]
+        )
     finally:
         torch.set_num_threads(torch_threads)
     assert code == 0
@@ -97,14 +117,19 @@ def test_ddp_fit_on_two_processes_equals_single_process_validation(tmp_path: Pat
     assert not mismatched, f"DDP vs single-process validation differ: {mismatched}"
 
 
-@pytest.mark.parametrize("rank_env, expected", [
-    ({}, True),
-    ({"LOCAL_RANK": "1", "NODE_RANK": "0"}, False),
-    ({"LOCAL_RANK": "0", "NODE_RANK": "1"}, False),
-    ({"LOCAL_RANK": "0", "NODE_RANK": "0", "SLURM_PROCID": "3"}, True),
-    ({"RANK": "2", "LOCAL_RANK": "0"}, False),
-])
-def test_rank_zero_follows_the_launcher_environment(monkeypatch: pytest.MonkeyPatch, rank_env: dict, expected: bool) -> None:
+@pytest.mark.parametrize(
+    "rank_env, expected",
+    [
+        ({}, True),
+        ({"LOCAL_RANK": "1", "NODE_RANK": "0"}, False),
+        ({"LOCAL_RANK": "0", "NODE_RANK": "1"}, False),
+        ({"LOCAL_RANK": "0", "NODE_RANK": "0", "SLURM_PROCID": "3"}, True),
+        ({"RANK": "2", "LOCAL_RANK": "0"}, False),
+    ],
+)
+def test_rank_zero_follows_the_launcher_environment(
+    monkeypatch: pytest.MonkeyPatch, rank_env: dict, expected: bool
+) -> None:
     from occplug import runner
 
     for key in ("RANK", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK", "SLURM_PROCID"):
@@ -117,8 +142,15 @@ def test_rank_zero_follows_the_launcher_environment(monkeypatch: pytest.MonkeyPa
 
 
 # A stateful model (dense_voxels_history) read sequentially: 3 validation scenes of 2 frames, batch 2.
-STREAM = ["model.scene.type=dense_voxels_history", "data.sequential=true", "data.preset=tiny", "data.train_scenes=1",
-          "data.val_scenes=3", "data.test_scenes=0", "data.batch_size=2"]
+STREAM = [
+    "model.scene.type=dense_voxels_history",
+    "data.sequential=true",
+    "data.preset=tiny",
+    "data.train_scenes=1",
+    "data.val_scenes=3",
+    "data.test_scenes=0",
+    "data.batch_size=2",
+]
 
 
 def test_ddp_streaming_validation_counts_every_frame_once_and_equals_one_process(tmp_path: Path) -> None:
@@ -126,17 +158,47 @@ def test_ddp_streaming_validation_counts_every_frame_once_and_equals_one_process
     torch_threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as in each DDP worker
     try:
-        assert main(["fit", "-c", BASELINE, *STREAM, "trainer.accelerator=cpu", "trainer.enable_progress_bar=false",
-                     "trainer.max_steps=2", "--run-dir", str(run)]) == 0
+        assert (
+            main(
+                [
+                    "fit",
+                    "-c",
+                    BASELINE,
+                    *STREAM,
+                    "trainer.accelerator=cpu",
+                    "trainer.enable_progress_bar=false",
+                    "trainer.max_steps=2",
+                    "--run-dir",
+                    str(run),
+                ]
+            )
+            == 0
+        )
         ckpt = str(run / "checkpoints" / "last.ckpt")
         single = {}
         for batch in (1, 2):
             out = tmp_path / f"single{batch}.json"
-            assert main(["validate", "--ckpt", ckpt, "--json", str(out), "trainer.devices=1", "trainer.strategy=auto",
-                         f"data.batch_size={batch}"]) == 0
+            assert (
+                main(
+                    [
+                        "validate",
+                        "--ckpt",
+                        ckpt,
+                        "--json",
+                        str(out),
+                        "trainer.devices=1",
+                        "trainer.strategy=auto",
+                        f"data.batch_size={batch}",
+                    ]
+                )
+                == 0
+            )
             single[batch] = json.loads(out.read_text())
             # predict streams too: one file per frame, the same whatever the batch size
-            assert main(["predict", "--ckpt", ckpt, "--out", str(tmp_path / f"pred{batch}"), f"data.batch_size={batch}"]) == 0
+            assert (
+                main(["predict", "--ckpt", ckpt, "--out", str(tmp_path / f"pred{batch}"), f"data.batch_size={batch}"])
+                == 0
+            )
         preds = [{p.name: np.load(p)["pred"] for p in (tmp_path / f"pred{b}").glob("*.npz")} for b in (1, 2)]
         assert len(preds[0]) == 6 and preds[0].keys() == preds[1].keys()
         assert all(np.array_equal(preds[0][k], preds[1][k]) for k in preds[0])
@@ -145,8 +207,18 @@ def test_ddp_streaming_validation_counts_every_frame_once_and_equals_one_process
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}
     out = tmp_path / "ddp.json"
     # rank 0 plays 2 scenes on 2 lanes, rank 1 one scene (the padded sampler used to count frames twice here)
-    cmd = [*occplug_command(), "validate", "--ckpt", ckpt, "--json", str(out), "trainer.accelerator=cpu",
-           "trainer.devices=2", "trainer.strategy=ddp", "data.batch_size=2"]
+    cmd = [
+        *occplug_command(),
+        "validate",
+        "--ckpt",
+        ckpt,
+        "--json",
+        str(out),
+        "trainer.accelerator=cpu",
+        "trainer.devices=2",
+        "trainer.strategy=ddp",
+        "data.batch_size=2",
+    ]
     proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300, check=False)
     assert proc.returncode == 0, proc.stderr[-3000:]
     ddp = json.loads(out.read_text())

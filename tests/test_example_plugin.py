@@ -15,10 +15,14 @@ CONFIG = EXAMPLE / "src" / "occplug_example" / "configs" / "tiny.yaml"
 
 
 def occplug(*args, env=None):
-    return subprocess.run([sys.executable, "-m", "occplug.cli", *args], capture_output=True, text=True, env=env, cwd=ROOT)
+    return subprocess.run(
+        [sys.executable, "-m", "occplug.cli", *args], capture_output=True, text=True, env=env, cwd=ROOT
+    )
 
 
-@pytest.mark.skipif(util.find_spec("occplug_example") is not None, reason="the example plugin is installed here already")
+@pytest.mark.skipif(
+    util.find_spec("occplug_example") is not None, reason="the example plugin is installed here already"
+)
 def test_example_plugin_before_and_after_install(tmp_path):
     before = occplug("config", "show", "-c", str(CONFIG))
     assert before.returncode == 2
@@ -27,9 +31,21 @@ def test_example_plugin_before_and_after_install(tmp_path):
 
     target = tmp_path / "site"
     install = subprocess.run(
-        [sys.executable, "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--no-index", "-q",
-         "--target", str(target), str(EXAMPLE)],
-        capture_output=True, text=True,
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--no-deps",
+            "--no-build-isolation",
+            "--no-index",
+            "-q",
+            "--target",
+            str(target),
+            str(EXAMPLE),
+        ],
+        capture_output=True,
+        text=True,
     )
     assert install.returncode == 0, install.stderr
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(target), os.environ.get("PYTHONPATH", "")])}
@@ -42,14 +58,27 @@ def test_example_plugin_before_and_after_install(tmp_path):
     # the plugin's own test suite (registration via entry point, conformance, a fit of example/tiny)
     tests = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(EXAMPLE / "tests")],
-        capture_output=True, text=True, env=env, cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
     )
     assert tests.returncode == 0, tests.stdout[-3000:] + tests.stderr[-2000:]
 
     # a checkpoint made with the plugin names it (and its version) where the plugin is not installed
     run = tmp_path / "run"
-    fitted = occplug("fit", "-c", "example/tiny", "data.preset=tiny", "trainer.max_steps=1", "trainer.accelerator=cpu",
-                     "trainer.enable_progress_bar=false", "--run-dir", str(run), env=env)
+    fitted = occplug(
+        "fit",
+        "-c",
+        "example/tiny",
+        "data.preset=tiny",
+        "trainer.max_steps=1",
+        "trainer.accelerator=cpu",
+        "trainer.enable_progress_bar=false",
+        "--run-dir",
+        str(run),
+        env=env,
+    )
     assert fitted.returncode == 0, fitted.stderr[-2000:]
     missing = occplug("validate", "--ckpt", str(run / "checkpoints" / "last.ckpt"))
     assert missing.returncode == 2 and "Traceback" not in missing.stderr

@@ -282,7 +282,9 @@ def test_check_query_support_names_both_keys() -> None:
     )
     with pytest.raises(ConfigError) as err:
         check_query_support({"occupancy": dense}, {"q": ToyQuerySupervision("occupancy", [0.0, 0.5])})
-    assert "model.supervision.q (ToyQuerySupervision): queries at times t != 0, but model.heads.occupancy" in str(err.value)
+    assert "model.supervision.q (ToyQuerySupervision): queries at times t != 0, but model.heads.occupancy" in str(
+        err.value
+    )
     assert "(VoxelClassifier) is not temporal" in str(err.value) and "\n" not in str(err.value)
     with pytest.raises(ConfigError, match="queries head 'aux' but model.heads has no such head"):
         check_query_support({"occupancy": dense}, {"q": ToyQuerySupervision("aux")})
@@ -335,17 +337,27 @@ def _cfg(*overrides: str) -> dict:
 def test_config_validation_rejects_declared_impossible_mixes(isolated_registry) -> None:
     isolated_registry(plugins=[("toyq", ToyQueryPlugin())])
     validate(_cfg("model.supervision.q.type=toy_query"), occplug.plugins.get_registry())  # fine
-    with pytest.raises(ConfigError, match=r"^model.supervision.q \(ToyTemporalSupervision\): queries at times t != 0, "
-                       r"but model.heads.occupancy \(VoxelClassifier\) is not temporal"):
+    with pytest.raises(
+        ConfigError,
+        match=r"^model.supervision.q \(ToyTemporalSupervision\): queries at times t != 0, "
+        r"but model.heads.occupancy \(VoxelClassifier\) is not temporal",
+    ):
         validate(_cfg("model.supervision.q.type=toy_temporal_query"), occplug.plugins.get_registry())
     with pytest.raises(ConfigError, match=r"model.heads.occupancy, but FixedHead cannot be queried"):
-        validate(_cfg("model.supervision.q.type=toy_query", "model.heads.occupancy.type=toy_fixed"),
-                 occplug.plugins.get_registry())
+        validate(
+            _cfg("model.supervision.q.type=toy_query", "model.heads.occupancy.type=toy_fixed"),
+            occplug.plugins.get_registry(),
+        )
     with pytest.raises(ConfigError, match=r"queries head 'aux' but model.heads has no such head \(heads: occupancy\)"):
-        validate(_cfg("model.supervision.q.type=toy_query", "model.supervision.q.query_head=aux"),
-                 occplug.plugins.get_registry())
+        validate(
+            _cfg("model.supervision.q.type=toy_query", "model.supervision.q.query_head=aux"),
+            occplug.plugins.get_registry(),
+        )
     # an argument-dependent need passes validation: the model build catches it (next test)
-    validate(_cfg("model.supervision.q.type=toy_query", "model.supervision.q.times=[0.0,0.5]"), occplug.plugins.get_registry())
+    validate(
+        _cfg("model.supervision.q.type=toy_query", "model.supervision.q.times=[0.0,0.5]"),
+        occplug.plugins.get_registry(),
+    )
 
 
 @pytest.mark.parametrize(
@@ -353,11 +365,12 @@ def test_config_validation_rejects_declared_impossible_mixes(isolated_registry) 
     [
         (["model.supervision.q.type=toy_temporal_query"], "is not temporal"),  # config validation
         (["model.supervision.q.type=toy_query", "model.supervision.q.times=[0.0,0.5]"], "is not temporal"),  # build
-        (["model.supervision.q.type=toy_query", "model.heads.occupancy.type=toy_fixed"],
-         "cannot be queried"),
+        (["model.supervision.q.type=toy_query", "model.heads.occupancy.type=toy_fixed"], "cannot be queried"),
     ],
 )
-def test_fit_rejects_impossible_mix_in_one_line_writing_nothing(isolated_registry, tmp_path, capsys, overrides, message):
+def test_fit_rejects_impossible_mix_in_one_line_writing_nothing(
+    isolated_registry, tmp_path, capsys, overrides, message
+):
     isolated_registry(plugins=[("toyq", ToyQueryPlugin())])
     run = tmp_path / "run"
     assert main(["fit", "-c", BASELINE, *TINY, *overrides, "--run-dir", str(run)]) == 2

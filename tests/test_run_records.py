@@ -56,7 +56,10 @@ def test_checkpoint_alone_reproduces_the_run_after_its_config_is_deleted(tmp_pat
     assert info["grid"] == {"range": [-24.0, -24.0, -1.0, 24.0, 24.0, 5.4], "voxel_size": 0.8}  # configs/baseline.yaml
     assert info["plugins"]["occplug"]
     assert {(c["path"], c["type"], c["plugin"]) for c in info["components"]} >= {
-        ("model", "occ_model", "occplug"), ("model.view_transform", "lss", "occplug"), ("data", "synthetic", "occplug")}
+        ("model", "occ_model", "occplug"),
+        ("model.view_transform", "lss", "occplug"),
+        ("data", "synthetic", "occplug"),
+    }
 
     out = tmp_path / "val.json"
     capsys.readouterr()
@@ -101,8 +104,10 @@ def test_linear_lr_scaling_and_the_notice():
     assert scaled_lr(spec, EffectiveBatch(4, 2, 2)) == pytest.approx(4e-4)
     assert batch_notice(spec, EffectiveBatch(2, 2, 2)) is None  # equal to the reference: nothing to say
     notice = batch_notice(spec, one_gpu)
-    assert notice == ("notice: effective batch 2 (1 device(s) x 2 per device x 1 accumulation) differs from the "
-                      "recipe's reference batch 8; learning rate scaled linearly 0.0002 -> 5e-05 (optimizer.lr_scaling=linear)")
+    assert notice == (
+        "notice: effective batch 2 (1 device(s) x 2 per device x 1 accumulation) differs from the "
+        "recipe's reference batch 8; learning rate scaled linearly 0.0002 -> 5e-05 (optimizer.lr_scaling=linear)"
+    )
     kept = batch_notice({**spec, "lr_scaling": "none"}, one_gpu)
     assert kept.endswith("learning rate kept at 0.0002 (optimizer.lr_scaling=linear would scale it to 5e-05)")
     opt = build_optimizer([torch.nn.Parameter(torch.zeros(1))], spec, one_gpu)
@@ -118,9 +123,13 @@ def test_lr_scaling_needs_a_reference_batch():
 
 
 def test_fit_logs_the_effective_batch_and_scales_the_lr(tmp_path, capsys):
-    run = fit(tmp_path, "optimizer.reference_batch=8", "optimizer.lr_scaling=linear", "trainer.accumulate_grad_batches=2")
-    assert "notice: effective batch 4 (1 device(s) x 2 per device x 2 accumulation) differs from the recipe's " \
-           "reference batch 8; learning rate scaled linearly 0.002 -> 0.001" in capsys.readouterr().err
+    run = fit(
+        tmp_path, "optimizer.reference_batch=8", "optimizer.lr_scaling=linear", "trainer.accumulate_grad_batches=2"
+    )
+    assert (
+        "notice: effective batch 4 (1 device(s) x 2 per device x 2 accumulation) differs from the recipe's "
+        "reference batch 8; learning rate scaled linearly 0.002 -> 0.001" in capsys.readouterr().err
+    )
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["effective_batch"] == 4 and metrics["lr"] == pytest.approx(1e-3)
     assert metrics["effective_batch_parts"] == {"devices": 1, "per_device": 2, "accumulation": 2}

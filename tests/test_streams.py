@@ -26,8 +26,13 @@ def frames(scene, indices, times=None, starts=None, poses=None):
     scenes = [scene] * b if isinstance(scene, str) else list(scene)
     times = [0.5 * i for i in indices] if times is None else times
     starts = [i == 0 for i in indices] if starts is None else starts
-    fields = {"scene": scenes, "frame_index": torch.tensor(indices), "timestamp": torch.tensor(times, dtype=torch.float64),
-              "is_sequence_start": torch.tensor(starts), "token": [f"{s}-{i}" for s, i in zip(scenes, indices)]}
+    fields = {
+        "scene": scenes,
+        "frame_index": torch.tensor(indices),
+        "timestamp": torch.tensor(times, dtype=torch.float64),
+        "is_sequence_start": torch.tensor(starts),
+        "token": [f"{s}-{i}" for s, i in zip(scenes, indices, strict=False)],
+    }
     if poses is not None:
         fields["ego_to_global"] = poses
     return hand_batch(b, **fields)
@@ -39,8 +44,12 @@ def test_each_slot_resets_on_start_scene_change_frame_jump_and_time_gap():
     state.update(first, {"x": torch.arange(6.0)[:, None] + 1})
     # slot: 0 continues; 1 sequence start; 2 other scene; 3 frame jump (7 -> 9); 4 time gap (4.5 s -> 6 s);
     # 5 same frame again (no time step)
-    nxt = frames(["a", "a", "b", "a", "a", "a"], [1, 4, 6, 9, 10, 11], times=[0.5, 2.0, 3.0, 4.5, 6.0, 5.5],
-                 starts=[False, True, False, False, False, False])
+    nxt = frames(
+        ["a", "a", "b", "a", "a", "a"],
+        [1, 4, 6, 9, 10, 11],
+        times=[0.5, 2.0, 3.0, 4.5, 6.0, 5.5],
+        starts=[False, True, False, False, False, False],
+    )
     read = state.get(nxt, {"x": torch.full((6, 1), -1.0)})
     assert read.reset.tolist() == [False, True, True, True, True, True]
     assert read.value["x"][:, 0].tolist() == [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]  # default reset: zeros
@@ -55,12 +64,16 @@ def test_reset_hook_decides_what_a_reset_puts_in_and_nested_structures_round_tri
     state = StreamState(on_reset=lambda cur: {"vol": cur["vol"] * 2, "bank": [cur["bank"][0] + 1]})
     cur = {"vol": torch.ones(2, 3, 2), "bank": [torch.zeros(2, 4)]}
     read = state.get(frames("a", [0, 0]), cur)
-    assert torch.equal(read.value["vol"], torch.full((2, 3, 2), 2.0)) and torch.equal(read.value["bank"][0], torch.ones(2, 4))
+    assert torch.equal(read.value["vol"], torch.full((2, 3, 2), 2.0)) and torch.equal(
+        read.value["bank"][0], torch.ones(2, 4)
+    )
     stored = {"vol": torch.randn(2, 3, 2, requires_grad=True), "bank": [torch.randn(2, 4)]}
     state.update(frames("a", [0, 4]), stored)
     read = state.get(frames("a", [1, 9], starts=[False, False]), cur)
     assert read.reset.tolist() == [False, True]
-    assert torch.equal(read.value["vol"][0], stored["vol"][0].detach()) and torch.equal(read.value["vol"][1], cur["vol"][1] * 2)
+    assert torch.equal(read.value["vol"][0], stored["vol"][0].detach()) and torch.equal(
+        read.value["vol"][1], cur["vol"][1] * 2
+    )
     assert torch.equal(read.value["bank"][0][0], stored["bank"][0][0])
     assert not read.value["vol"].requires_grad  # detached: no gradient across frames
 
@@ -161,7 +174,9 @@ def test_history_moves_with_the_ego_one_voxel_forward():
         f0 = m(Lifted(volume(0), GRID), frames("a", [0])).features
         cur1 = DenseVoxelsHistory.__mro__[1].forward(m, Lifted(volume(1), GRID), frames("a", [1])).features
         f1 = m(Lifted(volume(1), GRID), frames("a", [1], starts=[False], poses=step[None])).features
-    assert torch.equal(f0, 0.5 * DenseVoxelsHistory.__mro__[1].forward(m, Lifted(volume(0), GRID), frames("a", [0])).features)
+    assert torch.equal(
+        f0, 0.5 * DenseVoxelsHistory.__mro__[1].forward(m, Lifted(volume(0), GRID), frames("a", [0])).features
+    )
     warped = (f1 - 0.5 * cur1) / 0.5
     # the ego moved +0.5 m (one voxel) in x: current voxel i shows what the previous frame had at i + 1
     torch.testing.assert_close(warped[:, :, :-1], f0[:, :, 1:], rtol=0, atol=1e-5)
@@ -210,7 +225,9 @@ def test_stateful_model_needs_sequential_data(tmp_path, capsys):
     assert m["scene"].history.stage == "test"
 
     run = tmp_path / "run"
-    code = main(["fit", "-c", BASELINE, "data.preset=tiny", "model.scene.type=dense_voxels_history", "--run-dir", str(run)])
+    code = main(
+        ["fit", "-c", BASELINE, "data.preset=tiny", "model.scene.type=dense_voxels_history", "--run-dir", str(run)]
+    )
     err = capsys.readouterr().err
     assert code == 2 and err.strip().count("\n") == 0 and "data.sequential" in err and "Traceback" not in err
     assert not run.exists()
@@ -221,8 +238,17 @@ def test_sanity_check_and_mid_epoch_validation_leave_the_training_stream_alone()
 
     from occplug.runner import _build, load_config
 
-    cfg = load_config([BASELINE], ["data.preset=tiny", "model.scene.type=dense_voxels_history", "data.sequential=true",
-                                   "data.train_scenes=1", "data.frames_per_scene=3", "data.batch_size=1"])
+    cfg = load_config(
+        [BASELINE],
+        [
+            "data.preset=tiny",
+            "model.scene.type=dense_voxels_history",
+            "data.sequential=true",
+            "data.train_scenes=1",
+            "data.frames_per_scene=3",
+            "data.batch_size=1",
+        ],
+    )
     dm, model = _build(cfg)
     state = model.scene.history
     seen = []
@@ -234,8 +260,16 @@ def test_sanity_check_and_mid_epoch_validation_leave_the_training_stream_alone()
         return read
 
     state.get = spy
-    trainer = L.Trainer(accelerator="cpu", max_steps=3, val_check_interval=1, num_sanity_val_steps=1, logger=False,
-                        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False)
+    trainer = L.Trainer(
+        accelerator="cpu",
+        max_steps=3,
+        val_check_interval=1,
+        num_sanity_val_steps=1,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
     trainer.fit(model, datamodule=dm)
     train = [(f, r) for stage, f, r in seen if stage == "train"]
     assert train == [(0, True), (1, False), (2, False)]  # continued across the validations in between

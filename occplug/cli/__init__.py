@@ -37,7 +37,9 @@ def add_config_args(p: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every sub-command."""
-    parser = argparse.ArgumentParser(prog="occplug", description="3D semantic occupancy prediction, one plugin at a time.")
+    parser = argparse.ArgumentParser(
+        prog="occplug", description="3D semantic occupancy prediction, one plugin at a time."
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(f"occplug.cli.{name}").add_parsers(sub)

@@ -21,7 +21,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     show.add_argument("--explain", metavar="KEY", help="say which file or override set KEY")
     show.add_argument("--no-validate", action="store_true", help="print without validating")
     show.set_defaults(func=cmd_show)
-    check = actions.add_parser("validate", help="check the composed config (components, arguments, query heads); builds nothing")
+    check = actions.add_parser(
+        "validate", help="check the composed config (components, arguments, query heads); builds nothing"
+    )
     add_config_args(check)
     check.set_defaults(func=cmd_validate)
 

@@ -32,9 +32,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="frames: occplug .pt frames (default); occ3d: a nuScenes-shaped tree with Occ3D gts/; "
         "semantickitti: a SemanticKITTI-shaped tree (a grid=... knob is then in the LiDAR frame; default the SSC grid)",
     )
-    synth.add_argument("--pseudo", default=None, metavar="REALISM",
-                       help="also write pseudo labels (occ3d / semantickitti formats): perfect, default or noisy")
-    synth.add_argument("--version", default="v1.0-trainval", help="table folder name of the occ3d format (v1.0-trainval, v1.0-mini)")
+    synth.add_argument(
+        "--pseudo",
+        default=None,
+        metavar="REALISM",
+        help="also write pseudo labels (occ3d / semantickitti formats): perfect, default or noisy",
+    )
+    synth.add_argument(
+        "--version", default="v1.0-trainval", help="table folder name of the occ3d format (v1.0-trainval, v1.0-mini)"
+    )
     synth.add_argument("knobs", nargs="*", metavar="key=value", help="synthetic data-module arguments, e.g. seed=3")
     synth.set_defaults(func=cmd_synth)
 
@@ -42,48 +48,82 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     datasets = prepare.add_subparsers(dest="dataset", required=True, metavar="DATASET")
     ns = datasets.add_parser("nuscenes", help="nuScenes (+ Occ3D-nuScenes labels) -> <out>/nuscenes_index.npz")
     ns.add_argument("--root", required=True, metavar="DIR", help="nuScenes data root (samples/, sweeps/, <version>/)")
-    ns.add_argument("--version", required=True, help="v1.0-trainval, v1.0-mini or v1.0-test (the folder of JSON tables)")
+    ns.add_argument(
+        "--version", required=True, help="v1.0-trainval, v1.0-mini or v1.0-test (the folder of JSON tables)"
+    )
     ns.add_argument("--occ", metavar="DIR", help="Occ3D-nuScenes folder holding gts/<scene>/<token>/labels.npz")
     ns.add_argument("--out", required=True, metavar="DIR", help="folder to write nuscenes_index.npz into")
-    ns.add_argument("--splits", default="official", metavar="official|FILE",
-                    help="scene split: the official lists, or a JSON file {split: [scene names]}")
+    ns.add_argument(
+        "--splits",
+        default="official",
+        metavar="official|FILE",
+        help="scene split: the official lists, or a JSON file {split: [scene names]}",
+    )
     ns.add_argument("--sweeps", type=int, default=10, help="earlier LiDAR sweeps to record per sample (default 10)")
     ns.add_argument("--no-check-files", action="store_true", help="do not check that every referenced file exists")
     ns.set_defaults(func=cmd_prepare_nuscenes)
 
-    check = actions.add_parser("check", help="verify a data tree or a prepared index (read only; exit 2 on any problem)",
-                               description="Verify every label file (keys, dtypes, shapes), the files the tables name "
-                               "(images, LiDAR), and the scenes / sequences of the official split. Writes nothing; "
-                               "reports the first offending file with the number of files affected and exits 2.")
+    check = actions.add_parser(
+        "check",
+        help="verify a data tree or a prepared index (read only; exit 2 on any problem)",
+        description="Verify every label file (keys, dtypes, shapes), the files the tables name "
+        "(images, LiDAR), and the scenes / sequences of the official split. Writes nothing; "
+        "reports the first offending file with the number of files affected and exits 2.",
+    )
     targets = check.add_subparsers(dest="dataset", required=True, metavar="DATASET")
-    cn = targets.add_parser("nuscenes", help="a nuScenes tree with Occ3D-nuScenes labels (as prepare nuscenes reads it)")
+    cn = targets.add_parser(
+        "nuscenes", help="a nuScenes tree with Occ3D-nuScenes labels (as prepare nuscenes reads it)"
+    )
     cn.add_argument("--root", required=True, metavar="DIR", help="nuScenes data root (samples/, sweeps/, <version>/)")
-    cn.add_argument("--version", required=True, help="v1.0-trainval, v1.0-mini or v1.0-test (the folder of JSON tables)")
+    cn.add_argument(
+        "--version", required=True, help="v1.0-trainval, v1.0-mini or v1.0-test (the folder of JSON tables)"
+    )
     cn.add_argument("--occ", metavar="DIR", help="Occ3D-nuScenes folder holding gts/<scene>/<token>/labels.npz")
-    cn.add_argument("--splits", default="official", metavar="official|FILE",
-                    help="the scenes each split should hold: the official lists, or a JSON file {split: [scene names]}")
-    cn.add_argument("--sweeps", type=int, default=10, help="earlier LiDAR sweeps checked per sample (default 10, as prepare)")
+    cn.add_argument(
+        "--splits",
+        default="official",
+        metavar="official|FILE",
+        help="the scenes each split should hold: the official lists, or a JSON file {split: [scene names]}",
+    )
+    cn.add_argument(
+        "--sweeps", type=int, default=10, help="earlier LiDAR sweeps checked per sample (default 10, as prepare)"
+    )
     _check_common(cn, "200 200 16 (Occ3D)")
     cn.set_defaults(func=cmd_check)
     ck = targets.add_parser("semantickitti", help="a SemanticKITTI tree (sequences/XX/)")
-    ck.add_argument("--root", required=True, metavar="DIR", help="the folder holding sequences/ (SemanticKITTI's dataset/)")
-    ck.add_argument("--splits", metavar="FILE", help="a JSON file {split: [sequences]} replacing splits of the standard "
-                    "one (train 00-07, 09, 10; val 08; test 11-21, optional)")
+    ck.add_argument(
+        "--root", required=True, metavar="DIR", help="the folder holding sequences/ (SemanticKITTI's dataset/)"
+    )
+    ck.add_argument(
+        "--splits",
+        metavar="FILE",
+        help="a JSON file {split: [sequences]} replacing splits of the standard "
+        "one (train 00-07, 09, 10; val 08; test 11-21, optional)",
+    )
     _check_common(ck, "256 256 32 (SSC)")
     ck.set_defaults(func=cmd_check)
     ci = targets.add_parser("index", help="an index written by prepare nuscenes, and every file it names")
     ci.add_argument("--index", required=True, metavar="DIR", help="the index folder (or its nuscenes_index.npz)")
     ci.add_argument("--root", metavar="DIR", help="nuScenes data root (default: the one recorded in the index)")
     ci.add_argument("--occ", metavar="DIR", help="Occ3D-nuScenes folder (default: the one recorded in the index)")
-    ci.add_argument("--splits", default="official", metavar="official|FILE",
-                    help="the scenes each split should hold: the official lists, or a JSON file {split: [scene names]}")
+    ci.add_argument(
+        "--splits",
+        default="official",
+        metavar="official|FILE",
+        help="the scenes each split should hold: the official lists, or a JSON file {split: [scene names]}",
+    )
     _check_common(ci, "200 200 16 (Occ3D)")
     ci.set_defaults(func=cmd_check)
 
 
 def _check_common(p: argparse.ArgumentParser, default_shape: str) -> None:
-    p.add_argument("--shape", type=int, nargs=3, metavar=("X", "Y", "Z"),
-                   help=f"the voxel grid every label file must have (default {default_shape})")
+    p.add_argument(
+        "--shape",
+        type=int,
+        nargs=3,
+        metavar=("X", "Y", "Z"),
+        help=f"the voxel grid every label file must have (default {default_shape})",
+    )
     p.add_argument("--no-lidar", action="store_true", help="camera-only data: do not check LiDAR files")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (shown on large trees)")
 
@@ -118,24 +158,36 @@ def cmd_synth(args: argparse.Namespace) -> int:
         elif args.format == "occ3d":
             from occplug.data.synthetic.export_occ3d import write_occ3d_nuscenes
 
-            count = write_occ3d_nuscenes(dm.world_config, out, version=args.version, splits=tuple(args.splits),
-                                         pseudo=pseudo, cache_dir=dm.cache_dir, progress=True)
+            count = write_occ3d_nuscenes(
+                dm.world_config,
+                out,
+                version=args.version,
+                splits=tuple(args.splits),
+                pseudo=pseudo,
+                cache_dir=dm.cache_dir,
+                progress=True,
+            )
             grid = dm.world_config.grid
             print(f"wrote {count} samples as a nuScenes-shaped tree with Occ3D labels to {out}")
-            print(f"index it with: occplug data prepare nuscenes --root {out} --version {args.version} --occ {out} "
-                  f"--out {out}/index --splits {out}/splits.json")
+            print(
+                f"index it with: occplug data prepare nuscenes --root {out} --version {args.version} --occ {out} "
+                f"--out {out}/index --splits {out}/splits.json"
+            )
             print(f"its label grid: {{range: {list(grid.range)}, voxel_size: {list(grid.voxel_size)}}}")
         else:
             from occplug.data.synthetic.export_semantickitti import lidar_grid as grid_of
             from occplug.data.synthetic.export_semantickitti import semantickitti_world, write_semantickitti
 
             world = semantickitti_world(dm.world_config, lidar_grid)
-            names = write_semantickitti(world, out, splits=tuple(args.splits), pseudo=pseudo, cache_dir=dm.cache_dir,
-                                        progress=True)
+            names = write_semantickitti(
+                world, out, splits=tuple(args.splits), pseudo=pseudo, cache_dir=dm.cache_dir, progress=True
+            )
             grid = grid_of(world)
             print(f"wrote {sum(len(v) for v in names.values())} sequences as a SemanticKITTI-shaped tree to {out}")
-            print(f"read it with data: {{type: semantickitti, root: {out}, splits: {names}, "
-                  f"grid: {{range: {list(grid.range)}, voxel_size: {list(grid.voxel_size)}}}}}")
+            print(
+                f"read it with data: {{type: semantickitti, root: {out}, splits: {names}, "
+                f"grid: {{range: {list(grid.range)}, voxel_size: {list(grid.voxel_size)}}}}}"
+            )
     except (ValueError, FileNotFoundError) as exc:
         raise UsageError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
     return 0
@@ -147,8 +199,16 @@ def cmd_prepare_nuscenes(args: argparse.Namespace) -> int:
     if args.sweeps < 0:
         raise UsageError(f"--sweeps must be >= 0, got {args.sweeps}")
     try:
-        path = build_index(args.root, args.version, args.out, occ_root=args.occ, splits=args.splits, sweeps=args.sweeps,
-                           check_files=not args.no_check_files, progress=True)
+        path = build_index(
+            args.root,
+            args.version,
+            args.out,
+            occ_root=args.occ,
+            splits=args.splits,
+            sweeps=args.sweeps,
+            check_files=not args.no_check_files,
+            progress=True,
+        )
         index = read_index(path)
     except (ValueError, FileNotFoundError) as exc:
         raise UsageError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
@@ -171,8 +231,9 @@ def cmd_check(args: argparse.Namespace) -> int:
         if args.dataset == "nuscenes":
             if args.sweeps < 0:
                 raise UsageError(f"--sweeps must be >= 0, got {args.sweeps}")
-            summary = nuscenes.check_nuscenes(args.root, args.version, occ_root=args.occ, splits=args.splits,
-                                              sweeps=args.sweeps, **kwargs)
+            summary = nuscenes.check_nuscenes(
+                args.root, args.version, occ_root=args.occ, splits=args.splits, sweeps=args.sweeps, **kwargs
+            )
         elif args.dataset == "semantickitti":
             summary = semantickitti.check_semantickitti(args.root, splits=args.splits, **kwargs)
         else:

@@ -81,19 +81,42 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--pred", required=True, metavar="DIR", help="folder of <token>.npz predictions (key 'pred')")
     p.add_argument("--gt", required=True, metavar="DIR", help="ground-truth root (Occ3D or SemanticKITTI layout)")
-    p.add_argument("--metric", action="extend", nargs="+", choices=METRICS, metavar="NAME",
-                   help="miou, rayiou and/or ssc (default: miou for Occ3D, ssc for SemanticKITTI)")
+    p.add_argument(
+        "--metric",
+        action="extend",
+        nargs="+",
+        choices=METRICS,
+        metavar="NAME",
+        help="miou, rayiou and/or ssc (default: miou for Occ3D, ssc for SemanticKITTI)",
+    )
     p.add_argument("--json", metavar="OUT", help="write the results to this JSON file")
-    p.add_argument("--mask", choices=("none", "camera", "lidar", "camera_and_lidar"),
-                   help="voxels miou evaluates (Occ3D default: camera)")
+    p.add_argument(
+        "--mask",
+        choices=("none", "camera", "lidar", "camera_and_lidar"),
+        help="voxels miou evaluates (Occ3D default: camera)",
+    )
     p.add_argument("--format", choices=("auto", "occ3d", "semantickitti"), default="auto", help="ground-truth layout")
     origins = p.add_mutually_exclusive_group()
-    origins.add_argument("--origins", metavar="FILE", help="RayIoU origins: .npz of token -> (S, 3) ego-frame LiDAR positions")
-    origins.add_argument("--index", metavar="DIR", help="RayIoU origins from a prepared nuScenes index (occplug data prepare)")
-    p.add_argument("--origin", nargs=3, type=float, metavar=("X", "Y", "Z"),
-                   help="RayIoU's single origin when --origins is not given (ego frame, metres)")
-    p.add_argument("--grid", nargs=6, type=float, metavar="R",
-                   help="grid range x0 y0 z0 x1 y1 z1 (default: the data set's: Occ3D or SemanticKITTI SSC)")
+    origins.add_argument(
+        "--origins", metavar="FILE", help="RayIoU origins: .npz of token -> (S, 3) ego-frame LiDAR positions"
+    )
+    origins.add_argument(
+        "--index", metavar="DIR", help="RayIoU origins from a prepared nuScenes index (occplug data prepare)"
+    )
+    p.add_argument(
+        "--origin",
+        nargs=3,
+        type=float,
+        metavar=("X", "Y", "Z"),
+        help="RayIoU's single origin when --origins is not given (ego frame, metres)",
+    )
+    p.add_argument(
+        "--grid",
+        nargs=6,
+        type=float,
+        metavar="R",
+        help="grid range x0 y0 z0 x1 y1 z1 (default: the data set's: Occ3D or SemanticKITTI SSC)",
+    )
     p.add_argument("--voxel-size", nargs="+", type=float, metavar="V", help="voxel size with --grid (1 or 3 numbers)")
     p.add_argument("--device", default="cpu", help="torch device to compute on (default cpu)")
     p.set_defaults(func=cmd_eval)
@@ -143,16 +166,36 @@ def _layout(args: argparse.Namespace) -> _Layout:
                 vox = semantickitti.read_voxels(path, shape)
                 return {"voxel_labels": vox.labels, "voxel_invalid": vox.invalid}
 
-            return _Layout("semantickitti", semantickitti.find_label_files(root), read_kitti, grid,
-                           SEMANTIC_KITTI_CLASSES, 0, (0.0, 0.0, 0.0), ("ssc",))
+            return _Layout(
+                "semantickitti",
+                semantickitti.find_label_files(root),
+                read_kitti,
+                grid,
+                SEMANTIC_KITTI_CLASSES,
+                0,
+                (0.0, 0.0, 0.0),
+                ("ssc",),
+            )
         expected = None if grid is None else grid.shape
 
         def read_occ3d(path: Path) -> dict[str, Tensor]:
             labels = occ3d.read_labels(path, expected)
-            return {"voxel_labels": labels.semantics, "mask_camera": labels.mask_camera, "mask_lidar": labels.mask_lidar}
+            return {
+                "voxel_labels": labels.semantics,
+                "mask_camera": labels.mask_camera,
+                "mask_lidar": labels.mask_lidar,
+            }
 
-        return _Layout("occ3d", occ3d.find_label_files(root), read_occ3d, grid or occ3d.OCC3D_GRID,
-                       OCC3D_CLASSES, OCC3D_FREE, occ3d.OCC3D_LIDAR_ORIGIN, ("miou",))
+        return _Layout(
+            "occ3d",
+            occ3d.find_label_files(root),
+            read_occ3d,
+            grid or occ3d.OCC3D_GRID,
+            OCC3D_CLASSES,
+            OCC3D_FREE,
+            occ3d.OCC3D_LIDAR_ORIGIN,
+            ("miou",),
+        )
     except FormatError as exc:
         raise UsageError(str(exc)) from None
 
@@ -160,7 +203,11 @@ def _layout(args: argparse.Namespace) -> _Layout:
 def _metrics(names: list[str], layout: _Layout, args: argparse.Namespace, device: torch.device) -> dict:
     from occplug.metrics import Occ3DMIoU, RayIoU, SSCMetrics
 
-    common = {"num_classes": len(layout.class_names), "class_names": layout.class_names, "free_label": layout.free_label}
+    common = {
+        "num_classes": len(layout.class_names),
+        "class_names": layout.class_names,
+        "free_label": layout.free_label,
+    }
     out = {}
     for name in names:
         if name == "miou":
@@ -183,8 +230,14 @@ def _read_origins(path: Path, tokens: list[str]) -> dict[str, Tensor]:
         raise UsageError(f"--origins: {exc}") from None
     missing = [t for t in tokens if t not in arrays]
     if missing:
-        raise UsageError(f"--origins {path}: no origins for token {missing[0]} ({len(missing)} of {len(tokens)} samples affected)")
-    bad = [t for t in tokens if arrays[t].ndim != 2 or arrays[t].shape[1] != 3 or not np.issubdtype(arrays[t].dtype, np.number)]
+        raise UsageError(
+            f"--origins {path}: no origins for token {missing[0]} ({len(missing)} of {len(tokens)} samples affected)"
+        )
+    bad = [
+        t
+        for t in tokens
+        if arrays[t].ndim != 2 or arrays[t].shape[1] != 3 or not np.issubdtype(arrays[t].dtype, np.number)
+    ]
     if bad:
         raise UsageError(
             f"--origins {path}: token {bad[0]} has an array of shape {arrays[bad[0]].shape} ({arrays[bad[0]].dtype}); "
@@ -203,7 +256,9 @@ def _index_origins(path: Path, tokens: list[str]) -> dict[str, Tensor]:
     position = {rec["token"]: i for i, rec in enumerate(index.samples)}
     missing = [t for t in tokens if t not in position]
     if missing:
-        raise UsageError(f"--index {path}: no sample with token {missing[0]} ({len(missing)} of {len(tokens)} samples affected)")
+        raise UsageError(
+            f"--index {path}: no sample with token {missing[0]} ({len(missing)} of {len(tokens)} samples affected)"
+        )
     return {t: torch.from_numpy(index.sequence_lidar_origins(position[t])) for t in tokens}
 
 
@@ -243,7 +298,9 @@ def evaluate_folder(args: argparse.Namespace) -> tuple[dict[str, dict[str, float
         raise UsageError(f"--device {args.device}: {str(exc).splitlines()[0]}") from None
     layout = _layout(args)
     if not layout.files:
-        raise UsageError(f"--gt {args.gt}: no {layout.name} ground truth found (see occplug eval --help for the layouts)")
+        raise UsageError(
+            f"--gt {args.gt}: no {layout.name} ground truth found (see occplug eval --help for the layouts)"
+        )
     preds = find_predictions(pred_dir)
     tokens = sorted(layout.files)
     missing = [t for t in tokens if t not in preds]
@@ -254,7 +311,9 @@ def evaluate_folder(args: argparse.Namespace) -> tuple[dict[str, dict[str, float
         )
     extra = sorted(set(preds) - set(layout.files))
     if extra:
-        raise UsageError(f"prediction {preds[extra[0]]} has no ground truth in {args.gt}; {len(extra)} predictions affected")
+        raise UsageError(
+            f"prediction {preds[extra[0]]} has no ground truth in {args.gt}; {len(extra)} predictions affected"
+        )
     names = list(dict.fromkeys(args.metric or layout.default_metrics))
     metrics = _metrics(names, layout, args, device)
     notices: list[str] = []
@@ -265,8 +324,10 @@ def evaluate_folder(args: argparse.Namespace) -> tuple[dict[str, dict[str, float
         elif args.index:
             origins = _index_origins(Path(args.index), tokens)
         else:
-            notices.append("notice: RayIoU casts from one fixed origin per sample; the leaderboard casts from the "
-                           "LiDAR positions of each sample's sequence (--index DIR or --origins FILE)")
+            notices.append(
+                "notice: RayIoU casts from one fixed origin per sample; the leaderboard casts from the "
+                "LiDAR positions of each sample's sequence (--index DIR or --origins FILE)"
+            )
         single = torch.tensor([args.origin or layout.origin], dtype=torch.float64)
         origins = {t: origins.get(t, single) for t in tokens}
     first_error, errors = None, 0
@@ -317,7 +378,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     for table in tables.values():
         print(table)
     summary = "; ".join(
-        f"{name}: " + ", ".join(f"{k}={v:.2f}" for k, v in res.items() if _is_headline(k)) for name, res in results.items()
+        f"{name}: " + ", ".join(f"{k}={v:.2f}" for k, v in res.items() if _is_headline(k))
+        for name, res in results.items()
     )
     print(f"evaluated {count} samples — {summary}")
     if args.json:
@@ -325,7 +387,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
             "samples": count,
             "gt": str(args.gt),
             "pred": str(args.pred),
-            "metrics": {name: {k: (None if math.isnan(v) else v) for k, v in res.items()} for name, res in results.items()},
+            "metrics": {
+                name: {k: (None if math.isnan(v) else v) for k, v in res.items()} for name, res in results.items()
+            },
         }
         if "miou" in results:
             payload["eval_mask"] = args.mask or "camera"

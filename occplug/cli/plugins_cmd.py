@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from occplug.plugins import get_registry, plugin_reports
 from occplug.kinds import KINDS
+from occplug.plugins import get_registry, plugin_reports
 
 from .errors import UsageError
 

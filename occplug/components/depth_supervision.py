@@ -63,7 +63,9 @@ def lidar_depth_targets(batch: Batch, feature_hw: tuple[int, int], stride: int, 
         nearest = torch.full((n * h * w,), float("inf"), dtype=torch.float64, device=ok.device)
         nearest.scatter_reduce_(0, cell[ok], depth[ok].double(), reduce="amin")
         hit = torch.isfinite(nearest) & (nearest >= edges[0]) & (nearest < edges[-1])
-        bins = (torch.bucketize(nearest.clamp(edges[0].item(), edges[-1].item()), edges, right=True) - 1).clamp(0, len(centers) - 1)
+        bins = (torch.bucketize(nearest.clamp(edges[0].item(), edges[-1].item()), edges, right=True) - 1).clamp(
+            0, len(centers) - 1
+        )
         out[i] = torch.where(hit, bins, torch.full_like(bins, -1))
     return out.view(b, n, h, w)
 

@@ -180,7 +180,9 @@ class TimmEncoder(ImageEncoder):
         self.model_name = model_name
         self.freeze = bool(freeze)
         self.standardise = _Standardise()
-        self.backbone = timm.create_model(model_name, pretrained=False, features_only=True, out_indices=(feature_level,))
+        self.backbone = timm.create_model(
+            model_name, pretrained=False, features_only=True, out_indices=(feature_level,)
+        )
         if weights is not None:
             state = load_state_dict_file(weights)
             result = self.backbone.load_state_dict(state, strict=False)

@@ -34,7 +34,9 @@ class VoxelClassifier(OccupancyHead):
             raise ValueError(f"voxel_classifier hidden must be >= 0, got {hidden}")
         self.num_classes = int(num_classes)
         if hidden > 0:
-            self.mlp: nn.Module = nn.Sequential(nn.Linear(in_channels, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, self.num_classes))
+            self.mlp: nn.Module = nn.Sequential(
+                nn.Linear(in_channels, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, self.num_classes)
+            )
         else:
             self.mlp = nn.Linear(in_channels, self.num_classes)
 

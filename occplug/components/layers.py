@@ -28,7 +28,9 @@ def norm_layer(kind: str, channels: int, dims: int = 2) -> nn.Module:
 class ConvNormAct2d(nn.Sequential):
     """``Conv2d (no bias) -> norm -> ReLU``; ``kernel`` odd, "same" padding, optional stride."""
 
-    def __init__(self, in_channels: int, out_channels: int, kernel: int = 3, stride: int = 1, norm: str = "batch") -> None:
+    def __init__(
+        self, in_channels: int, out_channels: int, kernel: int = 3, stride: int = 1, norm: str = "batch"
+    ) -> None:
         super().__init__(
             nn.Conv2d(in_channels, out_channels, kernel, stride=stride, padding=kernel // 2, bias=False),
             norm_layer(norm, out_channels, 2),

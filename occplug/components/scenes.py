@@ -32,7 +32,9 @@ class DenseVoxels(SceneRepresentation):
             raise ValueError(f"dense_voxels num_blocks must be >= 0, got {num_blocks}")
         self.out_channels = int(out_channels)
         self.stem = nn.Sequential(
-            nn.Conv3d(in_channels, self.out_channels, 1, bias=False), nn.BatchNorm3d(self.out_channels), nn.ReLU(inplace=True)
+            nn.Conv3d(in_channels, self.out_channels, 1, bias=False),
+            nn.BatchNorm3d(self.out_channels),
+            nn.ReLU(inplace=True),
         )
         self.blocks = nn.Sequential(*(BasicBlock3d(self.out_channels, self.out_channels) for _ in range(num_blocks)))
 
@@ -45,5 +47,7 @@ class DenseVoxels(SceneRepresentation):
                 f"{tuple(volume.shape)}; use a BEV scene representation or a 3D view transform"
             )
         if volume.dim() != 5 or tuple(volume.shape[2:]) != lifted.grid.shape:
-            raise ValueError(f"dense_voxels: volume {tuple(volume.shape)} does not match its grid shape {lifted.grid.shape}")
+            raise ValueError(
+                f"dense_voxels: volume {tuple(volume.shape)} does not match its grid shape {lifted.grid.shape}"
+            )
         return DenseVoxelScene(self.blocks(self.stem(volume)), lifted.grid)

@@ -67,7 +67,9 @@ class VoxelCrossEntropy(SupervisionSource):
 
     def _logits(self, outputs: ModelOutputs) -> Tensor:
         if self.head not in outputs.heads:
-            raise ValueError(f"voxel_ce reads head '{self.head}', but the model's heads are: {', '.join(outputs.heads) or '(none)'}")
+            raise ValueError(
+                f"voxel_ce reads head '{self.head}', but the model's heads are: {', '.join(outputs.heads) or '(none)'}"
+            )
         head_out = outputs.heads[self.head]
         if "logits" not in head_out:
             raise ValueError(f"voxel_ce needs head '{self.head}' to output 'logits'; it outputs: {', '.join(head_out)}")
@@ -76,9 +78,12 @@ class VoxelCrossEntropy(SupervisionSource):
     @property
     def training_mask(self) -> str:
         """``camera``, ``lidar``, ``camera_and_lidar`` or ``none``, from ``camera_mask`` / ``lidar_mask``."""
-        return {(False, False): "none", (True, False): "camera", (False, True): "lidar", (True, True): "camera_and_lidar"}[
-            (self.camera_mask, self.lidar_mask)
-        ]
+        return {
+            (False, False): "none",
+            (True, False): "camera",
+            (False, True): "lidar",
+            (True, True): "camera_and_lidar",
+        }[(self.camera_mask, self.lidar_mask)]
 
     def counted(self, batch: Batch, labels: Tensor) -> Tensor:
         """``(B, X, Y, Z)`` bool: the voxels that count toward the loss."""
@@ -107,7 +112,9 @@ class VoxelCrossEntropy(SupervisionSource):
             )
         k = logits.shape[1]
         if self.class_weights is not None and self.class_weights.numel() != k:
-            raise ValueError(f"voxel_ce: class_weights has {self.class_weights.numel()} entries but the logits have {k} classes")
+            raise ValueError(
+                f"voxel_ce: class_weights has {self.class_weights.numel()} entries but the logits have {k} classes"
+            )
         keep = self.counted(batch, labels)
         target = labels.masked_fill(~keep, _IGNORE)
         weights = None if self.class_weights is None else self.class_weights.to(logits.dtype)

@@ -6,4 +6,14 @@ from .refs import resolve_ref, search_path
 from .slots import TOP_LEVEL, Slot
 from .validate import validate
 
-__all__ = ["TOP_LEVEL", "Composed", "ConfigError", "Slot", "compose", "resolve", "resolve_ref", "search_path", "validate"]
+__all__ = [
+    "TOP_LEVEL",
+    "Composed",
+    "ConfigError",
+    "Slot",
+    "compose",
+    "resolve",
+    "resolve_ref",
+    "search_path",
+    "validate",
+]

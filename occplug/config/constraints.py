@@ -70,7 +70,9 @@ class Range(Constraint):
         low = None if self.low is None else f"{'>' if self.low_open else '>='} {_num(self.low)}"
         high = None if self.high is None else f"{'<' if self.high_open else '<='} {_num(self.high)}"
         if low and high:
-            return f"in {'(' if self.low_open else '['}{_num(self.low)}, {_num(self.high)}{')' if self.high_open else ']'}"
+            return (
+                f"in {'(' if self.low_open else '['}{_num(self.low)}, {_num(self.high)}{')' if self.high_open else ']'}"
+            )
         return low or high or "any number"
 
     def violations(self) -> list[Any]:

@@ -175,7 +175,9 @@ def _validate_grid(value: Any) -> None:
     for key in value:
         if key not in ("range", "voxel_size"):
             hint = closest(str(key), ["range", "voxel_size"])
-            raise ConfigError(f"grid.{key}: unknown key{f'; did you mean {hint!r}?' if hint else ''} (grid has range, voxel_size)")
+            raise ConfigError(
+                f"grid.{key}: unknown key{f'; did you mean {hint!r}?' if hint else ''} (grid has range, voxel_size)"
+            )
     for key in ("range", "voxel_size"):
         if key not in value:
             raise ConfigError(f"grid: missing '{key}'")
@@ -238,7 +240,9 @@ def _validate_kwargs(value: Any, section: str, target: Any, skip: set[str]) -> N
     for key, val in value.items():
         if key not in params:
             hint = closest(str(key), list(params))
-            raise ConfigError(f"{section}.{key}: unknown {section} argument{f'; did you mean {hint!r}?' if hint else ''}")
+            raise ConfigError(
+                f"{section}.{key}: unknown {section} argument{f'; did you mean {hint!r}?' if hint else ''}"
+            )
         if not check_type(val, params[key][1]):
             raise ConfigError(f"{section}.{key}: expected {_type_name(params[key][1])}, got {_describe(val)}")
         _check_run_number(f"{section}.{key}", val)
@@ -306,7 +310,9 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
         _validate_kwargs(args, "optimizer", optimizer_class(config["optimizer"]["type"]), {"params"})
     if config.get("scheduler") is not None:
         args = _validate_named_choice(config["scheduler"], "scheduler", SCHEDULERS)
-        _validate_kwargs(args, "scheduler", scheduler_factory(config["scheduler"]["type"]), {"optimizer", "total_steps"})
+        _validate_kwargs(
+            args, "scheduler", scheduler_factory(config["scheduler"]["type"]), {"optimizer", "total_steps"}
+        )
     if config.get("trainer") is not None:
         _validate_kwargs(config["trainer"], "trainer", L.Trainer, {"callbacks", "logger", "default_root_dir"})
     if config.get("checkpoint") is not None:
@@ -324,6 +330,10 @@ def _validate_lr_scaling(args: dict[str, Any]) -> None:
         raise ConfigError(f"optimizer.lr_scaling: expected 'none' or 'linear', got {_describe(scaling)}")
     ref = args.get("reference_batch")
     if ref is not None and (not isinstance(ref, int) or isinstance(ref, bool) or ref < 1):
-        raise ConfigError(f"optimizer.reference_batch: expected a positive int (the paper's total batch), got {_describe(ref)}")
+        raise ConfigError(
+            f"optimizer.reference_batch: expected a positive int (the paper's total batch), got {_describe(ref)}"
+        )
     if scaling == "linear" and ref is None:
-        raise ConfigError("optimizer.lr_scaling: 'linear' needs optimizer.reference_batch (the batch the lr was tuned for)")
+        raise ConfigError(
+            "optimizer.lr_scaling: 'linear' needs optimizer.reference_batch (the batch the lr was tuned for)"
+        )

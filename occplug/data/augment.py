@@ -155,8 +155,9 @@ class ImageTransform:
 
 def _warp(x: Tensor, matrix: Tensor, out_hw: tuple[int, int], mode: str) -> Tensor:
     """Warp ``(C, H, W)`` with a pixel matrix (kornia, pixel-index coordinates)."""
-    out = warp_perspective(x[None].float(), matrix[None].to(torch.float32), out_hw, mode=mode, padding_mode="zeros",
-                           align_corners=True)
+    out = warp_perspective(
+        x[None].float(), matrix[None].to(torch.float32), out_hw, mode=mode, padding_mode="zeros", align_corners=True
+    )
     return out[0]
 
 
@@ -166,7 +167,7 @@ def _is_identity(matrix: Tensor) -> bool:
 
 def _warp_labels(x: Tensor, matrix: Tensor, out_hw: tuple[int, int], fill: int) -> Tensor:
     """Nearest-neighbour warp of an integer map; ``fill`` where the output sees no input."""
-    shifted = (x.to(torch.float32) - fill + 1)  # 0 marks "outside" after the warp (ids < 2**24 are exact)
+    shifted = x.to(torch.float32) - fill + 1  # 0 marks "outside" after the warp (ids < 2**24 are exact)
     out = _warp(shifted[None], matrix, out_hw, "nearest")[0]
     return torch.where(out == 0, torch.full_like(out, float(fill)), out + fill - 1).round().to(x.dtype)
 
@@ -192,7 +193,9 @@ def apply_image_transforms(frame: Frame, transforms: Sequence[ImageTransform]) -
     for cam, t in enumerate(transforms):
         img = frame.images[cam]
         if tuple(t.resized_hw) != tuple(src_hw):
-            img = kornia_resize(img[None], t.resized_hw, interpolation="bilinear", align_corners=False, antialias=True)[0]
+            img = kornia_resize(img[None], t.resized_hw, interpolation="bilinear", align_corners=False, antialias=True)[
+                0
+            ]
         if not _is_identity(t.post) or tuple(t.resized_hw) != tuple(out_hw):
             img = _warp(img, t.post, out_hw, "bilinear")
         images.append(img.clamp(0, 1))
@@ -293,7 +296,8 @@ def apply_bev(frame: Frame, a: Tensor, grid: GridSpec | None, fill_label: int = 
             setattr(out, name, value * s)
     if frame.sequence_lidar_origins is not None:
         out.sequence_lidar_origins = (frame.sequence_lidar_origins.to(torch.float64) @ a[:3, :3].T).to(
-            frame.sequence_lidar_origins.dtype)
+            frame.sequence_lidar_origins.dtype
+        )
     if frame.boxes is not None and frame.boxes.shape[0]:
         b = frame.boxes.to(torch.float64).clone()
         b[:, :3] = b[:, :3] @ a[:3, :3].T
@@ -354,7 +358,9 @@ def _check_keys(mapping: Any, valid: Sequence[str], where: str) -> dict[str, Any
     for key in mapping:
         if key not in valid:
             hint = closest(str(key), list(valid))
-            raise ValueError(f"{where}.{key}: unknown key{f'; did you mean {hint!r}?' if hint else ''} (valid: {', '.join(valid)})")
+            raise ValueError(
+                f"{where}.{key}: unknown key{f'; did you mean {hint!r}?' if hint else ''} (valid: {', '.join(valid)})"
+            )
     return mapping
 
 
@@ -398,8 +404,13 @@ def photometric(images: Tensor, spec: str | dict[str, Any] | None) -> Tensor:
     dev = x.device
     if "jitter" in settings:
         j = settings["jitter"]
-        aug = KA.ColorJiggle(j.get("brightness", 0.2), j.get("contrast", 0.2), j.get("saturation", 0.2), j.get("hue", 0.03),
-                             p=j.get("p", 1.0))
+        aug = KA.ColorJiggle(
+            j.get("brightness", 0.2),
+            j.get("contrast", 0.2),
+            j.get("saturation", 0.2),
+            j.get("hue", 0.03),
+            p=j.get("p", 1.0),
+        )
         x = aug(x)
     if "motion_blur" in settings:
         m = settings["motion_blur"]
@@ -581,8 +592,10 @@ def apply_lidar(frame: Frame, keep: Tensor, offset: Tensor) -> Frame:
     if frame.points is None:
         raise ValueError(f"frame {frame.token}: LiDAR augmentation needs points")
     if keep.shape != (frame.points.shape[0],) or offset.shape != (int(keep.sum()), 3):
-        raise ValueError(f"frame {frame.token}: a LiDAR record of {tuple(keep.shape)} / {tuple(offset.shape)} "
-                         f"does not fit {frame.points.shape[0]} points")
+        raise ValueError(
+            f"frame {frame.token}: a LiDAR record of {tuple(keep.shape)} / {tuple(offset.shape)} "
+            f"does not fit {frame.points.shape[0]} points"
+        )
     points = frame.points[keep].clone()
     points[:, :3] += offset.to(points.dtype)
     labels = None if frame.point_labels is None else frame.point_labels[keep]
@@ -622,7 +635,9 @@ class Augmentation:
         ValueError: an unknown key or preset, with its path (``augment.image.flp: ...``).
     """
 
-    def __init__(self, config: str | dict[str, Any] | None, grid: GridSpec | None = None, fill_label: int = 255) -> None:
+    def __init__(
+        self, config: str | dict[str, Any] | None, grid: GridSpec | None = None, fill_label: int = 255
+    ) -> None:
         cfg: dict[str, Any] = {"photometric": config} if isinstance(config, str) else dict(config or {})
         _check_keys(cfg, ("photometric", "image", "bev", "lidar"), "augment")
         self.photometric = photometric_settings(cfg.get("photometric"))
@@ -652,7 +667,8 @@ class Augmentation:
         if self.lidar is not None:
             lidar = self.lidar
             frame = _map_with_adjacent(
-                frame, lambda f: f if f.points is None else apply_lidar(f, *lidar.sample(f.points.shape[0], generator)))
+                frame, lambda f: f if f.points is None else apply_lidar(f, *lidar.sample(f.points.shape[0], generator))
+            )
         if self.bev is not None:
             frame = apply_bev(frame, self.bev.sample(generator), self.grid, self.fill_label)
         return frame

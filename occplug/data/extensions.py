@@ -88,16 +88,20 @@ def _build(kind: str, node: Any, path: str, context: Mapping[str, Any]) -> Any:
     if not registry.has(kind, name):
         names = registry.names(kind)
         hint = closest(name, names)
-        raise ValueError(f"{path}.type: no {kind} '{name}'{f'; did you mean {hint!r}?' if hint else ''} "
-                         f"(registered: {', '.join(names) or 'none'})")
+        raise ValueError(
+            f"{path}.type: no {kind} '{name}'{f'; did you mean {hint!r}?' if hint else ''} "
+            f"(registered: {', '.join(names) or 'none'})"
+        )
     factory = registry.get(kind, name).factory
     params = inspect.signature(factory).parameters
     if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
         for key in node:
             if key != "type" and key not in params:
                 hint = closest(str(key), list(params))
-                raise ValueError(f"{path}.{key}: unknown argument of {kind} '{name}'"
-                                 f"{f'; did you mean {hint!r}?' if hint else ''} (valid: {', '.join(params)})")
+                raise ValueError(
+                    f"{path}.{key}: unknown argument of {kind} '{name}'"
+                    f"{f'; did you mean {hint!r}?' if hint else ''} (valid: {', '.join(params)})"
+                )
     try:
         return registry.build(kind, node, **context)
     except (TypeError, ValueError) as exc:
@@ -117,15 +121,31 @@ class DataExtensions:
         ValueError: one line naming the config key (``data.transforms[1].type: no transform 'x' ...``).
     """
 
-    def __init__(self, label_sources: Mapping[str, Any] | None = None, transforms: Sequence[Any] | None = None,
-                 fields: Mapping[str, Any] | None = None, *, class_names: Sequence[str] = (),
-                 grid: GridSpec | None = None, free_label: int | None = None, ignore_label: int | None = None) -> None:
-        context = {"class_names": tuple(class_names), "grid": grid, "free_label": free_label,
-                   "ignore_label": ignore_label}
+    def __init__(
+        self,
+        label_sources: Mapping[str, Any] | None = None,
+        transforms: Sequence[Any] | None = None,
+        fields: Mapping[str, Any] | None = None,
+        *,
+        class_names: Sequence[str] = (),
+        grid: GridSpec | None = None,
+        free_label: int | None = None,
+        ignore_label: int | None = None,
+    ) -> None:
+        context = {
+            "class_names": tuple(class_names),
+            "grid": grid,
+            "free_label": free_label,
+            "ignore_label": ignore_label,
+        }
         if label_sources is not None and not isinstance(label_sources, Mapping):
-            raise ValueError(f"data.label_sources: expected a mapping name -> {{type: ...}}, got {type(label_sources).__name__}")
+            raise ValueError(
+                f"data.label_sources: expected a mapping name -> {{type: ...}}, got {type(label_sources).__name__}"
+            )
         if transforms is not None and (isinstance(transforms, (str, Mapping)) or not isinstance(transforms, Sequence)):
-            raise ValueError(f"data.transforms: expected a list of {{type: ...}} nodes, got {type(transforms).__name__}")
+            raise ValueError(
+                f"data.transforms: expected a list of {{type: ...}} nodes, got {type(transforms).__name__}"
+            )
         self.label_sources: dict[str, Any] = {}
         for name, node in (label_sources or {}).items():
             if node is None:  # `name: null` switches a layered entry off

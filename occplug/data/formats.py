@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from occplug.errors import UserError
-from torch import Tensor
 
 __all__ = [
     "PREDICTION_KEY",

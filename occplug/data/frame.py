@@ -292,8 +292,10 @@ def _collate_extra(name: str, values: list[Any], rule: FieldRule | None) -> dict
         return {name: torch.stack(tensors)}
     tails = {tuple(t.shape[1:]) for t in tensors}
     if any(t.dim() == 0 for t in tensors) or len(tails) > 1:
-        raise ValueError(f"extras field '{name}' is collated by 'pad' but its shapes {[tuple(t.shape) for t in tensors]} "
-                         "differ beyond the first axis")
+        raise ValueError(
+            f"extras field '{name}' is collated by 'pad' but its shapes {[tuple(t.shape) for t in tensors]} "
+            "differ beyond the first axis"
+        )
     longest = max(int(t.shape[0]) for t in tensors)
     out = tensors[0].new_full((len(tensors), longest, *tensors[0].shape[1:]), rule.pad_value)
     mask = torch.zeros(len(tensors), longest, dtype=torch.bool)

@@ -15,8 +15,9 @@ token, ``08_000123`` for SemanticKITTI) and ``<camera>`` a name of ``Frame.camer
     <features dir>/<token>/<camera>.npz    the same array under the key ``features`` (e.g. written with
                                            ``numpy.savez_compressed(path, features=array)``)
 
-Where both ``<camera>.npy`` and another extension exist, ``.npy`` is read. Depth and semantic maps may have another resolution than the image: they are resized to the
-original image (nearest neighbour, pixel-centre convention) and then follow every image
+Where both ``<camera>.npy`` and another extension exist, ``.npy`` is read. Depth and semantic maps
+may have another resolution than the image: they are resized to the original image (nearest
+neighbour, pixel-centre convention) and then follow every image
 augmentation. Feature maps keep their resolution (they must cover the whole original image).
 
 The foreign taxonomy is mapped to the data set's classes with a YAML table::
@@ -104,9 +105,13 @@ def load_mapping(path: str | Path, class_names: Sequence[str]) -> np.ndarray:
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
-        raise FormatError(f"{path}: invalid YAML ({getattr(exc, 'problem', None) or str(exc).splitlines()[0]})") from None
+        raise FormatError(
+            f"{path}: invalid YAML ({getattr(exc, 'problem', None) or str(exc).splitlines()[0]})"
+        ) from None
     if not isinstance(data, dict) or not isinstance(data.get("classes"), dict) or not isinstance(data.get("map"), dict):
-        raise FormatError(f"{path}: a class-mapping table needs 'classes' (foreign id -> name) and 'map' (foreign class -> target class)")
+        raise FormatError(
+            f"{path}: a class-mapping table needs 'classes' (foreign id -> name) and 'map' (foreign class -> target class)"
+        )
     names: dict[str, int] = {}
     for key, name in data["classes"].items():
         if not isinstance(key, int) or not 0 <= key < 65536:
@@ -170,7 +175,7 @@ class _Source:
 
     def path(self, token: str, camera: str) -> Path:
         folder = self.dir / token
-        for ext in ((".npy", ".npz") if self.kind == "features" else (".npy", ".png")):
+        for ext in (".npy", ".npz") if self.kind == "features" else (".npy", ".png"):
             candidate = folder / f"{camera}{ext}"
             if candidate.is_file():
                 return candidate
@@ -192,8 +197,10 @@ class PseudoLabelSource:
         for key in sources:
             if key not in (*_KINDS, "missing"):
                 hint = closest(str(key), [*_KINDS, "missing"])
-                raise ValueError(f"pseudo_labels.{key}: unknown key{f'; did you mean {hint!r}?' if hint else ''} "
-                                 f"(valid: {', '.join(_KINDS)}, missing)")
+                raise ValueError(
+                    f"pseudo_labels.{key}: unknown key{f'; did you mean {hint!r}?' if hint else ''} "
+                    f"(valid: {', '.join(_KINDS)}, missing)"
+                )
         self.missing = sources.get("missing", "error")
         if self.missing not in ("error", "empty"):
             raise ValueError(f"pseudo_labels.missing: expected 'error' or 'empty', got {self.missing!r}")
@@ -209,7 +216,9 @@ class PseudoLabelSource:
                 if not spec:
                     raise ValueError("pseudo_labels.semantics: an empty list (give at least one {dir, mapping})")
                 for i, item in enumerate(spec):
-                    self.semantic_sources.append(self._source(kind, item, root, class_names, f"pseudo_labels.semantics[{i}]"))
+                    self.semantic_sources.append(
+                        self._source(kind, item, root, class_names, f"pseudo_labels.semantics[{i}]")
+                    )
             else:
                 source = self._source(kind, spec, root, class_names, f"pseudo_labels.{kind}")
                 if kind == "semantics":
@@ -241,8 +250,9 @@ class PseudoLabelSource:
         return _Source(kind, folder, float(cfg.get("scale", 256.0)), lut)
 
     @classmethod
-    def from_config(cls, sources: dict[str, Any] | None, class_names: Sequence[str],
-                    base: str | Path | None = None) -> PseudoLabelSource | None:
+    def from_config(
+        cls, sources: dict[str, Any] | None, class_names: Sequence[str], base: str | Path | None = None
+    ) -> PseudoLabelSource | None:
         """None for an empty config, else a source (validated now: bad config fails at construction)."""
         return cls(sources, class_names, base) if sources else None
 
@@ -279,26 +289,29 @@ class PseudoLabelSource:
         h, w = frame.image_size
         if "depth" in self.sources:
             maps = [self._read(self.sources["depth"], frame.token, cam) for cam in frame.camera_names]
-            out.pseudo_depth = torch.stack([
-                torch.zeros(h, w) if m is None else _resize_nearest(torch.from_numpy(m.astype(np.float32)), (h, w))
-                for m in maps
-            ])
+            out.pseudo_depth = torch.stack(
+                [
+                    torch.zeros(h, w) if m is None else _resize_nearest(torch.from_numpy(m.astype(np.float32)), (h, w))
+                    for m in maps
+                ]
+            )
         if self.semantic_sources:
             out.pseudo_semantics = merge_semantics([self._semantics(src, frame) for src in self.semantic_sources])
         if "features" in self.sources:
             maps = [self._read(self.sources["features"], frame.token, cam) for cam in frame.camera_names]
             shapes = {m.shape for m in maps if m is not None}
             if len(shapes) > 1:
-                raise FormatError(f"{self.sources['features'].dir / frame.token}: cameras have feature maps of different shapes {sorted(shapes)}")
+                raise FormatError(
+                    f"{self.sources['features'].dir / frame.token}: cameras have feature maps of different shapes {sorted(shapes)}"
+                )
             if not shapes:
                 out.pseudo_features = None
             else:
                 shape = shapes.pop()
-                out.pseudo_features = torch.stack([
-                    torch.zeros(shape) if m is None else torch.from_numpy(m.astype(np.float32)) for m in maps
-                ])
+                out.pseudo_features = torch.stack(
+                    [torch.zeros(shape) if m is None else torch.from_numpy(m.astype(np.float32)) for m in maps]
+                )
         return out
-
 
     def _semantics(self, src: _Source, frame: Frame) -> Tensor:
         """``(N, H, W)`` int64 target ids of one semantic source (255 where it has no target class)."""
@@ -322,6 +335,10 @@ def _resize_nearest(x: Tensor, hw: tuple[int, int]) -> Tensor:
     """Nearest-neighbour resize of a 2-D map with the pixel-centre convention (source ``floor((v + 0.5) * H / H')``)."""
     if tuple(x.shape) == tuple(hw):
         return x
-    rows = ((torch.arange(hw[0], dtype=torch.float64) + 0.5) * x.shape[0] / hw[0]).floor().long().clamp(max=x.shape[0] - 1)
-    cols = ((torch.arange(hw[1], dtype=torch.float64) + 0.5) * x.shape[1] / hw[1]).floor().long().clamp(max=x.shape[1] - 1)
+    rows = (
+        ((torch.arange(hw[0], dtype=torch.float64) + 0.5) * x.shape[0] / hw[0]).floor().long().clamp(max=x.shape[0] - 1)
+    )
+    cols = (
+        ((torch.arange(hw[1], dtype=torch.float64) + 0.5) * x.shape[1] / hw[1]).floor().long().clamp(max=x.shape[1] - 1)
+    )
     return x[rows][:, cols]

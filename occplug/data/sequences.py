@@ -81,7 +81,10 @@ class SceneIndex:
     @classmethod
     def regular(cls, names: Sequence[str], frames_per_scene: int) -> SceneIndex:
         """Scenes of ``frames_per_scene`` consecutive items each (the synthetic world's layout)."""
-        return cls(tuple(names), tuple(tuple(range(s * frames_per_scene, (s + 1) * frames_per_scene)) for s in range(len(names))))
+        return cls(
+            tuple(names),
+            tuple(tuple(range(s * frames_per_scene, (s + 1) * frames_per_scene)) for s in range(len(names))),
+        )
 
     def __len__(self) -> int:
         return len(self.names)
@@ -160,7 +163,7 @@ def split_runs(scenes: SceneIndex, run_length: int | None = None) -> list[tuple[
             continue
         k = 1 if run_length is None else math.ceil(n / run_length)
         bounds = [round(j * n / k) for j in range(k + 1)]
-        runs.extend(tuple(members[bounds[j]:bounds[j + 1]]) for j in range(k))
+        runs.extend(tuple(members[bounds[j] : bounds[j + 1]]) for j in range(k))
     return runs
 
 
@@ -211,8 +214,16 @@ class StreamRunSampler(DistributedSampler):
         seed: base seed of the shuffle and of the augmentation seeds.
     """
 
-    def __init__(self, scenes: SceneIndex, batch_size: int = 1, run_length: int | None = None,
-                 num_replicas: int | None = None, rank: int | None = None, shuffle: bool = True, seed: int = 0) -> None:
+    def __init__(
+        self,
+        scenes: SceneIndex,
+        batch_size: int = 1,
+        run_length: int | None = None,
+        num_replicas: int | None = None,
+        rank: int | None = None,
+        shuffle: bool = True,
+        seed: int = 0,
+    ) -> None:
         num_replicas, rank = _dist_defaults(num_replicas, rank)
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -249,7 +260,7 @@ class StreamRunSampler(DistributedSampler):
                     deal(s, self.runs[order[drawn % len(order)]])
         b = self.batch_size
         trimmed = [c[:length] for c in contents]
-        return [trimmed[r * b:(r + 1) * b] for r in range(self.num_replicas)]
+        return [trimmed[r * b : (r + 1) * b] for r in range(self.num_replicas)]
 
     def __iter__(self) -> Iterator[StreamItem]:  # type: ignore[override]
         slots = self.plan()[self.rank]
@@ -276,13 +287,16 @@ class SceneEvalSampler(DistributedSampler):
         ValueError: fewer scenes than ranks (a rank would have nothing to evaluate).
     """
 
-    def __init__(self, scenes: SceneIndex, batch_size: int = 1, num_replicas: int | None = None,
-                 rank: int | None = None) -> None:
+    def __init__(
+        self, scenes: SceneIndex, batch_size: int = 1, num_replicas: int | None = None, rank: int | None = None
+    ) -> None:
         num_replicas, rank = _dist_defaults(num_replicas, rank)
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         if len(scenes) < num_replicas:
-            raise ValueError(f"sequential evaluation needs a scene per rank: {len(scenes)} scene(s) for {num_replicas} ranks")
+            raise ValueError(
+                f"sequential evaluation needs a scene per rank: {len(scenes)} scene(s) for {num_replicas} ranks"
+            )
         super().__init__(range(scenes.num_items), num_replicas=num_replicas, rank=rank, shuffle=False)  # type: ignore[arg-type]
         self.scenes = scenes
         self.batch_size = batch_size
@@ -333,10 +347,18 @@ class StreamDataset(Dataset[Frame]):
         return self.base[key]
 
 
-def stream_sampler(split: str, scenes: SceneIndex, batch_size: int, run_length: int | None = None,
-                   num_replicas: int | None = None, rank: int | None = None, seed: int = 0) -> DistributedSampler:
+def stream_sampler(
+    split: str,
+    scenes: SceneIndex,
+    batch_size: int,
+    run_length: int | None = None,
+    num_replicas: int | None = None,
+    rank: int | None = None,
+    seed: int = 0,
+) -> DistributedSampler:
     """The sequential sampler of ``split``: :class:`StreamRunSampler` for ``train``, else :class:`SceneEvalSampler`."""
     if split == "train":
-        return StreamRunSampler(scenes, batch_size, run_length=run_length, num_replicas=num_replicas, rank=rank,
-                                shuffle=True, seed=seed)
+        return StreamRunSampler(
+            scenes, batch_size, run_length=run_length, num_replicas=num_replicas, rank=rank, shuffle=True, seed=seed
+        )
     return SceneEvalSampler(scenes, batch_size, num_replicas=num_replicas, rank=rank)

@@ -54,7 +54,9 @@ class GridSpec:
     ) -> None:
         rng = tuple(float(v) for v in range)
         if len(rng) != 6:
-            raise ValueError(f"grid range must have 6 numbers (x_min, y_min, z_min, x_max, y_max, z_max), got {list(range)}")
+            raise ValueError(
+                f"grid range must have 6 numbers (x_min, y_min, z_min, x_max, y_max, z_max), got {list(range)}"
+            )
         vs = (float(voxel_size),) * 3 if isinstance(voxel_size, (int, float)) else tuple(float(v) for v in voxel_size)
         if len(vs) != 3 or min(vs) <= 0:
             raise ValueError(f"grid voxel_size must be a positive number or 3 positive numbers, got {voxel_size}")
@@ -63,7 +65,9 @@ class GridSpec:
                 raise ValueError(f"grid range max must exceed min on axis {'xyz'[a]}, got {list(range)}")
             n = (rng[a + 3] - rng[a]) / vs[a]
             if abs(n - round(n)) > 1e-4:
-                raise ValueError(f"grid extent on axis {'xyz'[a]} ({rng[a + 3] - rng[a]:g} m) is not a multiple of voxel size {vs[a]:g}")
+                raise ValueError(
+                    f"grid extent on axis {'xyz'[a]} ({rng[a + 3] - rng[a]:g} m) is not a multiple of voxel size {vs[a]:g}"
+                )
         object.__setattr__(self, "range", rng)
         object.__setattr__(self, "voxel_size", vs)
         object.__setattr__(self, "contraction", None if contraction is None else Contraction.from_config(contraction))
@@ -100,15 +104,17 @@ class GridSpec:
         """
         if self.contraction is None:
             return coord
-        return torch.cat([self._warp_axis(coord[..., a], a, inverse=False).unsqueeze(-1) for a in (0, 1)]
-                         + [coord[..., 2:]], dim=-1)
+        return torch.cat(
+            [self._warp_axis(coord[..., a], a, inverse=False).unsqueeze(-1) for a in (0, 1)] + [coord[..., 2:]], dim=-1
+        )
 
     def uncontract_coords(self, coord: Tensor) -> Tensor:
         """Inverse of :meth:`contract_coords` (for points strictly inside the range in x and y)."""
         if self.contraction is None:
             return coord
-        return torch.cat([self._warp_axis(coord[..., a], a, inverse=True).unsqueeze(-1) for a in (0, 1)]
-                         + [coord[..., 2:]], dim=-1)
+        return torch.cat(
+            [self._warp_axis(coord[..., a], a, inverse=True).unsqueeze(-1) for a in (0, 1)] + [coord[..., 2:]], dim=-1
+        )
 
     def _warp_axis(self, x: Tensor, axis: int, inverse: bool) -> Tensor:
         assert self.contraction is not None

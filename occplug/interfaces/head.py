@@ -115,7 +115,9 @@ class OccupancyHead(Head):
         if times is None:
             return
         if tuple(times.shape) != tuple(points.shape[:2]):
-            raise ValueError(f"{name}.query: times must be (B, P) = {tuple(points.shape[:2])}, got {tuple(times.shape)}")
+            raise ValueError(
+                f"{name}.query: times must be (B, P) = {tuple(points.shape[:2])}, got {tuple(times.shape)}"
+            )
         if not self.temporal and times.numel() and bool((times != 0).any()):
             lo, hi = float(times.min()), float(times.max())
             raise ValueError(

@@ -34,9 +34,13 @@ class QueryResult:
             raise ValueError(f"QueryResult.class_logits must be (B, P, K), got {tuple(self.class_logits.shape)}")
         bp = tuple(self.class_logits.shape[:2])
         if self.occupancy_logit is not None and tuple(self.occupancy_logit.shape) != bp:
-            raise ValueError(f"QueryResult.occupancy_logit must be (B, P) = {bp}, got {tuple(self.occupancy_logit.shape)}")
+            raise ValueError(
+                f"QueryResult.occupancy_logit must be (B, P) = {bp}, got {tuple(self.occupancy_logit.shape)}"
+            )
         if self.features is not None and (self.features.dim() != 3 or tuple(self.features.shape[:2]) != bp):
-            raise ValueError(f"QueryResult.features must be (B, P, F) with (B, P) = {bp}, got {tuple(self.features.shape)}")
+            raise ValueError(
+                f"QueryResult.features must be (B, P, F) with (B, P) = {bp}, got {tuple(self.features.shape)}"
+            )
 
     def logits(self, free_label: int | None = None) -> Tensor:
         """``(B, P, K)`` logits whose ``argmax`` over ``K`` is the class id (see the class docstring).
@@ -54,7 +58,9 @@ class QueryResult:
             return self.class_logits
         k = self.class_logits.shape[-1]
         if free_label is None or not 0 <= free_label < k or k < 2:
-            raise ValueError(f"a QueryResult with an occupancy logit needs free_label in [0, {k}) and K >= 2, got {free_label}")
+            raise ValueError(
+                f"a QueryResult with an occupancy logit needs free_label in [0, {k}) and K >= 2, got {free_label}"
+            )
         is_free = torch.zeros(k, dtype=torch.bool, device=self.class_logits.device)
         is_free[free_label] = True
         best_occupied = self.class_logits.masked_fill(is_free, float("-inf")).amax(dim=-1)

@@ -55,7 +55,9 @@ def evaluation_mask(batch: Batch, mask: EvalMask) -> Tensor | None:
     """
     if mask == "none":
         return None
-    parts = {"camera": ["mask_camera"], "lidar": ["mask_lidar"], "camera_and_lidar": ["mask_camera", "mask_lidar"]}[mask]
+    parts = {"camera": ["mask_camera"], "lidar": ["mask_lidar"], "camera_and_lidar": ["mask_camera", "mask_lidar"]}[
+        mask
+    ]
     batch.require(*parts, by=f"evaluation mask '{mask}'")
     out = torch.ones_like(getattr(batch, parts[0]), dtype=torch.bool)
     for name in parts:

@@ -95,7 +95,9 @@ class Occ3DMIoU(OccMetric):
         for key, names in (("dynamic", dynamic), ("static", static)):
             for n in names:
                 if n not in self.class_names:
-                    raise ValueError(f"occ3d_miou.{key}_classes: unknown class '{n}' (classes: {', '.join(self.class_names)})")
+                    raise ValueError(
+                        f"occ3d_miou.{key}_classes: unknown class '{n}' (classes: {', '.join(self.class_names)})"
+                    )
             out[key] = [self.class_names.index(n) for n in names]
         return out
 

@@ -76,6 +76,7 @@ __all__ = [
     "select_origins",
 ]
 
+
 def query_ray_directions(dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> Tensor:
     """The SparseOcc query-ray directions, pitch-major.
 
@@ -88,9 +89,7 @@ def query_ray_directions(dtype: torch.dtype = torch.float64, device: torch.devic
         pitches.append(pitches[-1] + (pitches[-1] - pitches[-2]))
     pitch = torch.tensor(pitches, dtype=torch.float64)[:, None]
     azimuth = torch.deg2rad(torch.arange(360, dtype=torch.float64))[None, :]
-    xyz = torch.stack(
-        [pitch.cos() * azimuth.cos(), pitch.cos() * azimuth.sin(), pitch.sin().expand(-1, 360)], dim=-1
-    )
+    xyz = torch.stack([pitch.cos() * azimuth.cos(), pitch.cos() * azimuth.sin(), pitch.sin().expand(-1, 360)], dim=-1)
     return xyz.reshape(-1, 3).to(dtype=dtype, device=device)
 
 
@@ -164,7 +163,9 @@ def cast_query_rays(
     return QueryRays(cls[1], depth[1], cls[0], depth[0])
 
 
-def rayiou_counts(rays: QueryRays, num_classes: int, free_label: int, thresholds: Sequence[float]) -> tuple[Tensor, Tensor, Tensor]:
+def rayiou_counts(
+    rays: QueryRays, num_classes: int, free_label: int, thresholds: Sequence[float]
+) -> tuple[Tensor, Tensor, Tensor]:
     """Sum-reducible counts of one set of rays.
 
     Returns:
@@ -305,7 +306,11 @@ class RayIoU(OccMetric):
 
     def describe(self) -> str:
         """The settings, as the table's heading states them."""
-        grid = "Occ3D grid" if self.grid is None else f"grid {'x'.join(map(str, self.grid.shape))} @ {'/'.join(f'{v:g}' for v in self.grid.voxel_size)} m"
+        grid = (
+            "Occ3D grid"
+            if self.grid is None
+            else f"grid {'x'.join(map(str, self.grid.shape))} @ {'/'.join(f'{v:g}' for v in self.grid.voxel_size)} m"
+        )
         taus = ", ".join(f"{t:g}" for t in self.thresholds)
         return (
             f"RayIoU (SparseOcc / Occ3D-nuScenes leaderboard; thresholds {taus} m; {len(query_ray_directions())} rays "

@@ -130,6 +130,11 @@ class SSCMetrics(OccMetric):
         for c in range(self.num_classes):
             if c != self.free_label:
                 lines.append(f"{self.class_names[c]:<24}{res[f'IoU_{self.class_names[c]}'].item():>8.2f}")
-        for key, label in (("mIoU", "mIoU (SSC)"), ("IoU", "IoU (completion)"), ("Precision", "Precision"), ("Recall", "Recall")):
+        for key, label in (
+            ("mIoU", "mIoU (SSC)"),
+            ("IoU", "IoU (completion)"),
+            ("Precision", "Precision"),
+            ("Recall", "Recall"),
+        ):
             lines.append(f"{label:<24}{res[key].item():>8.2f}")
         return "\n".join(lines)

@@ -19,4 +19,12 @@ from .fixtures import (
 )
 from .runs import run_config
 
-__all__ = ["check_component", "hand_batch", "isolated_registry", "label_batch", "make_tiny_batch", "run_config", "tiny_batch"]
+__all__ = [
+    "check_component",
+    "hand_batch",
+    "isolated_registry",
+    "label_batch",
+    "make_tiny_batch",
+    "run_config",
+    "tiny_batch",
+]

@@ -13,8 +13,8 @@ from occplug import interfaces as I
 from occplug.config.slots import component_params
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
-from occplug.metrics.base import OccMetric
 from occplug.kinds import KINDS, given_arguments
+from occplug.metrics.base import OccMetric
 from occplug.model import build_component
 from occplug.plugins import get_registry
 
@@ -65,8 +65,17 @@ def check_component(kind: str, name: str, spec: dict[str, Any] | None = None, *,
         node["grid"] = grid.to_dict()
     node.update(spec or {})
     # what a parent would pass: the kind's contract names the arguments, this table their test values
-    values = {"in_channels": IN_CHANNELS, "image_stride": 4, "num_classes": 18, "free_label": 17, "grid": grid.to_dict(),
-              "level_channels": [IN_CHANNELS], "level_strides": [4], "num_bins": 6, "out_channels": IN_CHANNELS}
+    values = {
+        "in_channels": IN_CHANNELS,
+        "image_stride": 4,
+        "num_classes": 18,
+        "free_label": 17,
+        "grid": grid.to_dict(),
+        "level_channels": [IN_CHANNELS],
+        "level_strides": [4],
+        "num_bins": 6,
+        "out_channels": IN_CHANNELS,
+    }
     defaults = {k: values[k] for k in given_arguments(kind, entry.factory) if k in values}
     torch.manual_seed(0)
     comp = build_component(kind, node, **defaults)
@@ -99,8 +108,9 @@ def _check_encoder(enc: I.ImageEncoder, batch: Batch, grid: GridSpec) -> None:
     channels, strides = enc.level_channels, enc.level_strides
     assert len(first) == len(channels) == len(strides), f"encoder gave {len(first)} levels, declares {len(channels)}"
     assert 0 <= enc.primary_level < len(first), f"primary_level {enc.primary_level} outside {len(first)} levels"
-    assert (channels[enc.primary_level], strides[enc.primary_level]) == (enc.out_channels, enc.stride), \
+    assert (channels[enc.primary_level], strides[enc.primary_level]) == (enc.out_channels, enc.stride), (
         "the primary level must have out_channels and stride"
+    )
     for level, (a, c, s) in enumerate(zip(first, channels, strides, strict=True)):
         assert a.shape == (b, n, c, h // s, w // s), f"encoder level {level}: {tuple(a.shape)}"
     for a, c in zip(first, second, strict=True):
@@ -128,8 +138,9 @@ def _check_depth_net(net: I.DepthNet, batch: Batch, grid: GridSpec) -> None:
     assert isinstance(first, I.DepthAndContext), "a depth net returns DepthAndContext"
     assert first.depth_logits.shape == (b, n, net.num_bins, h, w), f"depth logits {tuple(first.depth_logits.shape)}"
     assert first.context.shape == (b, n, net.out_channels, h, w), f"context {tuple(first.context.shape)}"
-    assert torch.equal(first.depth_logits, second.depth_logits) and torch.equal(first.context, second.context), \
+    assert torch.equal(first.depth_logits, second.depth_logits) and torch.equal(first.context, second.context), (
         "depth net is not deterministic in eval mode"
+    )
     out = net(*inputs)
     (out.depth_logits.square().mean() + out.context.square().mean()).backward()
     assert inputs[0].grad is not None and inputs[0].grad.abs().sum() > 0, "no gradient reaches the image features"
@@ -174,7 +185,9 @@ def _check_head(head: I.Head, batch: Batch, grid: GridSpec) -> None:
     inputs = _inputs(head, batch, grid)
     scene = inputs[0]
     first, second = _deterministic(head, lambda m: m(*inputs))
-    assert isinstance(first, dict) and all(isinstance(v, Tensor) for v in first.values()), "a head returns dict[str, Tensor]"
+    assert isinstance(first, dict) and all(isinstance(v, Tensor) for v in first.values()), (
+        "a head returns dict[str, Tensor]"
+    )
     for key in first:
         assert torch.equal(first[key], second[key]), f"head output '{key}' is not deterministic in eval mode"
     _finite(first, "head output")
@@ -210,8 +223,13 @@ def _check_supervision(source: I.SupervisionSource, batch: Batch, grid: GridSpec
     model = OccModel(
         encoder={"type": "small_cnn", "out_channels": IN_CHANNELS, "width": 8, "stride": 4},
         # lss: it also predicts depth distributions, which depth supervision reads
-        view_transform={"type": "lss", "grid": grid.to_dict(), "out_channels": IN_CHANNELS, "hidden": 0,
-                        "depth_bins": [1.0, 41.0, 2.0]},
+        view_transform={
+            "type": "lss",
+            "grid": grid.to_dict(),
+            "out_channels": IN_CHANNELS,
+            "hidden": 0,
+            "depth_bins": [1.0, 41.0, 2.0],
+        },
         scene={"type": "dense_voxels", "out_channels": IN_CHANNELS, "num_blocks": 0},
         heads={"occupancy": {"type": "voxel_classifier", "hidden": 8}},
         supervision={},

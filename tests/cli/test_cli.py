@@ -83,7 +83,10 @@ def test_fit_writes_run_dir_then_resume_validate_predict(tmp_path, capsys):
     assert val["mIoU"] == pytest.approx(json.loads((run / "metrics.json").read_text())["mIoU"], abs=1e-4)
 
     preds = tmp_path / "P"
-    assert main(["predict", "-c", BASELINE, *TINY, "--ckpt", str(run / "checkpoints" / "last.ckpt"), "--out", str(preds)]) == 0
+    assert (
+        main(["predict", "-c", BASELINE, *TINY, "--ckpt", str(run / "checkpoints" / "last.ckpt"), "--out", str(preds)])
+        == 0
+    )
     files = sorted(preds.glob("*.npz"))
     assert files
     arr = np.load(files[0])["pred"]

@@ -21,8 +21,25 @@ KITTI_SHAPE = [str(v) for v in KITTI_GRID.shape]
 @pytest.fixture(scope="module")
 def nuscenes(tmp_path_factory):
     root = tmp_path_factory.mktemp("check") / "nuscenes"
-    assert main(["data", "synth", "--format", "occ3d", "--preset", "tiny", "--splits", "train", "val", "--out",
-                 str(root), "train_scenes=1"]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "synth",
+                "--format",
+                "occ3d",
+                "--preset",
+                "tiny",
+                "--splits",
+                "train",
+                "val",
+                "--out",
+                str(root),
+                "train_scenes=1",
+            ]
+        )
+        == 0
+    )
     return root
 
 
@@ -30,8 +47,26 @@ def nuscenes(tmp_path_factory):
 def kitti(tmp_path_factory):
     root = tmp_path_factory.mktemp("check") / "kitti"
     grid = f"grid={{range: {list(KITTI_GRID.range)}, voxel_size: {KITTI_GRID.voxel_size[0]}}}"
-    assert main(["data", "synth", "--format", "semantickitti", "--preset", "tiny", "--splits", "train", "val", "--out",
-                 str(root), "train_scenes=1", grid]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "synth",
+                "--format",
+                "semantickitti",
+                "--preset",
+                "tiny",
+                "--splits",
+                "train",
+                "val",
+                "--out",
+                str(root),
+                "train_scenes=1",
+                grid,
+            ]
+        )
+        == 0
+    )
     return root
 
 
@@ -46,14 +81,30 @@ def listing(root):
 
 
 def check_ns(tree, *extra):
-    return main(["data", "check", "nuscenes", "--root", str(tree), "--version", "v1.0-trainval", "--occ", str(tree),
-                 "--splits", str(tree / "splits.json"), "--shape", *SHAPE, *extra])
+    return main(
+        [
+            "data",
+            "check",
+            "nuscenes",
+            "--root",
+            str(tree),
+            "--version",
+            "v1.0-trainval",
+            "--occ",
+            str(tree),
+            "--splits",
+            str(tree / "splits.json"),
+            "--shape",
+            *SHAPE,
+            *extra,
+        ]
+    )
 
 
 def one_error_line(capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: "), err
-    return err[0][len("error: "):]
+    return err[0][len("error: ") :]
 
 
 def test_a_correct_nuscenes_tree_passes_and_is_left_unchanged(nuscenes, capsys):
@@ -63,21 +114,43 @@ def test_a_correct_nuscenes_tree_passes_and_is_left_unchanged(nuscenes, capsys):
     out = capsys.readouterr().out.splitlines()
     assert out[0] == f"ok: nuScenes tree {nuscenes} (v1.0-trainval; scenes per {nuscenes / 'splits.json'})"
     assert out[1:3] == ["  train: 1 scene, 3 samples", "  val: 1 scene, 2 samples"]
-    assert out[3] == ("  checked: 30 images, 5 LiDAR files (keyframes and sweeps), 5 lidarseg files, "
-                      "5 label files (40, 40, 8)")
+    assert out[3] == (
+        "  checked: 30 images, 5 LiDAR files (keyframes and sweeps), 5 lidarseg files, 5 label files (40, 40, 8)"
+    )
     assert listing(nuscenes) == before
     # the default grid is Occ3D's: every label file of this tree has another shape
-    assert main(["data", "check", "nuscenes", "--root", str(nuscenes), "--version", "v1.0-trainval", "--occ",
-                 str(nuscenes), "--splits", str(nuscenes / "splits.json")]) == 2
-    assert "'semantics' has shape (40, 40, 8); expected (200, 200, 16) (5 of 5 label files affected)" in one_error_line(capsys)
+    assert (
+        main(
+            [
+                "data",
+                "check",
+                "nuscenes",
+                "--root",
+                str(nuscenes),
+                "--version",
+                "v1.0-trainval",
+                "--occ",
+                str(nuscenes),
+                "--splits",
+                str(nuscenes / "splits.json"),
+            ]
+        )
+        == 2
+    )
+    assert "'semantics' has shape (40, 40, 8); expected (200, 200, 16) (5 of 5 label files affected)" in one_error_line(
+        capsys
+    )
     # the official split: the tree's scenes are in none of its lists (as prepare says)
     assert main(["data", "check", "nuscenes", "--root", str(nuscenes), "--version", "v1.0-trainval"]) == 2
-    assert "synth-train-0000, synth-val-0000 are in no split of the official v1.0-trainval split" in one_error_line(capsys)
+    assert "synth-train-0000, synth-val-0000 are in no split of the official v1.0-trainval split" in one_error_line(
+        capsys
+    )
     assert listing(nuscenes) == before
 
 
-@pytest.mark.parametrize("damage", ["removed_labels", "wrong_shape", "truncated_lidar", "missing_image", "missing_scene",
-                                    "no_lidar"])
+@pytest.mark.parametrize(
+    "damage", ["removed_labels", "wrong_shape", "truncated_lidar", "missing_image", "missing_scene", "no_lidar"]
+)
 def test_each_damage_exits_2_naming_the_file_and_writes_nothing(nuscenes, tmp_path, damage, capsys):
     tree = tmp_path / "tree"
     shutil.copytree(nuscenes, tree)
@@ -89,15 +162,21 @@ def test_each_damage_exits_2_naming_the_file_and_writes_nothing(nuscenes, tmp_pa
     elif damage == "wrong_shape":
         victim = gts[2]
         good = np.load(victim)
-        np.savez_compressed(victim, semantics=good["semantics"][:, :, :4], mask_lidar=good["mask_lidar"],
-                            mask_camera=good["mask_camera"])
+        np.savez_compressed(
+            victim,
+            semantics=good["semantics"][:, :, :4],
+            mask_lidar=good["mask_lidar"],
+            mask_camera=good["mask_camera"],
+        )
         expected = f"{victim}: 'semantics' has shape (40, 40, 4); expected (40, 40, 8) (1 of 5 label files affected)"
     elif damage == "truncated_lidar":
         victim = sorted((tree / "samples" / "LIDAR_TOP").iterdir())[1]
         data = victim.read_bytes()[:-6]
         victim.write_bytes(data)
-        expected = (f"{victim}: {len(data)} bytes is not a whole number of 5-float32 points (corrupt .bin?) "
-                    "(1 of 5 LiDAR files affected)")
+        expected = (
+            f"{victim}: {len(data)} bytes is not a whole number of 5-float32 points (corrupt .bin?) "
+            "(1 of 5 LiDAR files affected)"
+        )
     elif damage == "missing_image":
         victim = sorted((tree / "samples" / "CAM_BACK").iterdir())[-1]
         victim.unlink()
@@ -105,8 +184,10 @@ def test_each_damage_exits_2_naming_the_file_and_writes_nothing(nuscenes, tmp_pa
     elif damage == "missing_scene":
         tables = tree / "v1.0-trainval" / "scene.json"
         tables.write_text(json.dumps([s for s in json.loads(tables.read_text()) if s["name"] != "synth-val-0000"]))
-        expected = (f"{tables}: scene synth-val-0000 of the val split is missing "
-                    f"(1 of 2 scenes of {tree / 'splits.json'} affected)")
+        expected = (
+            f"{tables}: scene synth-val-0000 of the val split is missing "
+            f"(1 of 2 scenes of {tree / 'splits.json'} affected)"
+        )
     else:  # every LiDAR file gone: a LiDAR check fails, a camera-only check (--no-lidar) passes
         shutil.rmtree(tree / "samples" / "LIDAR_TOP")
         shutil.rmtree(tree / "lidarseg")
@@ -118,7 +199,10 @@ def test_each_damage_exits_2_naming_the_file_and_writes_nothing(nuscenes, tmp_pa
     line = one_error_line(capsys)
     assert line.startswith(expected) if damage == "no_lidar" else line == expected, line
     if damage == "no_lidar":
-        assert "no such file (5 of 5 LiDAR files affected); also " in line and "_lidarseg.bin: no such file (5 of 5 lidarseg files)" in line
+        assert (
+            "no such file (5 of 5 LiDAR files affected); also " in line
+            and "_lidarseg.bin: no such file (5 of 5 lidarseg files)" in line
+        )
         assert check_ns(tree, "--no-lidar") == 0
         assert "LiDAR files not checked (--no-lidar)" in capsys.readouterr().out
     assert listing(tree) == before
@@ -128,8 +212,28 @@ def test_index_check(nuscenes, tmp_path, capsys):
     tree = tmp_path / "tree"
     shutil.copytree(nuscenes, tree)
     index = tmp_path / "index"
-    assert main(["data", "prepare", "nuscenes", "--root", str(tree), "--version", "v1.0-trainval", "--occ", str(tree),
-                 "--out", str(index), "--splits", str(tree / "splits.json"), "--sweeps", "2"]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "prepare",
+                "nuscenes",
+                "--root",
+                str(tree),
+                "--version",
+                "v1.0-trainval",
+                "--occ",
+                str(tree),
+                "--out",
+                str(index),
+                "--splits",
+                str(tree / "splits.json"),
+                "--sweeps",
+                "2",
+            ]
+        )
+        == 0
+    )
     check = ["data", "check", "index", "--index", str(index), "--splits", str(tree / "splits.json"), "--shape", *SHAPE]
     capsys.readouterr()
     assert main(check) == 0
@@ -144,11 +248,16 @@ def test_index_check(nuscenes, tmp_path, capsys):
     assert main(check) == 2
     line = one_error_line(capsys)
     assert line.startswith(f"{tree / 'samples' / 'CAM_FRONT' / 'synth-train-0000__CAM_FRONT__'}")
-    assert "no such file (5 of 30 images affected); also " in line and f"{label}: no such file (1 of 5 label files)" in line
+    assert (
+        "no such file (5 of 30 images affected); also " in line
+        and f"{label}: no such file (1 of 5 label files)" in line
+    )
     # an index checked against a split it was not built for: every scene of the reference is named as missing
     assert main(["data", "check", "index", "--index", str(index), "--shape", *SHAPE, "--no-lidar"]) == 2
-    assert one_error_line(capsys).startswith(f"{index / 'nuscenes_index.npz'}: scene scene-0001 of the train split is "
-                                             "missing (850 of 850 scenes of the official v1.0-trainval split affected)")
+    assert one_error_line(capsys).startswith(
+        f"{index / 'nuscenes_index.npz'}: scene scene-0001 of the train split is "
+        "missing (850 of 850 scenes of the official v1.0-trainval split affected)"
+    )
     assert main(["data", "check", "index", "--index", str(tmp_path / "nowhere")]) == 2
     assert "no nuScenes index" in one_error_line(capsys)
     assert listing(tree) == before and listing(index) == before_index
@@ -162,8 +271,9 @@ def kitti_split(tmp_path):
 
 
 def check_kitti(tree, split, *extra):
-    return main(["data", "check", "semantickitti", "--root", str(tree), "--splits", str(split), "--shape", *KITTI_SHAPE,
-                 *extra])
+    return main(
+        ["data", "check", "semantickitti", "--root", str(tree), "--splits", str(split), "--shape", *KITTI_SHAPE, *extra]
+    )
 
 
 def test_a_correct_semantickitti_tree_passes(kitti, kitti_split, capsys):
@@ -175,8 +285,10 @@ def test_a_correct_semantickitti_tree_passes(kitti, kitti_split, capsys):
     assert out[3] == (f"  checked: 5 images, 20 voxel files {KITTI_GRID.shape}, 5 velodyne files, 5 point-label files")
     # against the standard split, sequences 01-07, 09 and 10 are missing
     assert main(["data", "check", "semantickitti", "--root", str(kitti), "--shape", *KITTI_SHAPE]) == 2
-    assert one_error_line(capsys) == (f"{kitti / 'sequences' / '01'}: no such train sequence folder "
-                                      "(9 of 11 sequences of the standard split affected)")
+    assert one_error_line(capsys) == (
+        f"{kitti / 'sequences' / '01'}: no such train sequence folder "
+        "(9 of 11 sequences of the standard split affected)"
+    )
     assert listing(kitti) == before
 
 

@@ -40,7 +40,10 @@ def test_occ3d_labels_round_trip_as_occ3d_stores_them(tmp_path):
     ("changes", "message"),
     [
         ({"mask_camera": None}, "missing key 'mask_camera'"),
-        ({"semantics": np.zeros((200, 200, 8), np.uint8)}, "'semantics' has shape (200, 200, 8); expected (200, 200, 16)"),
+        (
+            {"semantics": np.zeros((200, 200, 8), np.uint8)},
+            "'semantics' has shape (200, 200, 8); expected (200, 200, 16)",
+        ),
         ({"semantics": np.zeros((200, 200, 16), np.float32)}, "'semantics' has dtype float32; expected uint8"),
         ({"mask_camera": np.zeros((200, 200, 16), np.int64)}, "'mask_camera' has dtype int64; expected uint8 or bool"),
         ({"mask_lidar": np.full((200, 200, 16), 2, np.uint8)}, "'mask_lidar' holds values other than 0 and 1"),
@@ -86,16 +89,32 @@ def test_semantickitti_bit_packing_matches_unpackbits_order(tmp_path):
 
 def test_semantickitti_labels_learning_map_and_layout(tmp_path):
     lut = kitti.learning_map_lut()
-    assert [lut[r] for r in (0, 10, 252, 40, 60, 81, 1, 52, 99, 7, 65535)] == [0, 1, 1, 9, 9, 19, 255, 255, 255, 255, 255]
+    assert [lut[r] for r in (0, 10, 252, 40, 60, 81, 1, 52, 99, 7, 65535)] == [
+        0,
+        1,
+        1,
+        9,
+        9,
+        19,
+        255,
+        255,
+        255,
+        255,
+        255,
+    ]
     assert kitti.learning_map_lut(completion=False)[52] == 0
     assert all(SEMANTIC_KITTI_LEARNING_MAP[SEMANTIC_KITTI_LEARNING_MAP_INV[c]] == c for c in range(20))
     raw = torch.tensor([0, 10, 252, 52, 81, 71, 99, 40]).reshape(2, 2, 2)
     label = tmp_path / "sequences" / "08" / "voxels" / "000123.label"
     kitti.write_raw_labels(label, raw)
     assert label.stat().st_size == 16 and torch.equal(kitti.read_raw_labels(label, (2, 2, 2)), raw.int())
-    kitti.write_bits(label.with_suffix(".invalid"), torch.tensor([1, 0, 0, 0, 0, 0, 0, 1], dtype=torch.bool).reshape(2, 2, 2))
+    kitti.write_bits(
+        label.with_suffix(".invalid"), torch.tensor([1, 0, 0, 0, 0, 0, 0, 1], dtype=torch.bool).reshape(2, 2, 2)
+    )
     vox = kitti.read_voxels(label, (2, 2, 2))
-    assert vox.labels.reshape(-1).tolist() == [0, 1, 1, 255, 19, 16, 255, 9] and vox.invalid.reshape(-1).tolist()[::7] == [True, True]
+    assert vox.labels.reshape(-1).tolist() == [0, 1, 1, 255, 19, 16, 255, 9] and vox.invalid.reshape(-1).tolist()[
+        ::7
+    ] == [True, True]
     assert kitti.find_label_files(tmp_path) == {"08_000123": label} and kitti.sample_token(8, 123) == "08_000123"
 
 
@@ -108,7 +127,11 @@ def test_prediction_files(tmp_path):
     assert torch.equal(read_prediction(tmp_path / "i.npz"), pred)
     np.savez(tmp_path / "f.npz", pred=pred.numpy().astype(np.float32))
     np.savez(tmp_path / "k.npz", semantics=pred.numpy())
-    for name, message in (("f", "dtype float32"), ("k", "no 'pred' array (keys: semantics)"), ("t", "expected (4, 4, 3)")):
+    for name, message in (
+        ("f", "dtype float32"),
+        ("k", "no 'pred' array (keys: semantics)"),
+        ("t", "expected (4, 4, 3)"),
+    ):
         with pytest.raises(FormatError, match=re.escape(f"{tmp_path / name}.npz: ") + ".*" + re.escape(message)):
             read_prediction(tmp_path / f"{name}.npz", (4, 4, 3))
 
@@ -127,23 +150,38 @@ def occ3d_tree(tmp_path):
     gt, pred_dir = tmp_path / "gt", tmp_path / "pred"
     preds = []
     for b, token in enumerate(batch.token):
-        occ3d.write_labels(gt / "gts" / batch.scene[b] / token / "labels.npz",
-                           batch.voxel_labels[b], batch.mask_lidar[b], batch.mask_camera[b])
+        occ3d.write_labels(
+            gt / "gts" / batch.scene[b] / token / "labels.npz",
+            batch.voxel_labels[b],
+            batch.mask_lidar[b],
+            batch.mask_camera[b],
+        )
         pred = batch.voxel_labels[b] if b == 0 else torch.roll(batch.voxel_labels[b], 1, 0)
         write_prediction(pred_dir / f"{token}.npz", pred)
         preds.append(pred.long())
-    np.savez(tmp_path / "origins.npz", **{t: o.numpy() for t, o in zip(batch.token, batch.sequence_lidar_origins, strict=True)})
+    np.savez(
+        tmp_path / "origins.npz",
+        **{t: o.numpy() for t, o in zip(batch.token, batch.sequence_lidar_origins, strict=True)},
+    )
     return gt, pred_dir, tmp_path / "origins.npz", batch, torch.stack(preds)
 
 
 def labels_batch(labels, **fields):
     b = labels.shape[0]
     return Batch(
-        images=torch.zeros(b, 0, 3, 1, 1), intrinsics=torch.zeros(b, 0, 3, 3), cam_to_ego=torch.zeros(b, 0, 4, 4),
-        img_aug=torch.zeros(b, 0, 3, 3), ego_to_global=torch.eye(4, dtype=torch.float64).expand(b, 4, 4),
-        timestamp=torch.zeros(b, dtype=torch.float64), frame_index=torch.zeros(b, dtype=torch.int64),
-        has_voxel_labels=torch.ones(b, dtype=torch.bool), is_sequence_start=torch.ones(b, dtype=torch.bool),
-        scene=["s"] * b, token=[str(i) for i in range(b)], voxel_labels=labels, **fields,
+        images=torch.zeros(b, 0, 3, 1, 1),
+        intrinsics=torch.zeros(b, 0, 3, 3),
+        cam_to_ego=torch.zeros(b, 0, 4, 4),
+        img_aug=torch.zeros(b, 0, 3, 3),
+        ego_to_global=torch.eye(4, dtype=torch.float64).expand(b, 4, 4),
+        timestamp=torch.zeros(b, dtype=torch.float64),
+        frame_index=torch.zeros(b, dtype=torch.int64),
+        has_voxel_labels=torch.ones(b, dtype=torch.bool),
+        is_sequence_start=torch.ones(b, dtype=torch.bool),
+        scene=["s"] * b,
+        token=[str(i) for i in range(b)],
+        voxel_labels=labels,
+        **fields,
     )
 
 
@@ -154,9 +192,18 @@ def run_eval(gt, pred, *extra):
 def test_eval_equals_the_metrics_on_the_same_batch(occ3d_tree, tmp_path, capsys):
     gt, pred, origins, batch, preds = occ3d_tree
     out = tmp_path / "scores.json"
-    assert run_eval(gt, pred, "--metric", "miou", "rayiou", "ssc", "--origins", str(origins), *TINY_GRID, "--json", str(out)) == 0
+    assert (
+        run_eval(
+            gt, pred, "--metric", "miou", "rayiou", "ssc", "--origins", str(origins), *TINY_GRID, "--json", str(out)
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
-    assert "Occ3D mIoU (evaluation mask: camera)" in printed and "RayIoU (SparseOcc" in printed and "SemanticKITTI SSC" in printed
+    assert (
+        "Occ3D mIoU (evaluation mask: camera)" in printed
+        and "RayIoU (SparseOcc" in printed
+        and "SemanticKITTI SSC" in printed
+    )
     assert "evaluated 2 samples" in printed
     scores = json.loads(out.read_text())
     assert scores["samples"] == 2 and set(scores["metrics"]) == {"miou", "rayiou", "ssc"}
@@ -180,7 +227,12 @@ def test_eval_perfect_predictions_and_single_origin_fallback(occ3d_tree, tmp_pat
     for b, token in enumerate(batch.token):
         write_prediction(perfect / f"{token}.npz", batch.voxel_labels[b])
     out = tmp_path / "s.json"
-    assert run_eval(gt, perfect, "--metric", "miou", "rayiou", *TINY_GRID, "--origin", "0.9", "0", "1.8", "--json", str(out)) == 0
+    assert (
+        run_eval(
+            gt, perfect, "--metric", "miou", "rayiou", *TINY_GRID, "--origin", "0.9", "0", "1.8", "--json", str(out)
+        )
+        == 0
+    )
     res = json.loads(out.read_text())["metrics"]
     assert res["miou"]["mIoU"] == 100 and res["rayiou"]["RayIoU"] == 100
 

@@ -33,7 +33,10 @@ def fit_fails(tmp_path, capsys, *overrides: str) -> str:
     ("overrides", "expected"),
     [
         (["~model.supervision.voxel_labels"], "error: model.supervision: the model has no supervision source"),
-        (["model.supervision.voxel_labels.weight=0.0"], "error: model.supervision: every loss weight is <= 0 (voxel_labels: 0)"),
+        (
+            ["model.supervision.voxel_labels.weight=0.0"],
+            "error: model.supervision: every loss weight is <= 0 (voxel_labels: 0)",
+        ),
     ],
 )
 def test_fit_refuses_models_that_train_nothing(tmp_path, capsys, overrides, expected):
@@ -77,7 +80,9 @@ def test_the_first_batch_check_changes_nothing(tmp_path, monkeypatch):
 def test_a_tiny_run_logs_each_epoch_without_the_logging_interval_warning(tmp_path):
     import warnings
 
-    cfg = runner.load_config([BASELINE, "occplug/trainer/debug"], [*TINY, "trainer.max_steps=3", "trainer.log_every_n_steps=50"])
+    cfg = runner.load_config(
+        [BASELINE, "occplug/trainer/debug"], [*TINY, "trainer.max_steps=3", "trainer.log_every_n_steps=50"]
+    )
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
         runner.fit(cfg, tmp_path / "run")

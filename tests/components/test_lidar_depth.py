@@ -66,8 +66,10 @@ def test_loss_is_bevdepths_binary_cross_entropy():
     outputs = ModelOutputs(image_features=torch.zeros(1), lifted=lifted, scene=None, heads={}, query=None)
     loss = LidarDepthSupervision()(batch, outputs)["depth"]
     p1, p2 = probs[0, 0, :, 1, 2], probs[0, 0, :, 0, 3]
-    manual = (F.binary_cross_entropy(p1, F.one_hot(torch.tensor(4), 9).float(), reduction="sum")
-              + F.binary_cross_entropy(p2, F.one_hot(torch.tensor(3), 9).float(), reduction="sum")) / 2
+    manual = (
+        F.binary_cross_entropy(p1, F.one_hot(torch.tensor(4), 9).float(), reduction="sum")
+        + F.binary_cross_entropy(p2, F.one_hot(torch.tensor(3), 9).float(), reduction="sum")
+    ) / 2
     assert torch.allclose(loss, manual)
     assert LidarDepthSupervision.requires == frozenset({"points"})
 
@@ -93,8 +95,12 @@ def test_training_on_lidar_depth_lowers_the_loss():
     batch = make_tiny_batch()
     encoder = build_component("encoder", {"type": "small_cnn", "out_channels": 16, "stride": 8})
     grid = {"range": [-24.0, -24.0, -1.0, 24.0, 24.0, 5.4], "voxel_size": 0.8}
-    lss = build_component("view_transform", {"type": "lss", "grid": grid, "out_channels": 8, "depth_bins": [1.0, 40.0, 1.0]},
-                          in_channels=16, image_stride=8)
+    lss = build_component(
+        "view_transform",
+        {"type": "lss", "grid": grid, "out_channels": 8, "depth_bins": [1.0, 40.0, 1.0]},
+        in_channels=16,
+        image_stride=8,
+    )
     source = build_component("supervision", {"type": "lidar_depth"})
     params = [*encoder.parameters(), *lss.parameters()]
     opt = torch.optim.Adam(params, lr=3e-3)

@@ -99,7 +99,9 @@ def test_splat_sums_features_per_voxel_and_drops_outside() -> None:
 
 def test_voxel_flat_index_matches_grid_indexing() -> None:
     grid = GridSpec(range=(0, 0, 0, 3, 2, 2), voxel_size=1.0)
-    pts = torch.tensor([[[0.5, 0.5, 0.5], [2.5, 1.5, 1.5], [3.5, 0.5, 0.5]], [[0.5, 0.5, 0.5], [-0.1, 0.5, 0.5], [1.2, 0.2, 1.7]]])
+    pts = torch.tensor(
+        [[[0.5, 0.5, 0.5], [2.5, 1.5, 1.5], [3.5, 0.5, 0.5]], [[0.5, 0.5, 0.5], [-0.1, 0.5, 0.5], [1.2, 0.2, 1.7]]]
+    )
     idx = voxel_flat_index(pts, grid)
     # ((b*X + i)*Y + j)*Z + k with (X, Y, Z) = (3, 2, 2)
     assert idx.tolist() == [[0, 11, -1], [12, -1, 12 + 4 + 1]]
@@ -146,7 +148,9 @@ def test_lss_one_hot_depth_lands_in_the_unprojected_voxel() -> None:
 def test_lss_conserves_features_inside_the_grid_and_backpropagates() -> None:
     torch.manual_seed(0)
     batch = make_batch(b=2, n=2)
-    lss = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8)
+    lss = LSSViewTransform(
+        in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8
+    )
     d = lss.num_depth_bins
     net_out = torch.randn(4, d + 3, 4, 8)
     lss.depth_net = FixedOutput(net_out, d)
@@ -169,7 +173,9 @@ def test_lss_conserves_features_inside_the_grid_and_backpropagates() -> None:
 def test_lss_gradient_reaches_image_features() -> None:
     torch.manual_seed(0)
     batch = make_batch()
-    lss = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8)
+    lss = LSSViewTransform(
+        in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8
+    )
     feats = torch.randn(1, 1, 4, 4, 8, requires_grad=True)
     lss(feats, batch).volume.square().sum().backward()
     assert feats.grad is not None and feats.grad.abs().sum() > 0
@@ -183,7 +189,9 @@ def test_lss_half_size_images_with_resize_img_aug_give_the_same_voxels() -> None
     half = make_batch(height=H // 2, width=W // 2, img_aug=resize)
     a = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, depth_bins=[1.0, 25.0, 1.0])
     b = LSSViewTransform(in_channels=4, image_stride=S // 2, grid=GRID, depth_bins=[1.0, 25.0, 1.0])
-    torch.testing.assert_close(frustum_points(half, 4, 8, S // 2, b.depth_centers), frustum_points(full, 4, 8, S, a.depth_centers))
+    torch.testing.assert_close(
+        frustum_points(half, 4, 8, S // 2, b.depth_centers), frustum_points(full, 4, 8, S, a.depth_centers)
+    )
     index = a.voxel_index(full, 4, 8)
     assert torch.equal(b.voxel_index(half, 4, 8), index)
     assert (index >= 0).any()
@@ -236,7 +244,9 @@ def test_backward_projection_averages_over_cameras_and_points() -> None:
 def test_both_view_transforms_take_the_same_arguments_and_output_the_same_shape() -> None:
     torch.manual_seed(0)
     batch = make_batch(b=2, n=2)
-    args = dict(in_channels=4, image_stride=S, grid=GRID.to_dict(), out_channels=5, depth_bins=[1.0, 20.0, 1.0], hidden=8)
+    args = dict(
+        in_channels=4, image_stride=S, grid=GRID.to_dict(), out_channels=5, depth_bins=[1.0, 20.0, 1.0], hidden=8
+    )
     feats = torch.randn(2, 2, 4, 4, 8, requires_grad=True)
     shapes = []
     for cls in (LSSViewTransform, BackwardProjection):
@@ -256,7 +266,9 @@ def test_plain_depth_net_gives_the_numbers_of_the_former_built_in_head() -> None
 
     batch = make_batch(b=2, n=2)
     torch.manual_seed(7)
-    lss = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8)
+    lss = LSSViewTransform(
+        in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8
+    )
     torch.manual_seed(7)
     former = PixelNet(4, 8, 24 + 3)
     assert lss.depth_net.net.state_dict().keys() == former.state_dict().keys()
@@ -267,12 +279,25 @@ def test_plain_depth_net_gives_the_numbers_of_the_former_built_in_head() -> None
     out = former(feats.flatten(0, 1))
     probs = out[:, :24].softmax(1).view(2, 2, 24, 4, 8)
     torch.testing.assert_close(lifted.depth_probs, probs, atol=0, rtol=0)
-    ref = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8,
-                           splat="reference")
+    ref = LSSViewTransform(
+        in_channels=4,
+        image_stride=S,
+        grid=GRID,
+        out_channels=3,
+        depth_bins=[1.0, 25.0, 1.0],
+        hidden=8,
+        splat="reference",
+    )
     ref.load_state_dict(lss.state_dict())
-    frustum = (probs.view(2, 2, 24, 1, 4, 8) * out[:, 24:].view(2, 2, 1, 3, 4, 8)).permute(0, 1, 2, 4, 5, 3).reshape(-1, 3)
+    frustum = (
+        (probs.view(2, 2, 24, 1, 4, 8) * out[:, 24:].view(2, 2, 1, 3, 4, 8)).permute(0, 1, 2, 4, 5, 3).reshape(-1, 3)
+    )
     x, y, z = GRID.shape
-    expected = splat(frustum, lss.voxel_index(batch, 4, 8).reshape(-1), 2 * x * y * z).view(2, x, y, z, 3).permute(0, 4, 1, 2, 3)
+    expected = (
+        splat(frustum, lss.voxel_index(batch, 4, 8).reshape(-1), 2 * x * y * z)
+        .view(2, x, y, z, 3)
+        .permute(0, 4, 1, 2, 3)
+    )
     torch.testing.assert_close(ref(feats, batch).volume, expected, atol=0, rtol=0)  # the reference path: bit-identical
     torch.testing.assert_close(lifted.volume, expected, atol=1e-5, rtol=1e-5)
 
@@ -323,8 +348,15 @@ def test_camera_aware_depth_net_is_gated_by_the_calibration() -> None:
 def test_lss_with_a_camera_aware_depth_net_trains_its_gates() -> None:
     torch.manual_seed(0)
     batch = make_batch(b=1, n=2)
-    lss = LSSViewTransform(in_channels=4, image_stride=S, grid=GRID, out_channels=3, depth_bins=[1.0, 25.0, 1.0], hidden=8,
-                           depth_net={"type": "camera_aware", "camera_hidden": 8})
+    lss = LSSViewTransform(
+        in_channels=4,
+        image_stride=S,
+        grid=GRID,
+        out_channels=3,
+        depth_bins=[1.0, 25.0, 1.0],
+        hidden=8,
+        depth_net={"type": "camera_aware", "camera_hidden": 8},
+    )
     assert type(lss.depth_net).__name__ == "CameraAwareDepthNet" and lss.depth_net.num_bins == 24
     assert lss.depth_net.reduce[0].out_channels == 8  # LSS's hidden reached the depth net
     lss(torch.randn(1, 2, 4, 4, 8), batch).volume.square().sum().backward()
@@ -344,7 +376,9 @@ def test_depth_net_node_is_validated_with_the_config() -> None:
     used = validate(cfg, get_registry())
     assert any(u.kind == "depth_net" and u.type == "camera_aware" for u in used)
     cfg["model"]["view_transform"]["depth_net"] = {"type": "camera_awar"}
-    with pytest.raises(ConfigError, match=r"model.view_transform.depth_net.type: no depth_net named 'camera_awar'.*camera_aware"):
+    with pytest.raises(
+        ConfigError, match=r"model.view_transform.depth_net.type: no depth_net named 'camera_awar'.*camera_aware"
+    ):
         validate(cfg, get_registry())
     cfg["model"]["view_transform"]["depth_net"] = {"type": "plain", "hiden": 3}
     with pytest.raises(ConfigError, match=r"model.view_transform.depth_net.hiden: .*did you mean 'hidden'"):
@@ -356,14 +390,18 @@ def test_lss_on_a_contracted_grid_keeps_far_mass() -> None:
     torch.manual_seed(0)
     batch = make_batch(b=1, n=1)
     grid = {"range": [-8.0, -8.0, -1.03, 8.0, 8.0, 5.37], "voxel_size": 0.8, "contraction": {"near": 4.0, "kappa": 0.5}}
-    lss = LSSViewTransform(in_channels=4, image_stride=S, grid=grid, out_channels=2, depth_bins=[1.0, 45.0, 1.0], hidden=8)
+    lss = LSSViewTransform(
+        in_channels=4, image_stride=S, grid=grid, out_channels=2, depth_bins=[1.0, 45.0, 1.0], hidden=8
+    )
     assert lss.grid.is_contracted
     lifted = lss(torch.randn(1, 1, 4, 4, 8), batch)
     pts = frustum_points(batch, 4, 8, S, lss.depth_centers)
     z_ok = ((pts[..., 2] >= -1.03) & (pts[..., 2] < 5.37)).float()  # (1, 1, D, h, w)
     kept = (lifted.depth_probs * z_ok).sum()
     assert 0.3 < float(z_ok.mean()) < 1.0  # some points leave through the floor or the ceiling, none sideways
-    ones = LSSViewTransform(in_channels=4, image_stride=S, grid=grid, out_channels=2, depth_bins=[1.0, 45.0, 1.0], hidden=0)
+    ones = LSSViewTransform(
+        in_channels=4, image_stride=S, grid=grid, out_channels=2, depth_bins=[1.0, 45.0, 1.0], hidden=0
+    )
     with torch.no_grad():
         ones.depth_net.net[0].weight.zero_()
         ones.depth_net.net[0].bias.zero_()

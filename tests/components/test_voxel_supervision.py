@@ -18,7 +18,9 @@ K = 5
 
 
 def make_batch(labels: Tensor, has: list[bool], mask_camera: Tensor | None = None) -> Batch:
-    return label_batch(labels.to(torch.uint8), image_hw=(8, 8), has_voxel_labels=torch.tensor(has), mask_camera=mask_camera)
+    return label_batch(
+        labels.to(torch.uint8), image_hw=(8, 8), has_voxel_labels=torch.tensor(has), mask_camera=mask_camera
+    )
 
 
 def outputs_with(logits: Tensor, head: str = "occupancy") -> ModelOutputs:
@@ -100,7 +102,10 @@ def test_loss_goes_down_training_scene_and_head() -> None:
     _, labels, camera = problem(seed=1, b=2)
     batch = make_batch(labels, [True, True], camera)
     volume = torch.randn(2, 4, *GRID.shape)
-    rep, head = DenseVoxels(in_channels=4, out_channels=8, num_blocks=1), VoxelClassifier(in_channels=8, num_classes=K, hidden=16)
+    rep, head = (
+        DenseVoxels(in_channels=4, out_channels=8, num_blocks=1),
+        VoxelClassifier(in_channels=8, num_classes=K, hidden=16),
+    )
     ce = VoxelCrossEntropy(camera_mask=True)
     opt = torch.optim.Adam([*rep.parameters(), *head.parameters()], lr=0.02)
     losses = []

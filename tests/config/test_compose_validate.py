@@ -68,7 +68,9 @@ def test_type_change_drops_stale_arguments_keeps_accepted(reg):
 
 
 def test_type_change_in_a_later_file_replaces_node(tmp_path, reg):
-    first = write(tmp_path / "one.yaml", "model: {type: toy_model, encoder: {type: toy_encoder, channels: 4, scale: 2.0}}\n")
+    first = write(
+        tmp_path / "one.yaml", "model: {type: toy_model, encoder: {type: toy_encoder, channels: 4, scale: 2.0}}\n"
+    )
     second = write(tmp_path / "two.yaml", "model: {encoder: {type: other_encoder, depth: 5}}\n")
     out = compose([str(first), str(second)])
     assert out.data["model"]["encoder"] == {"type": "other_encoder", "channels": 4, "depth": 5}
@@ -89,15 +91,42 @@ def test_malformed_override(reg):
 @pytest.mark.parametrize(
     ("model", "message"),
     [
-        ({"encoder": {"type": "toy_encoder", "chanels": 8}}, "model.encoder.chanels: toy_encoder (encoder, plugin toy) has no parameter 'chanels'; did you mean 'channels'?"),
-        ({"encoder": {"type": "toy_encoder"}}, "model.encoder: toy_encoder (encoder, plugin toy) is missing required argument(s): channels"),
-        ({"encoder": {"type": "toy_encoder", "channels": "eight"}}, "model.encoder.channels: expected int, got str 'eight'"),
-        ({"encoder": {"type": "toy_encoder", "channels": 8, "scale": True}}, "model.encoder.scale: expected float, got bool True"),
-        ({"encoder": {"type": "toy_encoder", "channels": 8, "mode": "c"}}, "model.encoder.mode: expected one of 'a', 'b', got str 'c'"),
-        ({"encoder": {"type": "toy_encodr", "channels": 8}}, "model.encoder.type: no encoder named 'toy_encodr'; did you mean 'toy_encoder'?"),
+        (
+            {"encoder": {"type": "toy_encoder", "chanels": 8}},
+            "model.encoder.chanels: toy_encoder (encoder, plugin toy) has no parameter 'chanels'; did you mean 'channels'?",
+        ),
+        (
+            {"encoder": {"type": "toy_encoder"}},
+            "model.encoder: toy_encoder (encoder, plugin toy) is missing required argument(s): channels",
+        ),
+        (
+            {"encoder": {"type": "toy_encoder", "channels": "eight"}},
+            "model.encoder.channels: expected int, got str 'eight'",
+        ),
+        (
+            {"encoder": {"type": "toy_encoder", "channels": 8, "scale": True}},
+            "model.encoder.scale: expected float, got bool True",
+        ),
+        (
+            {"encoder": {"type": "toy_encoder", "channels": 8, "mode": "c"}},
+            "model.encoder.mode: expected one of 'a', 'b', got str 'c'",
+        ),
+        (
+            {"encoder": {"type": "toy_encodr", "channels": 8}},
+            "model.encoder.type: no encoder named 'toy_encodr'; did you mean 'toy_encoder'?",
+        ),
         ({"encoder": {"channels": 8}}, "model.encoder: missing 'type:' naming a registered encoder"),
-        ({"encoder": {"type": "toy_encoder", "channels": 8}, "extras": {"e1": {"type": "toy_encoder", "channels": 1, "scal": 1.0}}}, "model.extras.e1.scal: toy_encoder (encoder, plugin toy) has no parameter 'scal'; did you mean 'scale'?"),
-        ({"encodr": {"type": "toy_encoder", "channels": 8}}, "model.encodr: toy_model (model, plugin toy) has no parameter 'encodr'; did you mean 'encoder'?"),
+        (
+            {
+                "encoder": {"type": "toy_encoder", "channels": 8},
+                "extras": {"e1": {"type": "toy_encoder", "channels": 1, "scal": 1.0}},
+            },
+            "model.extras.e1.scal: toy_encoder (encoder, plugin toy) has no parameter 'scal'; did you mean 'scale'?",
+        ),
+        (
+            {"encodr": {"type": "toy_encoder", "channels": 8}},
+            "model.encodr: toy_model (model, plugin toy) has no parameter 'encodr'; did you mean 'encoder'?",
+        ),
     ],
 )
 def test_validation_errors_name_the_key(reg, model, message):
@@ -116,7 +145,10 @@ def test_validation_of_sections(reg):
         ({"optimizer": {"type": "adamw", "lr": "fast"}}, "optimizer.lr: expected"),
         ({"trainer": {"max_epoch": 2}}, "trainer.max_epoch: unknown trainer argument; did you mean 'max_epochs'?"),
         ({"grid": {"range": [0, 0, 0, 1, 1, 1], "voxel_size": 0.3}}, "grid: grid extent on axis x"),
-        ({"scheduler": {"type": "cosine", "warmup": 5}}, "scheduler.warmup: unknown scheduler argument; did you mean 'warmup_steps'?"),
+        (
+            {"scheduler": {"type": "cosine", "warmup": 5}},
+            "scheduler.warmup: unknown scheduler argument; did you mean 'warmup_steps'?",
+        ),
     ]
     for extra, message in cases:
         with pytest.raises(ConfigError) as err:

@@ -53,8 +53,12 @@ def test_lengths_and_elements():
 class Declared(occplug.ImageEncoder):
     """An encoder declaring its argument rules."""
 
-    def __init__(self, channels: Annotated[int, Positive] = 4, sizes: Annotated[list[Annotated[float, Positive]], Length(exact=2)] = (1.0, 2.0),
-                 dropout: Annotated[float, UnitInterval] = 0.0) -> None:
+    def __init__(
+        self,
+        channels: Annotated[int, Positive] = 4,
+        sizes: Annotated[list[Annotated[float, Positive]], Length(exact=2)] = (1.0, 2.0),
+        dropout: Annotated[float, UnitInterval] = 0.0,
+    ) -> None:
         super().__init__()
         self.out_channels, self.stride = channels, 1
 
@@ -74,7 +78,10 @@ class DeclaringPlugin:
         ("model.encoder.channels=0", "model.encoder.channels: expected an int > 0, got int 0"),
         ("model.encoder.channels=-1", "model.encoder.channels: expected an int > 0, got int -1"),
         ("model.encoder.sizes=[1.0]", "model.encoder.sizes: expected a list of 2, got list [1.0]"),
-        ("model.encoder.sizes=[1.0,-3.0]", "model.encoder.sizes: expected every element a number > 0, got list [1.0, -3.0]"),
+        (
+            "model.encoder.sizes=[1.0,-3.0]",
+            "model.encoder.sizes: expected every element a number > 0, got list [1.0, -3.0]",
+        ),
         ("model.encoder.dropout=1.5", "model.encoder.dropout: expected a number in [0, 1], got float 1.5"),
     ],
 )

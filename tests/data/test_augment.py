@@ -216,7 +216,9 @@ def test_lidar_dropout_and_jitter_are_recorded_and_replayable(frame):
 
 def test_lidar_augmentation_happens_in_the_lidar_frame_before_the_bev_transform(frame):
     g = torch.Generator().manual_seed(0)
-    out = Augmentation({"lidar": {"dropout": 0.5, "jitter": 0.1}, "bev": {"scale": [2.0, 2.0]}}, TINY.grid)(frame, generator=g)
+    out = Augmentation({"lidar": {"dropout": 0.5, "jitter": 0.1}, "bev": {"scale": [2.0, 2.0]}}, TINY.grid)(
+        frame, generator=g
+    )
     rec = out.extras["lidar_aug"]
     # the BEV scale applies to the jittered points: xyz = 2 * (original + offset)
     assert torch.allclose(out.points[:, :3], 2 * (frame.points[rec["keep"]][:, :3] + rec["offset"]), atol=1e-5)

@@ -9,16 +9,26 @@ from occplug.data.synthetic import SyntheticDataModule
 
 
 def _frame(i, **extras):
-    f = Frame(images=torch.zeros(1, 3, 4, 4), intrinsics=torch.eye(3)[None], cam_to_ego=torch.eye(4)[None],
-              img_aug=torch.eye(3)[None], ego_to_global=torch.eye(4, dtype=torch.float64), timestamp=0.0, scene="s",
-              frame_index=i, token=f"t{i}")
+    f = Frame(
+        images=torch.zeros(1, 3, 4, 4),
+        intrinsics=torch.eye(3)[None],
+        cam_to_ego=torch.eye(4)[None],
+        img_aug=torch.eye(3)[None],
+        ego_to_global=torch.eye(4, dtype=torch.float64),
+        timestamp=0.0,
+        scene="s",
+        frame_index=i,
+        token=f"t{i}",
+    )
     f.extras.update(extras)
     return f
 
 
 def test_collate_rules_stack_pad_and_list():
-    frames = [_frame(0, a=torch.tensor([1.0, 2.0]), b=torch.tensor([[1, 1]]), c="x"),
-              _frame(1, a=torch.tensor([3.0, 4.0]), b=torch.tensor([[2, 2], [3, 3], [4, 4]]), c="y")]
+    frames = [
+        _frame(0, a=torch.tensor([1.0, 2.0]), b=torch.tensor([[1, 1]]), c="x"),
+        _frame(1, a=torch.tensor([3.0, 4.0]), b=torch.tensor([[2, 2], [3, 3], [4, 4]]), c="y"),
+    ]
     batch = collate_frames(frames, {"a": FieldRule("stack"), "b": FieldRule("pad", -7)})
     assert torch.equal(batch.extras["a"], torch.tensor([[1.0, 2.0], [3.0, 4.0]]))
     assert torch.equal(batch.extras["b"], torch.tensor([[[1, 1], [-7, -7], [-7, -7]], [[2, 2], [3, 3], [4, 4]]]))
@@ -27,10 +37,11 @@ def test_collate_rules_stack_pad_and_list():
     # without rules every extra is a list, as before
     assert isinstance(collate_frames(frames).extras["a"], list)
     # the rule follows adjacent frames too
-    for f, other in zip(frames, (_frame(5, a=torch.tensor([9.0, 9.0])), _frame(6, a=torch.tensor([8.0, 8.0])))):
+    for f, other in zip(frames, (_frame(5, a=torch.tensor([9.0, 9.0])), _frame(6, a=torch.tensor([8.0, 8.0]))), strict=False):
         f.adjacent[-1] = other
-    assert torch.equal(collate_frames(frames, {"a": FieldRule("stack")}).adjacent[-1].extras["a"][:, 0],
-                       torch.tensor([9.0, 8.0]))
+    assert torch.equal(
+        collate_frames(frames, {"a": FieldRule("stack")}).adjacent[-1].extras["a"][:, 0], torch.tensor([9.0, 8.0])
+    )
     with pytest.raises(ValueError, match="'b' is collated by 'stack'"):
         collate_frames(frames, {"b": FieldRule("stack")})
     with pytest.raises(ValueError, match="missing in some frames"):
@@ -42,7 +53,10 @@ def test_collate_rules_stack_pad_and_list():
 
 def test_plugin_label_source_transform_and_field_reach_the_synthetic_batches(toy_extensions, tmp_path):
     dm = SyntheticDataModule(
-        preset="tiny", cache_dir=str(tmp_path), batch_size=3, adjacent_offsets=[-1],
+        preset="tiny",
+        cache_dir=str(tmp_path),
+        batch_size=3,
+        adjacent_offsets=[-1],
         label_sources={"ids": {"type": "toy_ids", "offset": 10}, "off": None},
         transforms=[{"type": "toy_tag", "scale": 2.0, "splits": ["train"]}],
         fields={"toy_tag": "stack"},
@@ -67,9 +81,18 @@ def test_plugin_label_source_transform_and_field_reach_the_synthetic_batches(toy
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"transforms": [{"type": "toy_tga"}]}, r"data.transforms\[0\].type: no transform 'toy_tga'; did you mean 'toy_tag'"),
-        ({"transforms": [{"type": "toy_tag", "scael": 1}]}, r"data.transforms\[0\].scael: unknown argument of transform 'toy_tag'"),
-        ({"transforms": [{"type": "toy_tag", "splits": ["trian"]}]}, r"data.transforms\[0\].splits: unknown split 'trian'"),
+        (
+            {"transforms": [{"type": "toy_tga"}]},
+            r"data.transforms\[0\].type: no transform 'toy_tga'; did you mean 'toy_tag'",
+        ),
+        (
+            {"transforms": [{"type": "toy_tag", "scael": 1}]},
+            r"data.transforms\[0\].scael: unknown argument of transform 'toy_tag'",
+        ),
+        (
+            {"transforms": [{"type": "toy_tag", "splits": ["trian"]}]},
+            r"data.transforms\[0\].splits: unknown split 'trian'",
+        ),
         ({"transforms": {"type": "toy_tag"}}, r"data.transforms: expected a list"),
         ({"label_sources": {"ids": {"offset": 1}}}, r"data.label_sources.ids: expected a mapping with a 'type:'"),
         ({"label_sources": {"ids": {"type": "toy_tag"}}}, r"data.label_sources.ids.type: no label_source 'toy_tag'"),
@@ -105,7 +128,8 @@ data:
   label_sources: {{ids: {{type: toy_ids}}}}
   transforms: [{{type: toy_tag, scale: 3.0, splits: [val]}}]
   fields: {{toy_tag: stack}}
-model: {{type: occ_model, encoder: {{type: small_cnn}}, view_transform: {{type: lss, grid: {{range: [-16, -16, -1, 16, 16, 5.4], voxel_size: 0.8}}}}, scene: {{type: dense_voxels}},
+model: {{type: occ_model, encoder: {{type: small_cnn}},
+        view_transform: {{type: lss, grid: {{range: [-16, -16, -1, 16, 16, 5.4], voxel_size: 0.8}}}}, scene: {{type: dense_voxels}},
         heads: {{occupancy: {{type: voxel_classifier}}}}, supervision: {{voxel_labels: {{type: voxel_ce}}}}}}
 """)
     validate(cfg, toy_extensions)

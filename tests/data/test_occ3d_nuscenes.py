@@ -22,15 +22,50 @@ GRID = TINY.grid.to_dict()
 
 
 def prepare(tree, *extra):
-    return main(["data", "prepare", "nuscenes", "--root", str(tree), "--version", "v1.0-trainval", "--occ", str(tree),
-                 "--out", str(tree / "index"), "--splits", str(tree / "splits.json"), *extra])
+    return main(
+        [
+            "data",
+            "prepare",
+            "nuscenes",
+            "--root",
+            str(tree),
+            "--version",
+            "v1.0-trainval",
+            "--occ",
+            str(tree),
+            "--out",
+            str(tree / "index"),
+            "--splits",
+            str(tree / "splits.json"),
+            *extra,
+        ]
+    )
 
 
 @pytest.fixture(scope="module")
 def tree(tmp_path_factory):
     root = tmp_path_factory.mktemp("nuscenes") / "tree"
-    assert main(["data", "synth", "--format", "occ3d", "--preset", "tiny", "--splits", "train", "val", "--pseudo",
-                 "default", "--out", str(root), "train_scenes=1"]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "synth",
+                "--format",
+                "occ3d",
+                "--preset",
+                "tiny",
+                "--splits",
+                "train",
+                "val",
+                "--pseudo",
+                "default",
+                "--out",
+                str(root),
+                "train_scenes=1",
+            ]
+        )
+        == 0
+    )
     assert prepare(root, "--sweeps", "2") == 0
     return root
 
@@ -53,7 +88,9 @@ def wrap(a):
 def test_frames_read_back_equal_the_generated_ones(tree):
     dm = module(tree)
     index = read_index(tree / "index")
-    instances = {r["token"]: r["nbr_annotations"] for r in json.loads((tree / "v1.0-trainval" / "instance.json").read_text())}
+    instances = {
+        r["token"]: r["nbr_annotations"] for r in json.loads((tree / "v1.0-trainval" / "instance.json").read_text())
+    }
     for split in ("train", "val"):
         ds, gen = dm.dataset(split), SyntheticDataset(TINY, split, cache_dir=default_cache_dir())
         assert len(ds) == TINY.frames(split)
@@ -61,16 +98,33 @@ def test_frames_read_back_equal_the_generated_ones(tree):
         for i in range(len(ds)):
             a, g = ds[i], gen[i]
             assert (a.token, a.scene, a.frame_index, a.timestamp, a.camera_names) == (
-                g.token, g.scene, g.frame_index, g.timestamp, g.camera_names)
+                g.token,
+                g.scene,
+                g.frame_index,
+                g.timestamp,
+                g.camera_names,
+            )
             assert a.extras["is_sequence_start"] == (g.frame_index == 0)
-            for name in ("images", "intrinsics", "voxel_labels", "mask_camera", "mask_lidar", "point_labels", "box_labels"):
+            for name in (
+                "images",
+                "intrinsics",
+                "voxel_labels",
+                "mask_camera",
+                "mask_lidar",
+                "point_labels",
+                "box_labels",
+            ):
                 x, y = getattr(a, name), getattr(g, name)
                 assert x.dtype == y.dtype and torch.equal(x, y), name  # lossless PNG, exact labels
             assert torch.equal(a.img_aug, g.img_aug)
             assert torch.allclose(a.cam_to_ego, g.cam_to_ego, atol=1e-5)
             assert torch.allclose(a.lidar_to_ego, g.lidar_to_ego, atol=1e-6)
-            assert a.ego_to_global.dtype == torch.float64 and torch.allclose(a.ego_to_global, g.ego_to_global, atol=1e-7)
-            assert torch.equal(a.points[:, :3], g.points[:, :3]) and torch.allclose(a.points[:, 3], g.points[:, 3], atol=1e-6)
+            assert a.ego_to_global.dtype == torch.float64 and torch.allclose(
+                a.ego_to_global, g.ego_to_global, atol=1e-7
+            )
+            assert torch.equal(a.points[:, :3], g.points[:, :3]) and torch.allclose(
+                a.points[:, 3], g.points[:, 3], atol=1e-6
+            )
             assert torch.allclose(a.sequence_lidar_origins, g.sequence_lidar_origins, atol=1e-4)
             assert torch.allclose(a.boxes[:, :6], g.boxes[:, :6], atol=1e-4)
             assert torch.allclose(wrap(a.boxes[:, 6] - g.boxes[:, 6]), torch.zeros(len(a.boxes)), atol=1e-5)
@@ -103,7 +157,9 @@ def test_adjacent_frames_sweeps_and_sequential_loading(tree):
 def test_points_are_not_opened_when_not_needed(copy):
     shutil.rmtree(copy / "samples" / "LIDAR_TOP")
     assert prepare(copy, "--no-check-files") == 0
-    f = Occ3DNuScenesDataModule(root=str(copy), index=str(copy / "index"), grid=GRID, load_points=False).dataset("val")[0]
+    f = Occ3DNuScenesDataModule(root=str(copy), index=str(copy / "index"), grid=GRID, load_points=False).dataset("val")[
+        0
+    ]
     assert f.points is None and f.voxel_labels is not None
 
 
@@ -152,8 +208,15 @@ def test_sweeps_are_checked_when_used(copy, capsys):
     folder = copy / "v1.0-trainval"
     rows = json.loads((folder / "sample_data.json").read_text())
     key = next(r for r in rows if r["is_key_frame"] and "LIDAR_TOP" in r["filename"] and r["prev"])
-    sweep = dict(key, token="extra-sweep", is_key_frame=False, next=key["token"], sample_token=key["sample_token"],
-                 filename="sweeps/LIDAR_TOP/extra-sweep.pcd.bin", timestamp=key["timestamp"] - 50_000)
+    sweep = dict(
+        key,
+        token="extra-sweep",
+        is_key_frame=False,
+        next=key["token"],
+        sample_token=key["sample_token"],
+        filename="sweeps/LIDAR_TOP/extra-sweep.pcd.bin",
+        timestamp=key["timestamp"] - 50_000,
+    )
     next(r for r in rows if r["token"] == key["prev"])["next"] = sweep["token"]
     key["prev"] = sweep["token"]
     (folder / "sample_data.json").write_text(json.dumps([*rows, sweep]))
@@ -161,7 +224,8 @@ def test_sweeps_are_checked_when_used(copy, capsys):
     capsys.readouterr()
     assert prepare(copy, "--sweeps", "2") == 2
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
-        f"error: {missing}: missing LiDAR sweep (of sample {key['sample_token']}; --sweeps 0 records none)")
+        f"error: {missing}: missing LiDAR sweep (of sample {key['sample_token']}; --sweeps 0 records none)"
+    )
     assert not (copy / "index" / INDEX_NAME).exists()
     assert prepare(copy, "--sweeps", "2", "--no-check-files") == 0
     with pytest.raises(FormatError, match=rf"^{missing}: no such file$"):
@@ -181,8 +245,12 @@ def test_a_wrong_shape_met_after_the_first_label_file_fails_in_one_line_when_rea
     items = index.split_indices("val")
     victim = copy / index.samples[items[1]]["occ"]
     good = np.load(victim)
-    np.savez_compressed(victim, semantics=good["semantics"][:, :, :4], mask_lidar=good["mask_lidar"][:, :, :4],
-                        mask_camera=good["mask_camera"][:, :, :4])
+    np.savez_compressed(
+        victim,
+        semantics=good["semantics"][:, :, :4],
+        mask_lidar=good["mask_lidar"][:, :, :4],
+        mask_camera=good["mask_camera"][:, :, :4],
+    )
     ds = module(copy).dataset("val")  # construction checks only the first labels.npz of a split: cheap
     assert ds[0].voxel_labels.shape == TINY.grid.shape
     with pytest.raises(FormatError, match=rf"^{victim}: 'semantics' has shape \(40, 40, 4\); expected \(40, 40, 8\)$"):
@@ -196,13 +264,33 @@ def test_a_bad_label_file_met_during_fit_is_one_line_from_the_cli(copy, tmp_path
     index = read_index(copy / "index")
     victim = copy / index.samples[index.split_indices("val")[1]]["occ"]
     good = np.load(victim)
-    np.savez_compressed(victim, semantics=good["semantics"][:, :, :4], mask_lidar=good["mask_lidar"][:, :, :4],
-                        mask_camera=good["mask_camera"][:, :, :4])
+    np.savez_compressed(
+        victim,
+        semantics=good["semantics"][:, :, :4],
+        mask_lidar=good["mask_lidar"][:, :, :4],
+        mask_camera=good["mask_camera"][:, :, :4],
+    )
     capsys.readouterr()
-    code = main(["fit", "-c", "configs/baseline.yaml", "-c", "occplug/trainer/debug", "-c", "occplug/data/occ3d_nuscenes",
-                 f"data.root={copy}", f"data.index={copy / 'index'}", "data.image_size=null", f"data.num_workers={workers}",
-                 f"grid.range={list(TINY.grid.range)}", f"grid.voxel_size={TINY.grid.voxel_size[0]}", "metrics=[occ3d_miou]",
-                 "--run-dir", str(tmp_path / "run")])
+    code = main(
+        [
+            "fit",
+            "-c",
+            "configs/baseline.yaml",
+            "-c",
+            "occplug/trainer/debug",
+            "-c",
+            "occplug/data/occ3d_nuscenes",
+            f"data.root={copy}",
+            f"data.index={copy / 'index'}",
+            "data.image_size=null",
+            f"data.num_workers={workers}",
+            f"grid.range={list(TINY.grid.range)}",
+            f"grid.voxel_size={TINY.grid.voxel_size[0]}",
+            "metrics=[occ3d_miou]",
+            "--run-dir",
+            str(tmp_path / "run"),
+        ]
+    )
     err = capsys.readouterr().err.strip()
     assert code == 2
     assert err == f"error: {victim}: 'semantics' has shape (40, 40, 4); expected (40, 40, 8)"
@@ -212,8 +300,11 @@ def test_pseudo_labels_from_the_tree(tree):
     p = tree / "pseudo"
     primary = {"dir": str(p / "semantics"), "mapping": str(p / "semantics_mapping.yaml")}
     auxiliary = {"dir": str(p / "semantics_aux"), "mapping": str(p / "semantics_aux_mapping.yaml")}
-    dm = module(tree, pseudo_labels={"depth": str(p / "depth"), "features": str(p / "features"),
-                                     "semantics": [primary, auxiliary]}, image_size=[24, 48])
+    dm = module(
+        tree,
+        pseudo_labels={"depth": str(p / "depth"), "features": str(p / "features"), "semantics": [primary, auxiliary]},
+        image_size=[24, 48],
+    )
     f = dm.dataset("val")[0]
     assert f.pseudo_depth.shape == (6, 24, 48) and f.pseudo_semantics.shape == (6, 24, 48)
     # the tree's two sources merged as the on-the-fly labeler merges them
@@ -252,7 +343,9 @@ def test_bad_trees_fail_in_one_line_naming_the_file_and_leave_no_index(copy, dam
 def test_bad_inputs_at_construction_are_one_line_errors(copy, capsys):
     assert prepare(copy) == 0
     # wrong grid shape: the labels are 40 x 40 x 8, the default grid is Occ3D's 200 x 200 x 16
-    with pytest.raises(FormatError, match=r"labels\.npz: 'semantics' has shape \(40, 40, 8\); expected \(200, 200, 16\)"):
+    with pytest.raises(
+        FormatError, match=r"labels\.npz: 'semantics' has shape \(40, 40, 8\); expected \(200, 200, 16\)"
+    ):
         Occ3DNuScenesDataModule(root=str(copy), index=str(copy / "index"))
     bad_map = copy / "pseudo" / "bad.yaml"
     bad_map.write_text((copy / "pseudo" / "semantics_mapping.yaml").read_text().replace("pedestrian", "pedestrain"))
@@ -263,8 +356,19 @@ def test_bad_inputs_at_construction_are_one_line_errors(copy, capsys):
     # through the CLI: one line, exit 2, no run directory
     capsys.readouterr()
     run = copy.parent / "run"
-    fit = ["fit", "--run-dir", str(run), "-c", "configs/baseline.yaml", "-c", "occplug/trainer/debug", "-c",
-           "occplug/data/occ3d_nuscenes", f"data.root={copy}", f"data.index={copy / 'index'}"]
+    fit = [
+        "fit",
+        "--run-dir",
+        str(run),
+        "-c",
+        "configs/baseline.yaml",
+        "-c",
+        "occplug/trainer/debug",
+        "-c",
+        "occplug/data/occ3d_nuscenes",
+        f"data.root={copy}",
+        f"data.index={copy / 'index'}",
+    ]
     assert main(fit) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and "labels.npz: 'semantics' has shape" in err[0]
@@ -287,9 +391,23 @@ def test_baseline_trains_on_the_tree_with_only_the_data_node_switched(tree, tmp_
     """``occplug/configs/data/occ3d_nuscenes.yaml`` switches data (and the grid to Occ3D's); the tiny tree's
     labels are 40 x 40 x 8 at 0.8 m, so its grid is set back, as a user of a smaller tree would."""
     run = tmp_path / "run"
-    args = ["fit", "-c", "configs/baseline.yaml", "-c", "occplug/trainer/debug", "-c", "occplug/data/occ3d_nuscenes",
-            f"data.root={tree}", f"data.index={tree / 'index'}", "data.image_size=null", "data.num_workers=0",
-            f"grid.range={list(TINY.grid.range)}", f"grid.voxel_size={TINY.grid.voxel_size[0]}", "--run-dir", str(run)]
+    args = [
+        "fit",
+        "-c",
+        "configs/baseline.yaml",
+        "-c",
+        "occplug/trainer/debug",
+        "-c",
+        "occplug/data/occ3d_nuscenes",
+        f"data.root={tree}",
+        f"data.index={tree / 'index'}",
+        "data.image_size=null",
+        "data.num_workers=0",
+        f"grid.range={list(TINY.grid.range)}",
+        f"grid.voxel_size={TINY.grid.voxel_size[0]}",
+        "--run-dir",
+        str(run),
+    ]
     assert main(args) == 0
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["global_step"] == 2 and metrics["IoU"] == metrics["IoU"]
@@ -326,9 +444,20 @@ def test_camera_only_runs_need_no_lidar_file_and_lidar_supervision_names_the_mis
     assert len(removed) > 5
     for path in removed:
         path.unlink()
-    common = ["-c", "configs/baseline.yaml", "-c", "occplug/trainer/debug", "-c", "occplug/data/occ3d_nuscenes",
-              f"data.root={copy}", f"data.index={copy / 'index'}", "data.image_size=null", "data.num_workers=0",
-              f"grid.range={list(TINY.grid.range)}", f"grid.voxel_size={TINY.grid.voxel_size[0]}"]
+    common = [
+        "-c",
+        "configs/baseline.yaml",
+        "-c",
+        "occplug/trainer/debug",
+        "-c",
+        "occplug/data/occ3d_nuscenes",
+        f"data.root={copy}",
+        f"data.index={copy / 'index'}",
+        "data.image_size=null",
+        "data.num_workers=0",
+        f"grid.range={list(TINY.grid.range)}",
+        f"grid.voxel_size={TINY.grid.voxel_size[0]}",
+    ]
     run = tmp_path / "camera_only"
     assert main(["fit", *common, "--run-dir", str(run)]) == 0
     assert json.loads((run / "metrics.json").read_text())["global_step"] == 2
@@ -350,7 +479,9 @@ def test_eval_takes_rayiou_origins_from_the_prepared_index(tree, tmp_path, capsy
 
     labels = find_label_files(tree)
     dm = module(tree)
-    frames = {f.token: f for split in ("train", "val") for f in (dm.dataset(split)[i] for i in range(len(dm.dataset(split))))}
+    frames = {
+        f.token: f for split in ("train", "val") for f in (dm.dataset(split)[i] for i in range(len(dm.dataset(split))))
+    }
     assert set(labels) == set(frames)
     preds = tmp_path / "preds"
     preds.mkdir()

@@ -21,8 +21,10 @@ def frame():
 def sources(root):
     return {
         "depth": str(root / "depth"),
-        "semantics": [{"dir": str(root / "semantics"), "mapping": str(root / "mapping.yaml")},
-                      {"dir": str(root / "semantics_aux"), "mapping": str(root / "mapping_aux.yaml")}],
+        "semantics": [
+            {"dir": str(root / "semantics"), "mapping": str(root / "mapping.yaml")},
+            {"dir": str(root / "semantics_aux"), "mapping": str(root / "mapping_aux.yaml")},
+        ],
         "features": str(root / "features"),
     }
 
@@ -71,20 +73,28 @@ def test_realism_knobs(frame):
     merged = (truth == 5) | (truth == 0) | (truth == 255)
     agree = lambda p: float((p.pseudo_semantics == truth)[~merged].float().mean())  # noqa: E731
     assert agree(perfect) == 1.0  # cones (8) included: the perfect auxiliary supplies them
-    assert torch.equal(perfect.pseudo_semantics[truth == 5], torch.full_like(truth[truth == 5], 10))  # construction -> truck
+    assert torch.equal(
+        perfect.pseudo_semantics[truth == 5], torch.full_like(truth[truth == 5], 10)
+    )  # construction -> truck
     # ... and noise / boundary errors cost accuracy
     assert 0.6 < agree(noisy) < agree(SyntheticPseudoLabels("default").attach(frame)) < 1.0
     # deterministic per (seed, token, camera)
     again = SyntheticPseudoLabels("noisy").attach(frame)
-    assert torch.equal(again.pseudo_semantics, noisy.pseudo_semantics) and torch.equal(again.pseudo_depth, noisy.pseudo_depth)
+    assert torch.equal(again.pseudo_semantics, noisy.pseudo_semantics) and torch.equal(
+        again.pseudo_depth, noisy.pseudo_depth
+    )
     assert pseudo_realism({"preset": "noisy", "depth_noise": 0.0}).depth_noise == 0.0
     with pytest.raises(ValueError, match="unknown knob 'depth_nosie'"):
         pseudo_realism({"depth_nosie": 0.1})
 
 
 def test_synthetic_data_module_makes_pseudo_labels_on_the_fly():
-    dm = SyntheticDataModule(preset="tiny", train_scenes=1, pseudo_labels={"synthetic": "perfect", "kinds": ["depth"]},
-                             augment={"image": {"size": [24, 48]}})
+    dm = SyntheticDataModule(
+        preset="tiny",
+        train_scenes=1,
+        pseudo_labels={"synthetic": "perfect", "kinds": ["depth"]},
+        augment={"image": {"size": [24, 48]}},
+    )
     f = dm.dataset("train")[0]
     assert f.pseudo_depth.shape == (6, 24, 48) and f.pseudo_semantics is None
     with pytest.raises(ValueError, match="only 'kinds'"):
@@ -94,7 +104,10 @@ def test_synthetic_data_module_makes_pseudo_labels_on_the_fly():
 def test_mapping_table_errors_name_the_file(tmp_path):
     path = tmp_path / "map.yaml"
     path.write_text(mapping_table("occ3d").replace("driveable_surface", "drivable_surface"))
-    with pytest.raises(FormatError, match=r"map\.yaml: map\.road: unknown target class 'drivable_surface'; did you mean 'driveable_surface'"):
+    with pytest.raises(
+        FormatError,
+        match=r"map\.yaml: map\.road: unknown target class 'drivable_surface'; did you mean 'driveable_surface'",
+    ):
         load_mapping(path, OCC3D_CLASSES)
     path.write_text("classes: {1: road}\nmap: {raod: driveable_surface}\n")
     with pytest.raises(FormatError, match="unknown foreign class 'raod'.*did you mean 'road'"):
@@ -150,17 +163,28 @@ def test_several_semantic_sources_merge_by_precedence_through_their_tables(tmp_p
     # the primary (dataset-specific) lacks cones; the auxiliary (open-vocabulary) has them, in its own ids
     (tmp_path / "primary.yaml").write_text(
         "classes: {0: unlabeled, 1: street, 2: automobile, 3: plant}\n"
-        "map: {street: road, automobile: car, plant: tree, unlabeled: ignore}\n")
+        "map: {street: road, automobile: car, plant: tree, unlabeled: ignore}\n"
+    )
     (tmp_path / "aux.yaml").write_text(
-        "classes: {10: traffic cone, 11: vehicle, 12: background}\nmap: {traffic cone: cone, vehicle: car}\n")
+        "classes: {10: traffic cone, 11: vehicle, 12: background}\nmap: {traffic cone: cone, vehicle: car}\n"
+    )
     primary = np.array([[1, 2, 0], [3, 0, 2]], dtype=np.int64)
     aux = np.array([[12, 11, 10], [10, 12, 12]], dtype=np.int64)
     for name, ids in (("primary", primary), ("aux", aux)):
         (tmp_path / name / "tok").mkdir(parents=True)
         np.save(tmp_path / name / "tok" / "CAM.npy", ids)
-    frame = Frame(images=torch.zeros(1, 3, 2, 3), intrinsics=torch.eye(3)[None], cam_to_ego=torch.eye(4)[None],
-                  img_aug=torch.eye(3)[None], ego_to_global=torch.eye(4, dtype=torch.float64), timestamp=0.0,
-                  scene="s", frame_index=0, token="tok", camera_names=("CAM",))
+    frame = Frame(
+        images=torch.zeros(1, 3, 2, 3),
+        intrinsics=torch.eye(3)[None],
+        cam_to_ego=torch.eye(4)[None],
+        img_aug=torch.eye(3)[None],
+        ego_to_global=torch.eye(4, dtype=torch.float64),
+        timestamp=0.0,
+        scene="s",
+        frame_index=0,
+        token="tok",
+        camera_names=("CAM",),
+    )
     both = [{"dir": "primary", "mapping": "primary.yaml"}, {"dir": "aux", "mapping": "aux.yaml"}]
     merged = PseudoLabelSource({"semantics": both}, targets, base=tmp_path).attach(frame).pseudo_semantics
     # cone only from the auxiliary (where the primary is silent); the primary's tree wins over the auxiliary's
@@ -170,7 +194,9 @@ def test_several_semantic_sources_merge_by_precedence_through_their_tables(tmp_p
     assert reverse.tolist() == [[[0, 1, 2], [2, 255, 1]]]
     single = PseudoLabelSource({"semantics": both[0]}, targets, base=tmp_path).attach(frame).pseudo_semantics
     assert single.tolist() == [[[0, 1, 255], [3, 255, 1]]]
-    assert merge_semantics([torch.tensor([255, 255, 4]), torch.tensor([1, 255, 2]), torch.tensor([3, 5, 3])]).tolist() == [1, 5, 4]
+    assert merge_semantics(
+        [torch.tensor([255, 255, 4]), torch.tensor([1, 255, 2]), torch.tensor([3, 5, 3])]
+    ).tolist() == [1, 5, 4]
     with pytest.raises(ValueError, match=r"pseudo_labels.semantics\[1\]: needs 'mapping'"):
         PseudoLabelSource({"semantics": [both[0], {"dir": "aux"}]}, targets, base=tmp_path)
 
@@ -205,8 +231,10 @@ def test_two_semantic_sources_the_primary_lacks_cones_the_auxiliary_supplies_the
     assert wrong > 0  # imperfect: the auxiliary's cone masks are not exactly the cones
     perfect = SyntheticPseudoLabels("perfect")
     f = next(f for f in frames if (f.semantics_2d == cone).any())
-    assert torch.equal(perfect.attach(f).pseudo_semantics[f.semantics_2d == cone],
-                       torch.full_like(f.semantics_2d[f.semantics_2d == cone], cone))
+    assert torch.equal(
+        perfect.attach(f).pseudo_semantics[f.semantics_2d == cone],
+        torch.full_like(f.semantics_2d[f.semantics_2d == cone], cone),
+    )
     assert barrier != cone
     table = mapping_table("occ3d", source="auxiliary")
     lut = load_mapping(_write_tmp(table), OCC3D_CLASSES)

@@ -27,8 +27,28 @@ def tree(tmp_path_factory):
     root = tmp_path_factory.mktemp("kitti") / "tree"
     grid = f"grid={{range: {list(GRID.range)}, voxel_size: {GRID.voxel_size[0]}}}"
     assert semantickitti_world(TINY, GRID).cache_key() == TINY.cache_key()  # the cached tiny frames are reused
-    assert main(["data", "synth", "--format", "semantickitti", "--preset", "tiny", "--splits", "train", "val",
-                 "--pseudo", "default", "--out", str(root), "train_scenes=1", grid]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "synth",
+                "--format",
+                "semantickitti",
+                "--preset",
+                "tiny",
+                "--splits",
+                "train",
+                "val",
+                "--pseudo",
+                "default",
+                "--out",
+                str(root),
+                "train_scenes=1",
+                grid,
+            ]
+        )
+        == 0
+    )
     return root
 
 
@@ -47,7 +67,11 @@ def test_layout_is_semantickitti(tree):
     seq = tree / "sequences"
     assert sorted(p.name for p in seq.iterdir()) == ["00", "08"]  # standard split: train 00, val 08
     assert sorted(p.name for p in (seq / "00" / "voxels").iterdir())[:4] == [
-        "000000.bin", "000000.invalid", "000000.label", "000000.occluded"]
+        "000000.bin",
+        "000000.invalid",
+        "000000.label",
+        "000000.occluded",
+    ]
     assert sorted(p.stem for p in (seq / "00" / "image_2").iterdir()) == ["000000", "000005", "000010"]
     assert len((seq / "00" / "poses.txt").read_text().splitlines()) == 11  # every scan, 10 Hz
     assert (seq / "00" / "calib.txt").read_text().splitlines()[4].startswith("Tr: ")
@@ -75,7 +99,9 @@ def test_frames_read_back_equal_the_generated_ones(tree):
             assert torch.allclose(a.ego_to_global, invert_pose(origin) @ g.ego_to_global @ lidar, atol=1e-6)
             assert torch.equal(a.points, g.points)
             assert torch.equal(a.point_labels, ssc[g.point_labels])
-            assert a.voxel_labels.dtype == torch.uint8 and torch.equal(a.voxel_labels.long(), ssc[g.voxel_labels.long()])
+            assert a.voxel_labels.dtype == torch.uint8 and torch.equal(
+                a.voxel_labels.long(), ssc[g.voxel_labels.long()]
+            )
             assert torch.equal(a.voxel_invalid, ~(g.mask_lidar | g.mask_camera))  # through the bit packing
             assert torch.allclose(a.sequence_lidar_origins, g.sequence_lidar_origins - lidar[:3, 3].float(), atol=1e-4)
             assert a.boxes is None and a.mask_camera is None
@@ -93,10 +119,18 @@ def test_bit_packing_round_trip(tree):
 
 def test_loader_with_resize_augmentation_adjacent_frames_and_pseudo_labels(tree):
     p = tree / "pseudo"
-    dm = module(tree, image_size=[24, 48], adjacent_offsets=[-1], batch_size=2, sequential=True,
-                augment={"image": {"flip": 0.5}, "bev": {"flip_y": 0.5}},
-                pseudo_labels={"depth": str(p / "depth"),
-                               "semantics": {"dir": str(p / "semantics"), "mapping": str(p / "semantics_mapping.yaml")}})
+    dm = module(
+        tree,
+        image_size=[24, 48],
+        adjacent_offsets=[-1],
+        batch_size=2,
+        sequential=True,
+        augment={"image": {"flip": 0.5}, "bev": {"flip_y": 0.5}},
+        pseudo_labels={
+            "depth": str(p / "depth"),
+            "semantics": {"dir": str(p / "semantics"), "mapping": str(p / "semantics_mapping.yaml")},
+        },
+    )
     batches = list(dm.train_dataloader())
     b = batches[0]
     assert b.images.shape == (2, 1, 3, 24, 48) and b.pseudo_depth.shape == (2, 1, 24, 48)
@@ -109,10 +143,14 @@ def test_bad_inputs_fail_in_one_line_naming_the_file(copy):
     velo = copy / "sequences" / "08" / "velodyne" / "000005.bin"
     good = velo.read_bytes()
     velo.write_bytes(good[:-8])
-    with pytest.raises(FormatError, match=r"08/velodyne/000005\.bin: \d+ bytes is not a whole number of 4-float32 points"):
+    with pytest.raises(
+        FormatError, match=r"08/velodyne/000005\.bin: \d+ bytes is not a whole number of 4-float32 points"
+    ):
         module(copy, load_points=True)
     dm = module(copy)  # load_points auto: LiDAR files are checked once the model declares points
-    with pytest.raises(FormatError, match=r"08/velodyne/000005\.bin: \d+ bytes is not a whole number of 4-float32 points"):
+    with pytest.raises(
+        FormatError, match=r"08/velodyne/000005\.bin: \d+ bytes is not a whole number of 4-float32 points"
+    ):
         dm.require_fields({"points"})
     velo.write_bytes(good)
     invalid = copy / "sequences" / "00" / "voxels" / "000010.invalid"
@@ -169,13 +207,18 @@ def test_camera_only_runs_never_open_velodyne_or_point_label_files(copy, touched
             (copy / "sequences" / seq / "velodyne" / f"{scan:06d}.bin").write_bytes(b"\0" * 32)
     with pytest.raises(FormatError, match=rf"^{copy / 'sequences' / '00' / 'labels' / '000000.label'}: no such file$"):
         module(copy).require_fields({"point_labels"})
-    with pytest.raises(ValueError, match=r"data\.load_points is false but the model reads LiDAR points \(point_labels\)"):
+    with pytest.raises(
+        ValueError, match=r"data\.load_points is false but the model reads LiDAR points \(point_labels\)"
+    ):
         module(copy, load_points=False).require_fields({"point_labels"})
 
 
 def test_missing_sequences(copy):
-    with pytest.raises(FormatError, match=rf"^{copy / 'sequences' / '05'}: no such sequence folder \(none of the val "
-                                          r"sequences 05, 06 is present\)$"):
+    with pytest.raises(
+        FormatError,
+        match=rf"^{copy / 'sequences' / '05'}: no such sequence folder \(none of the val "
+        r"sequences 05, 06 is present\)$",
+    ):
         module(copy, splits={"val": ["05", "06"]})
     dm = module(copy, splits={"train": ["00", "03"]})  # partly present: read what is there
     assert dm.dataset("train").missing == ["03"] and {f.scene for f in dm.dataset("train")} == {"00"}
@@ -201,9 +244,23 @@ def test_decoded_frame_cache_is_not_stale_after_the_tree_is_rewritten(copy, tmp_
 
 def test_baseline_trains_on_the_tree_and_reports_ssc_scores(tree, tmp_path, capsys):
     run = tmp_path / "run"
-    args = ["fit", "-c", "configs/baseline.yaml", "-c", "occplug/trainer/debug", "-c", "occplug/data/semantickitti",
-            f"data.root={tree}", "data.image_size=null", "data.num_workers=0", f"grid.range={list(GRID.range)}",
-            f"grid.voxel_size={GRID.voxel_size[0]}", "model.supervision.voxel_labels.camera_mask=false", "--run-dir", str(run)]
+    args = [
+        "fit",
+        "-c",
+        "configs/baseline.yaml",
+        "-c",
+        "occplug/trainer/debug",
+        "-c",
+        "occplug/data/semantickitti",
+        f"data.root={tree}",
+        "data.image_size=null",
+        "data.num_workers=0",
+        f"grid.range={list(GRID.range)}",
+        f"grid.voxel_size={GRID.voxel_size[0]}",
+        "model.supervision.voxel_labels.camera_mask=false",
+        "--run-dir",
+        str(run),
+    ]
     assert main(args) == 0
     metrics = json.loads((run / "metrics.json").read_text())
     assert {"IoU", "mIoU", "Precision", "Recall", "IoU_car"} <= set(metrics) and "RayIoU" not in metrics

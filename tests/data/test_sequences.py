@@ -32,7 +32,13 @@ def scenes(lengths):
 def test_scene_index_neighbours_clamp_at_scene_ends():
     idx = SceneIndex.from_scene_names(["a", "a", "a", "b", "b"])
     assert idx.items == ((0, 1, 2), (3, 4))
-    assert [idx.neighbour(0, -1), idx.neighbour(0, 1), idx.neighbour(2, 1), idx.neighbour(3, -2), idx.neighbour(3, 5)] == [0, 1, 2, 3, 4]
+    assert [
+        idx.neighbour(0, -1),
+        idx.neighbour(0, 1),
+        idx.neighbour(2, 1),
+        idx.neighbour(3, -2),
+        idx.neighbour(3, 5),
+    ] == [0, 1, 2, 3, 4]
     assert [idx.is_start(i) for i in range(5)] == [True, False, False, True, False]
     with pytest.raises(ValueError, match="two scenes"):
         SceneIndex(("a", "b"), ((0, 1), (1, 2)))
@@ -86,7 +92,9 @@ def test_split_runs_cuts_scenes_into_near_equal_runs():
 def test_training_slots_each_play_their_own_runs(replicas, batch, run_length):
     idx = scenes([4, 3, 5, 2, 6, 3, 4])
     runs = set(split_runs(idx, run_length))
-    samplers = [StreamRunSampler(idx, batch, run_length, num_replicas=replicas, rank=r, seed=3) for r in range(replicas)]
+    samplers = [
+        StreamRunSampler(idx, batch, run_length, num_replicas=replicas, rank=r, seed=3) for r in range(replicas)
+    ]
     plans = [s.plan() for s in samplers]
     assert all(p == plans[0] for p in plans)  # every rank computes the same plan
     lengths = {len(slot) for rank in plans[0] for slot in rank}
@@ -109,7 +117,7 @@ def test_training_slots_each_play_their_own_runs(replicas, batch, run_length):
             assert slot[0].start
             for piece in pieces:
                 indices = tuple(i.index for i in piece)
-                assert any(run[:len(indices)] == indices for run in runs)
+                assert any(run[: len(indices)] == indices for run in runs)
                 assert len({i.seed for i in piece}) == 1
                 covered.add(indices)
     assert runs <= covered  # every run is played in the epoch
@@ -135,7 +143,9 @@ def test_stream_dataset_marks_run_starts_and_draws_the_bev_augmentation_once_per
         rel = relative_pose(plain[k].ego_to_global.double(), plain[k + 1].ego_to_global.double())
         # the augmented motion is the true motion seen in the augmented ego frames: A T A^-1, rigid
         torch.testing.assert_close(rel_aug, a @ rel @ torch.linalg.inv(a), rtol=0, atol=1e-5)
-        torch.testing.assert_close(rel_aug[:3, :3] @ rel_aug[:3, :3].T, torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-6)
+        torch.testing.assert_close(
+            rel_aug[:3, :3] @ rel_aug[:3, :3].T, torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-6
+        )
     other = data[StreamItem(1, 12, False)].extras["bev_aug"]
     assert not torch.equal(other, a)  # another run draws another transform
 
@@ -159,8 +169,9 @@ def test_sequential_loaders_train_in_runs_and_evaluate_every_frame_once():
 
 
 def test_sequential_synthetic_loader_flags_sequence_starts_and_relative_motion():
-    dm = SyntheticDataModule(preset="tiny", train_scenes=1, val_scenes=1, sequential=True, batch_size=1,
-                             adjacent_offsets=[-1, 1])
+    dm = SyntheticDataModule(
+        preset="tiny", train_scenes=1, val_scenes=1, sequential=True, batch_size=1, adjacent_offsets=[-1, 1]
+    )
     batches = list(dm.val_dataloader())
     assert [b.frame_index.tolist() for b in batches] == [[0], [1]]
     assert [b.is_sequence_start.tolist() for b in batches] == [[True], [False]]

@@ -276,7 +276,7 @@ def _global_xy(frame, xy):
 def test_boxes_move_with_their_velocities(train_frames):
     dt = 1 / TINY.fps
     checked = 0
-    for a, b in zip(train_frames, train_frames[1:]):
+    for a, b in zip(train_frames, train_frames[1:], strict=False):
         if a.scene != b.scene:
             continue
         rot = a.ego_to_global[:2, :2]
@@ -302,7 +302,7 @@ def test_boxes_agree_with_lidar_points_and_voxels(train_frames):
     inside_ok = inside_total = centre_ok = centre_total = 0
     for f in train_frames:
         points = f.points_in_ego()
-        for box, label in zip(f.boxes, f.box_labels.tolist()):
+        for box, label in zip(f.boxes, f.box_labels.tolist(), strict=False):
             c, s = math.cos(float(box[6])), math.sin(float(box[6]))
             d = points - box[:3]
             local = torch.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], -1)
@@ -318,7 +318,7 @@ def test_boxes_agree_with_lidar_points_and_voxels(train_frames):
 
 
 def test_ego_moves_smoothly_on_the_ground(train_frames):
-    for a, b in zip(train_frames, train_frames[1:]):
+    for a, b in zip(train_frames, train_frames[1:], strict=False):
         if a.scene != b.scene:
             continue
         rel = invert_pose(a.ego_to_global) @ b.ego_to_global
@@ -394,7 +394,9 @@ def test_adjacent_frames_are_clamped_at_the_scene_ends():
 def test_datamodule_resolves_knobs_and_serves_batches(tmp_path, monkeypatch):
     monkeypatch.setenv("OCCPLUG_CACHE", str(tmp_path))
     grid = {"range": [-8.0, -8.0, -1.0, 8.0, 8.0, 5.4], "voxel_size": 0.8}
-    dm = SyntheticDataModule(preset="tiny", grid=grid, num_cameras=2, image_size=[16, 32], frames_per_scene=2, batch_size=2)
+    dm = SyntheticDataModule(
+        preset="tiny", grid=grid, num_cameras=2, image_size=[16, 32], frames_per_scene=2, batch_size=2
+    )
     cfg = dm.world_config
     assert cfg.grid.shape == (20, 20, 8) and dm.grid == cfg.grid
     assert cfg.num_cameras == 2 and cfg.image_size == (16, 32) and cfg.eval_frames_per_scene == 2
@@ -418,11 +420,35 @@ def test_unknown_preset_names_the_valid_ones():
 
 
 def _solids():
-    return Primitives.from_rows([
-        {"shape": BOX, "center": (6, 1, 1), "half": (2, 1, 1), "yaw": 0.4, "label": 4, "material": 0, "color": (1, 0, 0)},
-        {"shape": CYLINDER, "center": (3, -3, 1), "half": (0.4, 0.4, 1), "label": 7, "material": 0, "color": (1, 0, 0)},
-        {"shape": SPHEROID, "center": (-4, 2, 3), "half": (1.5, 1.5, 1), "label": 16, "material": 0, "color": (1, 0, 0)},
-    ])
+    return Primitives.from_rows(
+        [
+            {
+                "shape": BOX,
+                "center": (6, 1, 1),
+                "half": (2, 1, 1),
+                "yaw": 0.4,
+                "label": 4,
+                "material": 0,
+                "color": (1, 0, 0),
+            },
+            {
+                "shape": CYLINDER,
+                "center": (3, -3, 1),
+                "half": (0.4, 0.4, 1),
+                "label": 7,
+                "material": 0,
+                "color": (1, 0, 0),
+            },
+            {
+                "shape": SPHEROID,
+                "center": (-4, 2, 3),
+                "half": (1.5, 1.5, 1),
+                "label": 16,
+                "material": 0,
+                "color": (1, 0, 0),
+            },
+        ]
+    )
 
 
 def test_ray_hits_match_brute_force_marching():
@@ -480,8 +506,14 @@ def test_long_range_preset_reaches_200_m_in_scene_lidar_and_pseudo_depth():
     lr = preset("long_range")
     assert lr.lidar_max_range >= 200 and lr.world_margin >= 200
     # a cheaper rendering of the same world (fewer pixels and firings; same ranges, beams and margin)
-    cfg = lr.replace(image_size=(32, 88), num_cameras=1, lidar_azimuth_steps=360, label_subsamples=1, train_scenes=1,
-                     frames_per_scene=1)
+    cfg = lr.replace(
+        image_size=(32, 88),
+        num_cameras=1,
+        lidar_azimuth_steps=360,
+        label_subsamples=1,
+        train_scenes=1,
+        frames_per_scene=1,
+    )
     frame = SyntheticDataset(cfg, "train", cache_dir=default_cache_dir())[0]
     scene = build_scene(cfg, "train", 0)
     # the town (its ground map, lots and traffic) reaches >= 200 m from the ego on every side
@@ -494,10 +526,17 @@ def test_long_range_preset_reaches_200_m_in_scene_lidar_and_pseudo_depth():
     assert 200 < float(ranges.max()) <= cfg.lidar_max_range
     assert float(frame.depth.max()) > 200
     # the data module keeps the synthetic pseudo depth to the LiDAR range (default realism would cut it at 80 m)
-    dm = SyntheticDataModule(preset="long_range", cache=False, pseudo_labels={"synthetic": "default", "kinds": ["depth"]})
+    dm = SyntheticDataModule(
+        preset="long_range", cache=False, pseudo_labels={"synthetic": "default", "kinds": ["depth"]}
+    )
     assert dm.pseudo.realism.depth_max == 250.0
     pseudo = dm.pseudo.attach(frame).pseudo_depth
     assert 200 < float(pseudo.max()) <= 250.0
     assert float(SyntheticPseudoLabels("default", kinds=("depth",)).attach(frame).pseudo_depth.max()) <= 80.0
     # the default world is unchanged by this: its pseudo depth still stops at 80 m
-    assert SyntheticDataModule(preset="default", cache=False, pseudo_labels={"synthetic": "default"}).pseudo.realism.depth_max == 80.0
+    assert (
+        SyntheticDataModule(
+            preset="default", cache=False, pseudo_labels={"synthetic": "default"}
+        ).pseudo.realism.depth_max
+        == 80.0
+    )

@@ -6,8 +6,8 @@ import torch
 from occplug.geometry import (
     GridSpec,
     camera_rays,
-    lidar_ray_directions,
     contract,
+    lidar_ray_directions,
     make_pose,
     project_to_image,
     sample_volume,

@@ -38,7 +38,7 @@ def reference_walk(grid, origin, direction, t_max):
                     ts.add(t)
     ts = sorted(ts)
     out = []
-    for a, b in zip(ts, ts[1:]):
+    for a, b in zip(ts, ts[1:], strict=False):
         mid = 0.5 * (a + b)
         voxel = tuple(math.floor(g[ax] + mid * dg[ax]) for ax in range(3))
         if not out or out[-1][0] != voxel:
@@ -98,7 +98,9 @@ def random_case(seed, rays=400):
     origins = torch.tensor(lower, dtype=torch.float64) + spread * extent
     directions = torch.randn(rays, 3, generator=gen, dtype=torch.float64)
     kind = torch.randint(0, 5, (rays,), generator=gen)
-    targets = torch.tensor(lower, dtype=torch.float64) + torch.rand(rays, 3, generator=gen, dtype=torch.float64) * extent
+    targets = (
+        torch.tensor(lower, dtype=torch.float64) + torch.rand(rays, 3, generator=gen, dtype=torch.float64) * extent
+    )
     aimed = kind == 4  # aimed at a point inside the grid
     directions[aimed] = targets[aimed] - origins[aimed]
     axis = torch.randint(0, 3, (rays,), generator=gen)
@@ -148,7 +150,9 @@ def test_traversed_and_observed_masks_match_reference(seed):
     # per ray, too (a union could hide a missing voxel that another ray covers)
     for r in range(0, origins.shape[0], 7):
         one = traversed_mask(grid, origins[r : r + 1], endpoints[r : r + 1])
-        assert torch.equal(one, to_mask(reference_traversed(grid, origins[r].tolist(), endpoints[r].tolist()), grid.shape))
+        assert torch.equal(
+            one, to_mask(reference_traversed(grid, origins[r].tolist(), endpoints[r].tolist()), grid.shape)
+        )
 
 
 def test_float32_inputs_give_float32_distances_and_same_voxels():
@@ -263,7 +267,10 @@ def sparse_case(seed, rays=1200):
     grid = GridSpec(range=[*lower, *(lower[a] + shape[a] * size[a] for a in range(3))], voxel_size=size)
     occ = torch.stack([torch.rand(grid.shape, generator=gen) < p for p in (0.01, 0.08)])
     extent = torch.tensor([shape[a] * size[a] for a in range(3)], dtype=torch.float64)
-    origins = torch.tensor(lower, dtype=torch.float64) + (torch.rand(rays, 3, generator=gen, dtype=torch.float64) * 1.6 - 0.3) * extent
+    origins = (
+        torch.tensor(lower, dtype=torch.float64)
+        + (torch.rand(rays, 3, generator=gen, dtype=torch.float64) * 1.6 - 0.3) * extent
+    )
     directions = torch.randn(rays, 3, generator=gen, dtype=torch.float64)
     rows = torch.arange(rays)
     axis = torch.randint(0, 3, (rays,), generator=gen)

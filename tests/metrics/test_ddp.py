@@ -26,7 +26,9 @@ def sample(i):
     camera = torch.rand(labels.shape, generator=gen) < 0.7
     invalid = torch.rand(labels.shape, generator=gen) < 0.1
     labels = torch.where(torch.rand(labels.shape, generator=gen) < 0.02, 255, labels)  # some ignored voxels
-    batch = make_batch(labels[None], mask_camera=camera[None], voxel_invalid=invalid[None], sequence_lidar_origins=[origins])
+    batch = make_batch(
+        labels[None], mask_camera=camera[None], voxel_invalid=invalid[None], sequence_lidar_origins=[origins]
+    )
     return pred[None], batch
 
 
@@ -64,8 +66,12 @@ def test_two_gloo_processes_equal_one_process(tmp_path):
         for name, values in single.items():
             assert sharded[name].keys() == values.keys()
             for key, value in values.items():
-                torch.testing.assert_close(sharded[name][key], value, rtol=0, atol=0, equal_nan=True, msg=f"{name} {key}")
+                torch.testing.assert_close(
+                    sharded[name][key], value, rtol=0, atol=0, equal_nan=True, msg=f"{name} {key}"
+                )
     assert single["rayiou"]["RayIoU"] > 0 and single["ssc"]["mIoU"] > 0 and single["occ3d_miou"]["mIoU"] > 0
     shard = evaluate(range(1, SAMPLES, 2))  # one rank's samples alone score differently: the sync mattered
-    assert all(not torch.equal(shard[name][key], single[name][key]) for name, key in
-               (("occ3d_miou", "mIoU"), ("rayiou", "RayIoU"), ("ssc", "mIoU")))
+    assert all(
+        not torch.equal(shard[name][key], single[name][key])
+        for name, key in (("occ3d_miou", "mIoU"), ("rayiou", "RayIoU"), ("ssc", "mIoU"))
+    )

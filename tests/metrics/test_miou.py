@@ -3,8 +3,8 @@ import math
 import pytest
 import torch
 
-from occplug.testing import label_batch
 from occplug.metrics import Occ3DMIoU, confusion_matrix
+from occplug.testing import label_batch
 
 
 def make_batch(labels, mask_camera=None, mask_lidar=None):

@@ -37,7 +37,7 @@ def reference_ray(labels, grid, origin, direction, free):
         if dg[a] != 0:
             ts |= {t for k in range(n[a] + 1) if t_lo < (t := (k - g[a]) / dg[a]) < t_hi}
     ts = sorted(ts)
-    for a, b in zip(ts, ts[1:]):
+    for a, b in zip(ts, ts[1:], strict=False):
         mid = 0.5 * (a + b)
         voxel = tuple(math.floor(g[ax] + mid * dg[ax]) for ax in range(3))
         if labels[voxel] != free:
@@ -69,7 +69,9 @@ def test_vectorised_equals_per_ray_reference(seed):
     labels, pred, origins = random_scene(seed)
     directions = query_ray_directions()[seed::5]  # 2,808 of the 14,040 directions per origin
     rays = cast_query_rays(pred, labels, SMALL_GRID, origins, free_label=4, directions=directions)
-    per_ray, gt_count, pred_count, tp = reference_counts(labels, pred, SMALL_GRID, origins, directions, 4, 5, (1.0, 2.0, 4.0))
+    per_ray, gt_count, pred_count, tp = reference_counts(
+        labels, pred, SMALL_GRID, origins, directions, 4, 5, (1.0, 2.0, 4.0)
+    )
     assert len(per_ray) >= 2000
     ref = torch.tensor([[r[0], r[2]] for r in per_ray])
     assert torch.equal(rays.gt_class, ref[:, 0]) and torch.equal(rays.pred_class, ref[:, 1])
@@ -90,9 +92,17 @@ def test_query_ray_directions_follow_sparseocc():
     assert math.isclose(pitch[9].item(), -(math.pi / 2 - math.atan(10)), abs_tol=1e-12)
     assert pitch[-2] < 0.21 <= pitch[-1]  # continued with the last spacing until past 0.21 rad
     assert torch.allclose(pitch[10:].diff(), (pitch[9] - pitch[8]).expand(28))
-    assert torch.allclose(d[1], torch.tensor([math.cos(pitch[0]) * math.cos(math.radians(1)),
-                                              math.cos(pitch[0]) * math.sin(math.radians(1)), math.sin(pitch[0])],
-                                             dtype=torch.float64))
+    assert torch.allclose(
+        d[1],
+        torch.tensor(
+            [
+                math.cos(pitch[0]) * math.cos(math.radians(1)),
+                math.cos(pitch[0]) * math.sin(math.radians(1)),
+                math.sin(pitch[0]),
+            ],
+            dtype=torch.float64,
+        ),
+    )
 
 
 def test_select_origins_filters_then_subsamples_evenly():

@@ -42,7 +42,9 @@ def test_hand_computed_ssc():
     assert math.isclose(res["mIoU"].item(), (100 / 3 + 50) / 2, rel_tol=1e-6)
     # completion: occupied gt {2, 3, 4}, pred {1, 2, 3, 4}: both 3, union 4
     assert math.isclose(res["IoU"].item(), 75, rel_tol=1e-6)
-    assert math.isclose(res["Precision"].item(), 75, rel_tol=1e-6) and math.isclose(res["Recall"].item(), 100, rel_tol=1e-6)
+    assert math.isclose(res["Precision"].item(), 75, rel_tol=1e-6) and math.isclose(
+        res["Recall"].item(), 100, rel_tol=1e-6
+    )
     assert m.confmat.sum() == 6  # the ignored and the invalid voxel are not counted
 
 
@@ -75,7 +77,9 @@ def test_random_volumes_match_the_benchmark_scorer():
     gt = torch.randint(0, 20, shape, generator=gen)
     gt[torch.rand(shape, generator=gen) < 0.4] = 0
     gt[torch.rand(shape, generator=gen) < 0.05] = 255
-    pred = torch.where(torch.rand(shape, generator=gen) < 0.7, gt.clamp(max=19), torch.randint(0, 20, shape, generator=gen))
+    pred = torch.where(
+        torch.rand(shape, generator=gen) < 0.7, gt.clamp(max=19), torch.randint(0, 20, shape, generator=gen)
+    )
     invalid = torch.rand(shape, generator=gen) < 0.1
     m = SSCMetrics()
     for b in range(shape[0]):  # accumulates over batches like the scorer over scans
@@ -85,7 +89,9 @@ def test_random_volumes_match_the_benchmark_scorer():
     for key in ("mIoU", "IoU", "Precision", "Recall"):
         assert math.isclose(res[key].item(), ref[key] * 100, rel_tol=1e-5), key
     for c in range(1, 20):
-        assert math.isclose(res[f"IoU_{SEMANTIC_KITTI_CLASSES[c]}"].item(), ref["iou"][c] * 100, rel_tol=1e-5, abs_tol=1e-6)
+        assert math.isclose(
+            res[f"IoU_{SEMANTIC_KITTI_CLASSES[c]}"].item(), ref["iou"][c] * 100, rel_tol=1e-5, abs_tol=1e-6
+        )
 
 
 def test_table_is_the_benchmark_list_with_settings():

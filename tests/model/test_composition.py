@@ -8,7 +8,6 @@ checkpoint or predict code outside the core.
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 import torch
@@ -31,8 +30,14 @@ from occplug.testing import make_tiny_batch
 class RefineHead(OccupancyHead):
     """Occupancy logits of the head it reads, plus a correction from the LiDAR volume."""
 
-    def __init__(self, in_channels: int, num_classes: int = 18, reads: list[str] = ("occupancy",),
-                 lidar: str = "lidar", lidar_channels: int = 8) -> None:
+    def __init__(
+        self,
+        in_channels: int,
+        num_classes: int = 18,
+        reads: list[str] = ("occupancy",),
+        lidar: str = "lidar",
+        lidar_channels: int = 8,
+    ) -> None:
         super().__init__()
         self.reads = tuple(reads)
         self.num_classes, self.lidar = num_classes, lidar
@@ -121,8 +126,12 @@ def test_voxel_point_statistics_known_values():
     pts = torch.tensor([[0.25, 0.5, 0.5], [0.75, 0.5, 0.5], [1.5, 1.5, 0.9], [5.0, 0.0, 0.0]])
     out = voxel_point_statistics(pts, torch.tensor([0.2, 0.4, 1.0, 0.7]), grid)
     assert out.shape == (5, 2, 2, 1)
-    torch.testing.assert_close(out[:, 0, 0, 0], torch.tensor([np.log(3.0), 0.0, 0.0, 0.0, 0.3], dtype=torch.float32), rtol=0, atol=1e-6)
-    torch.testing.assert_close(out[:, 1, 1, 0], torch.tensor([np.log(2.0), 0.0, 0.0, 0.4, 1.0], dtype=torch.float32), rtol=0, atol=1e-6)
+    torch.testing.assert_close(
+        out[:, 0, 0, 0], torch.tensor([np.log(3.0), 0.0, 0.0, 0.0, 0.3], dtype=torch.float32), rtol=0, atol=1e-6
+    )
+    torch.testing.assert_close(
+        out[:, 1, 1, 0], torch.tensor([np.log(2.0), 0.0, 0.0, 0.4, 1.0], dtype=torch.float32), rtol=0, atol=1e-6
+    )
     assert out[:, 0, 1].abs().sum() == 0 and out[:, 1, 0].abs().sum() == 0  # empty voxels; the far point dropped
 
 
@@ -138,8 +147,18 @@ def test_voxel_points_declares_points_and_runs_on_a_tiny_batch():
 
 
 def test_every_kind_names_an_interface_and_its_given_arguments():
-    assert set(KINDS) >= {"encoder", "point_encoder", "view_transform", "scene", "head", "supervision", "model",
-                          "data", "metric", "callback"}
+    assert set(KINDS) >= {
+        "encoder",
+        "point_encoder",
+        "view_transform",
+        "scene",
+        "head",
+        "supervision",
+        "model",
+        "data",
+        "metric",
+        "callback",
+    }
     for kind in KINDS.values():
         assert isinstance(kind.interface(), type)
     assert given_arguments("head") == {"in_channels", "num_classes", "free_label"}
@@ -211,8 +230,10 @@ def test_heads_reading_heads_see_their_outputs_exactly():
         batch = make_tiny_batch()
         out = model(batch)
         assert torch.equal(out.heads["refined"]["logits"], out.heads["occupancy"]["logits"])
-        assert [lvl[3:] for lvl in model.heads["refined"].seen_levels] == [tuple(out.image_features.shape[3:]),
-                                                                           tuple(s // 2 for s in out.image_features.shape[3:])]
+        assert [lvl[3:] for lvl in model.heads["refined"].seen_levels] == [
+            tuple(out.image_features.shape[3:]),
+            tuple(s // 2 for s in out.image_features.shape[3:]),
+        ]
         assert set(out.encoded) == {"lidar"} and "refine/delta" in out.extras
         assert "points" in model.required_fields()
 

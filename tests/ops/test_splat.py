@@ -50,11 +50,15 @@ def random_batch(b: int, n: int, seed: int, augment: bool = True) -> Batch:
     for _ in range(b * n):
         f = u(25.0, 60.0)
         ks.append(torch.tensor([[f, 0.0, u(28.0, 36.0)], [0.0, f * u(0.95, 1.05), u(12.0, 20.0)], [0.0, 0.0, 1.0]]))
-        poses.append(make_pose(_rot(u(-math.pi, math.pi), u(-0.2, 0.2)), torch.tensor([u(-2, 2), u(-1, 1), u(1.2, 1.9)])))
+        poses.append(
+            make_pose(_rot(u(-math.pi, math.pi), u(-0.2, 0.2)), torch.tensor([u(-2, 2), u(-1, 1), u(1.2, 1.9)]))
+        )
         aug = torch.eye(3)
         if augment:  # resize by s about the pixel-centre convention, crop by (tx, ty), maybe flip
             s = u(0.6, 1.3)
-            aug = torch.tensor([[s, 0.0, 0.5 * s - 0.5 - u(-6, 6)], [0.0, s, 0.5 * s - 0.5 - u(-4, 4)], [0.0, 0.0, 1.0]])
+            aug = torch.tensor(
+                [[s, 0.0, 0.5 * s - 0.5 - u(-6, 6)], [0.0, s, 0.5 * s - 0.5 - u(-4, 4)], [0.0, 0.0, 1.0]]
+            )
             if u(0, 1) < 0.5:
                 aug = torch.tensor([[-1.0, 0.0, W - 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) @ aug
         augs.append(aug)
@@ -70,7 +74,13 @@ def random_batch(b: int, n: int, seed: int, augment: bool = True) -> Batch:
 def make_lss(splat_impl: str, channels: int = 5, seed: int = 0) -> LSSViewTransform:
     torch.manual_seed(seed)
     return LSSViewTransform(
-        in_channels=4, image_stride=S, grid=GRID, out_channels=channels, depth_bins=[1.0, 21.0, 1.0], hidden=8, splat=splat_impl
+        in_channels=4,
+        image_stride=S,
+        grid=GRID,
+        out_channels=channels,
+        depth_bins=[1.0, 21.0, 1.0],
+        hidden=8,
+        splat=splat_impl,
     )
 
 
@@ -289,7 +299,9 @@ def test_per_point_path_equals_naive_index_add_values_and_gradients(dtype: torch
     dropped = (index < 0)[:, :, :, None].expand_as(feats)
     assert g_fast[dropped].abs().max() == 0 and g_fast[~dropped].abs().min() > 0
     # the splatter's own reference mode gives the same
-    torch.testing.assert_close(FrustumSplatter(GRID, S, mode="reference").splat_points(feats, batch, depths), fast, **tol)
+    torch.testing.assert_close(
+        FrustumSplatter(GRID, S, mode="reference").splat_points(feats, batch, depths), fast, **tol
+    )
 
 
 def test_per_point_gradcheck_with_repeated_pairs() -> None:
@@ -333,8 +345,13 @@ def test_per_camera_depth_centres() -> None:
     # camera by camera with a shared (D,) vector: the sum over cameras is the two-camera result
     parts = []
     for n in range(2):
-        one = hand_batch(3, images=batch.images[:, n : n + 1], intrinsics=batch.intrinsics[:, n : n + 1],
-                         cam_to_ego=batch.cam_to_ego[:, n : n + 1], img_aug=batch.img_aug[:, n : n + 1])
+        one = hand_batch(
+            3,
+            images=batch.images[:, n : n + 1],
+            intrinsics=batch.intrinsics[:, n : n + 1],
+            cam_to_ego=batch.cam_to_ego[:, n : n + 1],
+            img_aug=batch.img_aug[:, n : n + 1],
+        )
         parts.append(FrustumSplatter(GRID, S).splat_points(feats[:, n : n + 1], one, per_cam[n]))
     torch.testing.assert_close(out, parts[0] + parts[1], atol=1e-12, rtol=1e-12)
     pts = frustum_points(batch, H4, W8, S, per_cam)
@@ -368,7 +385,9 @@ def test_a_point_1km_away_lands_in_the_outer_cell_of_a_contracted_grid() -> None
     # One camera at ego (0, 0, 1.5) looking along +x; principal point on cell (0, 0)'s centre of a 1 x 1 feature map.
     cam = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
     batch = hand_batch(
-        1, images=torch.zeros(1, 1, 3, 8, 8), intrinsics=torch.tensor([[[[10.0, 0, 3.5], [0, 10.0, 3.5], [0, 0, 1]]]]),
+        1,
+        images=torch.zeros(1, 1, 3, 8, 8),
+        intrinsics=torch.tensor([[[[10.0, 0, 3.5], [0, 10.0, 3.5], [0, 0, 1]]]]),
         cam_to_ego=make_pose(cam, torch.tensor([0.0, 0.0, 1.5])).view(1, 1, 4, 4),
     )
     contracted = GridSpec(range=(-80, -80, -1, 80, 80, 5.4), voxel_size=(0.8, 0.8, 0.4), contraction={"near": 40.0})

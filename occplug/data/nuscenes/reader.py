@@ -69,7 +69,11 @@ def read_pcd_bin(path: str | Path) -> np.ndarray:
 
 
 def _pcd_size_problem(size: int) -> str | None:
-    return None if size % (4 * _POINT_DIMS) == 0 else f"{size} bytes is not a whole number of {_POINT_DIMS}-float32 points (corrupt .bin?)"
+    return (
+        None
+        if size % (4 * _POINT_DIMS) == 0
+        else f"{size} bytes is not a whole number of {_POINT_DIMS}-float32 points (corrupt .bin?)"
+    )
 
 
 class Occ3DNuScenesDataset(ReaderDataset):
@@ -88,18 +92,41 @@ class Occ3DNuScenesDataset(ReaderDataset):
         offsets, pipeline, cache_dir: see :class:`~occplug.data.pipeline.ReaderDataset`.
     """
 
-    def __init__(self, index: NuScenesIndex, split: str, root: Path, occ_root: Path | None, cameras: tuple[str, ...],
-                 grid: GridSpec, num_sweeps: int = 1, load_points: bool = True, min_box_points: int = 0,
-                 offsets: tuple[int, ...] = (), pipeline: FramePipeline | None = None, cache_dir: str | None = None) -> None:
+    def __init__(
+        self,
+        index: NuScenesIndex,
+        split: str,
+        root: Path,
+        occ_root: Path | None,
+        cameras: tuple[str, ...],
+        grid: GridSpec,
+        num_sweeps: int = 1,
+        load_points: bool = True,
+        min_box_points: int = 0,
+        offsets: tuple[int, ...] = (),
+        pipeline: FramePipeline | None = None,
+        cache_dir: str | None = None,
+    ) -> None:
         self.index = index
         self.split = "val" if split == "predict" else split
         self.items = index.split_indices(self.split)
         samples = index.samples
         super().__init__(
-            SceneIndex.from_scene_names([samples[i]["scene"] for i in self.items]), offsets, pipeline, cache_dir,
-            cache_key={"reader": "occ3d_nuscenes", "index": str(index.path), "mtime": index.path.stat().st_mtime,
-                       "cameras": cameras, "grid": grid.to_dict(), "sweeps": num_sweeps, "points": load_points,
-                       "occ": str(occ_root), "min_box_points": min_box_points},
+            SceneIndex.from_scene_names([samples[i]["scene"] for i in self.items]),
+            offsets,
+            pipeline,
+            cache_dir,
+            cache_key={
+                "reader": "occ3d_nuscenes",
+                "index": str(index.path),
+                "mtime": index.path.stat().st_mtime,
+                "cameras": cameras,
+                "grid": grid.to_dict(),
+                "sweeps": num_sweeps,
+                "points": load_points,
+                "occ": str(occ_root),
+                "min_box_points": min_box_points,
+            },
         )
         self.root, self.occ_root = root, occ_root
         self.camera_ids = [index.cameras.index(c) for c in cameras]
@@ -146,8 +173,10 @@ class Occ3DNuScenesDataset(ReaderDataset):
         images = [read_rgb(self.root / rec["cams"][c]) for c in self.camera_ids]
         shapes = {tuple(img.shape) for img in images}
         if len(shapes) > 1:
-            raise FormatError(f"{self.root / rec['cams'][self.camera_ids[0]]}: the cameras of sample {rec['token']} have "
-                              f"different image sizes {sorted(shapes)}; set image_size to resize them")
+            raise FormatError(
+                f"{self.root / rec['cams'][self.camera_ids[0]]}: the cameras of sample {rec['token']} have "
+                f"different image sizes {sorted(shapes)}; set image_size to resize them"
+            )
         ego = torch.from_numpy(a["ego_to_global"][s].copy())
         lidar_to_ego = torch.from_numpy(a["lidar_to_ego"][s]).float()
         frame = Frame(
@@ -168,7 +197,11 @@ class Occ3DNuScenesDataset(ReaderDataset):
             self._points(frame, s, rec)
         if self.occ_root is not None and rec.get("occ"):
             labels = read_labels(self.occ_root / rec["occ"], expected_shape=self.grid.shape)
-            frame.voxel_labels, frame.mask_lidar, frame.mask_camera = labels.semantics, labels.mask_lidar, labels.mask_camera
+            frame.voxel_labels, frame.mask_lidar, frame.mask_camera = (
+                labels.semantics,
+                labels.mask_lidar,
+                labels.mask_camera,
+            )
         b0, b1 = int(a["box_offsets"][s]), int(a["box_offsets"][s + 1])
         keep = np.arange(b0, b1)
         if self.min_box_points > 0:
@@ -191,7 +224,9 @@ class Occ3DNuScenesDataset(ReaderDataset):
                 raise FormatError(f"{path}: no such lidarseg file")
             seg = np.fromfile(path, dtype=np.uint8)
             if seg.shape[0] != raw.shape[0]:
-                raise FormatError(f"{path}: {seg.shape[0]} labels for {raw.shape[0]} points in {self.root / rec['lidar']}")
+                raise FormatError(
+                    f"{path}: {seg.shape[0]} labels for {raw.shape[0]} points in {self.root / rec['lidar']}"
+                )
             labels = [self._seg_lut[seg]]
         q0 = int(a["sweep_offsets"][s])
         for q, rel in enumerate(rec["sweeps"][: max(0, self.num_sweeps - 1)]):
@@ -271,10 +306,21 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
         fields: dict | None = None,
     ) -> None:
         super().__init__(
-            grid=grid if grid is not None else OCC3D_GRID, class_names=OCC3D_CLASSES, free_label=OCC3D_FREE,
-            ignore_label=255, batch_size=batch_size, num_workers=num_workers, pin_memory=pin_memory,
-            image_size=image_size, adjacent_offsets=adjacent_offsets, sequential=sequential, augment=augment,
-            pseudo_labels=pseudo_labels, cache_dir=cache_dir, label_sources=label_sources, transforms=transforms,
+            grid=grid if grid is not None else OCC3D_GRID,
+            class_names=OCC3D_CLASSES,
+            free_label=OCC3D_FREE,
+            ignore_label=255,
+            batch_size=batch_size,
+            num_workers=num_workers,
+            pin_memory=pin_memory,
+            image_size=image_size,
+            adjacent_offsets=adjacent_offsets,
+            sequential=sequential,
+            augment=augment,
+            pseudo_labels=pseudo_labels,
+            cache_dir=cache_dir,
+            label_sources=label_sources,
+            transforms=transforms,
             fields=fields,
         )
         self.root = Path(root)
@@ -327,6 +373,16 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
     def build_dataset(self, split: str) -> Dataset[Frame]:
         """The :class:`Occ3DNuScenesDataset` of ``split`` (``predict`` = ``val``)."""
         return Occ3DNuScenesDataset(
-            self.index, split, self.root, self.occ_root, self.cameras, self.grid, self.num_sweeps, self.reads_points,
-            self.min_box_points, self.adjacent_offsets, self.pipeline(split), self.cache_dir,
+            self.index,
+            split,
+            self.root,
+            self.occ_root,
+            self.cameras,
+            self.grid,
+            self.num_sweeps,
+            self.reads_points,
+            self.min_box_points,
+            self.adjacent_offsets,
+            self.pipeline(split),
+            self.cache_dir,
         )

@@ -146,7 +146,9 @@ class _Sequence:
             raise FormatError(f"{self.folder / 'voxels'}: no voxel labels (*.label) in this sequence")
         for scan in self.scans:
             if scan >= len(self.poses):
-                raise FormatError(f"{self.folder / 'poses.txt'}: {len(self.poses)} poses, but scan {scan:06d} needs line {scan + 1}")
+                raise FormatError(
+                    f"{self.folder / 'poses.txt'}: {len(self.poses)} poses, but scan {scan:06d} needs line {scan + 1}"
+                )
 
     def ego_to_global(self, scan: int) -> np.ndarray:
         return self.poses[scan] @ self.tr
@@ -175,8 +177,17 @@ class SemanticKITTIDataset(ReaderDataset):
         FormatError: none of ``sequences`` is present (one line naming the first expected folder).
     """
 
-    def __init__(self, root: Path, split: str, sequences: tuple[str, ...], grid: GridSpec, load_points: bool = True,
-                 offsets: tuple[int, ...] = (), pipeline: FramePipeline | None = None, cache_dir: str | None = None) -> None:
+    def __init__(
+        self,
+        root: Path,
+        split: str,
+        sequences: tuple[str, ...],
+        grid: GridSpec,
+        load_points: bool = True,
+        offsets: tuple[int, ...] = (),
+        pipeline: FramePipeline | None = None,
+        cache_dir: str | None = None,
+    ) -> None:
         self.root = root
         self.split = "val" if split == "predict" else split
         self.grid = grid
@@ -185,17 +196,29 @@ class SemanticKITTIDataset(ReaderDataset):
         #: The split's sequences without a folder under ``sequences/``.
         self.missing = [s for s in sequences if s not in present]
         if sequences and not present:
-            raise FormatError(f"{root / 'sequences' / sequences[0]}: no such sequence folder (none of the {self.split} "
-                              f"sequences {', '.join(sequences)} is present)")
+            raise FormatError(
+                f"{root / 'sequences' / sequences[0]}: no such sequence folder (none of the {self.split} "
+                f"sequences {', '.join(sequences)} is present)"
+            )
         self.sequences = [_Sequence(root, s, with_labels=False) for s in present]
         self.items = [(seq, pos, scan) for seq in self.sequences for pos, scan in enumerate(seq.scans)]
-        key: dict = {"reader": "semantickitti", "root": str(root.resolve()), "split": self.split, "grid": grid.to_dict(),
-                     "points": load_points}
+        key: dict = {
+            "reader": "semantickitti",
+            "root": str(root.resolve()),
+            "split": self.split,
+            "grid": grid.to_dict(),
+            "points": load_points,
+        }
         if cache_dir is not None:
             own = [seq.folder / name for seq in self.sequences for name in ("calib.txt", "poses.txt", "times.txt")]
             key["mtime"] = latest_mtime([*own, *self.files(), *(self.lidar_files() if load_points else [])])
-        super().__init__(SceneIndex.from_scene_names([seq.name for seq, _, _ in self.items]), offsets, pipeline,
-                         cache_dir, cache_key=key)
+        super().__init__(
+            SceneIndex.from_scene_names([seq.name for seq, _, _ in self.items]),
+            offsets,
+            pipeline,
+            cache_dir,
+            cache_key=key,
+        )
         self._point_lut = _point_lut()
 
     def token(self, index: int) -> str:
@@ -254,8 +277,10 @@ class SemanticKITTIDataset(ReaderDataset):
             if label_path.is_file():
                 raw = np.fromfile(label_path, dtype=np.uint32)
                 if raw.shape[0] != pts.shape[0]:
-                    raise FormatError(f"{label_path}: {raw.shape[0]} labels for {pts.shape[0]} points in "
-                                      f"{seq.folder / 'velodyne' / (name + '.bin')}")
+                    raise FormatError(
+                        f"{label_path}: {raw.shape[0]} labels for {pts.shape[0]} points in "
+                        f"{seq.folder / 'velodyne' / (name + '.bin')}"
+                    )
                 frame.point_labels = torch.from_numpy(self._point_lut[raw & 0xFFFF])
         if seq.labelled:
             vox = read_voxels(seq.folder / "voxels" / f"{name}.label", self.grid.shape)
@@ -316,14 +341,28 @@ class SemanticKITTIDataModule(ReaderDataModule):
         fields: dict | None = None,
     ) -> None:
         super().__init__(
-            grid=grid if grid is not None else SSC_GRID, class_names=SEMANTIC_KITTI_CLASSES, free_label=0, ignore_label=IGNORE,
-            batch_size=batch_size, num_workers=num_workers, pin_memory=pin_memory, image_size=image_size,
-            adjacent_offsets=adjacent_offsets, sequential=sequential, augment=augment, pseudo_labels=pseudo_labels,
-            cache_dir=cache_dir, label_sources=label_sources, transforms=transforms, fields=fields,
+            grid=grid if grid is not None else SSC_GRID,
+            class_names=SEMANTIC_KITTI_CLASSES,
+            free_label=0,
+            ignore_label=IGNORE,
+            batch_size=batch_size,
+            num_workers=num_workers,
+            pin_memory=pin_memory,
+            image_size=image_size,
+            adjacent_offsets=adjacent_offsets,
+            sequential=sequential,
+            augment=augment,
+            pseudo_labels=pseudo_labels,
+            cache_dir=cache_dir,
+            label_sources=label_sources,
+            transforms=transforms,
+            fields=fields,
         )
         self.root = Path(root)
         if not (self.root / "sequences").is_dir():
-            raise FileNotFoundError(f"data.root: {self.root / 'sequences'} is not a folder (SemanticKITTI's dataset/ root)")
+            raise FileNotFoundError(
+                f"data.root: {self.root / 'sequences'} is not a folder (SemanticKITTI's dataset/ root)"
+            )
         self.splits = dict(SPLIT_SEQUENCES)
         for split, seqs in (splits or {}).items():
             if split not in ("train", "val", "test"):
@@ -338,7 +377,9 @@ class SemanticKITTIDataModule(ReaderDataModule):
                 if ds.split in ("train", "val"):
                     for seq in ds.sequences:
                         if not seq.labelled:
-                            raise FormatError(f"{seq.folder / 'voxels'}: no voxel labels (*.label) in {ds.split} sequence {seq.name}")
+                            raise FormatError(
+                                f"{seq.folder / 'voxels'}: no voxel labels (*.label) in {ds.split} sequence {seq.name}"
+                            )
                 stat_files(ds.files())
                 if load_points:
                     stat_files(ds.lidar_files())
@@ -370,5 +411,13 @@ class SemanticKITTIDataModule(ReaderDataModule):
     def build_dataset(self, split: str) -> Dataset[Frame]:
         """The :class:`SemanticKITTIDataset` of ``split`` (``predict`` = ``val``)."""
         key = "val" if split == "predict" else split
-        return SemanticKITTIDataset(self.root, split, self.splits[key], self.grid, self.reads_points, self.adjacent_offsets,
-                                    self.pipeline(split), self.cache_dir)
+        return SemanticKITTIDataset(
+            self.root,
+            split,
+            self.splits[key],
+            self.grid,
+            self.reads_points,
+            self.adjacent_offsets,
+            self.pipeline(split),
+            self.cache_dir,
+        )

@@ -4,16 +4,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torch.utils.data import Dataset
-
-from torch.utils.data import Sampler
+from torch.utils.data import Dataset, Sampler
 
 from occplug.data.classes import OCC3D_CLASSES, OCC3D_FREE
 from occplug.data.frame import Frame
 from occplug.data.pipeline import PipelineDataset, ReaderDataModule
 from occplug.data.sequences import SceneIndex
 
-from .config import SPLITS, SyntheticWorldConfig, preset as get_preset
+from .config import SPLITS, SyntheticWorldConfig
+from .config import preset as get_preset
 from .dataset import SyntheticDataset, default_cache_dir
 
 __all__ = ["SyntheticDataModule"]

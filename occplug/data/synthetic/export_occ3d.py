@@ -80,13 +80,35 @@ def _points_in_box(points_ego: np.ndarray, box: np.ndarray) -> int:
 class _Tree:
     def __init__(self, out: Path, version: str) -> None:
         self.out, self.version = out, version
-        self.tables: dict[str, list[dict[str, Any]]] = {k: [] for k in (
-            "scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor", "sample_annotation", "instance",
-            "category", "attribute", "visibility", "log", "map", "lidarseg")}
+        self.tables: dict[str, list[dict[str, Any]]] = {
+            k: []
+            for k in (
+                "scene",
+                "sample",
+                "sample_data",
+                "ego_pose",
+                "calibrated_sensor",
+                "sensor",
+                "sample_annotation",
+                "instance",
+                "category",
+                "attribute",
+                "visibility",
+                "log",
+                "map",
+                "lidarseg",
+            )
+        }
         self.sensor_token: dict[str, str] = {}
         for name in LIDARSEG_CATEGORIES:
-            self.tables["category"].append({"token": _tok("category", name), "name": name, "description": "",
-                                            "index": LIDARSEG_CATEGORIES.index(name)})
+            self.tables["category"].append(
+                {
+                    "token": _tok("category", name),
+                    "name": name,
+                    "description": "",
+                    "index": LIDARSEG_CATEGORIES.index(name),
+                }
+            )
         for level, text in enumerate(("v0-40", "v40-60", "v60-80", "v80-100"), start=1):
             self.tables["visibility"].append({"token": str(level), "level": text, "description": f"visibility {text}"})
         self.instances: dict[str, dict[str, Any]] = {}
@@ -96,8 +118,9 @@ class _Tree:
         if channel not in self.sensor_token:
             token = _tok("sensor", channel)
             self.sensor_token[channel] = token
-            self.tables["sensor"].append({"token": token, "channel": channel,
-                                          "modality": "lidar" if channel == _LIDAR else "camera"})
+            self.tables["sensor"].append(
+                {"token": token, "channel": channel, "modality": "lidar" if channel == _LIDAR else "camera"}
+            )
         return self.sensor_token[channel]
 
     def write_tables(self) -> None:
@@ -108,9 +131,15 @@ class _Tree:
             (folder / f"{name}.json").write_text(json.dumps(rows, indent=0))
 
 
-def write_occ3d_nuscenes(config: SyntheticWorldConfig, out: str | Path, version: str = "v1.0-trainval",
-                         splits: Sequence[str] = SPLITS, pseudo: str | dict | PseudoRealism | None = None,
-                         cache_dir: str | Path | None = "default", progress: bool = True) -> int:
+def write_occ3d_nuscenes(
+    config: SyntheticWorldConfig,
+    out: str | Path,
+    version: str = "v1.0-trainval",
+    splits: Sequence[str] = SPLITS,
+    pseudo: str | dict | PseudoRealism | None = None,
+    cache_dir: str | Path | None = "default",
+    progress: bool = True,
+) -> int:
     """Write the world as a nuScenes-shaped tree with Occ3D labels (see the module docstring).
 
     Args:
@@ -155,8 +184,15 @@ def _write_scene(tree: _Tree, frames: list[Frame], number: int, labeler: Synthet
     first = frames[0]
     name = first.scene
     scene_token, log_token = _tok("scene", name), _tok("log", name)
-    t["log"].append({"token": log_token, "logfile": f"{name}-log", "vehicle": "synthetic", "date_captured": "2024-01-01",
-                     "location": "synthetic-town"})
+    t["log"].append(
+        {
+            "token": log_token,
+            "logfile": f"{name}-log",
+            "vehicle": "synthetic",
+            "date_captured": "2024-01-01",
+            "location": "synthetic-town",
+        }
+    )
     if not t["map"]:
         t["map"].append({"token": _tok("map"), "log_tokens": [], "category": "semantic_prior", "filename": ""})
     t["map"][0]["log_tokens"].append(log_token)
@@ -164,47 +200,86 @@ def _write_scene(tree: _Tree, frames: list[Frame], number: int, labeler: Synthet
     calib = {}
     for cam, channel in enumerate(first.camera_names):
         calib[channel] = _tok("calibrated_sensor", name, channel)
-        t["calibrated_sensor"].append({"token": calib[channel], "sensor_token": tree.sensor(channel),
-                                       **_pose_record(first.cam_to_ego[cam]),
-                                       "camera_intrinsic": first.intrinsics[cam].double().tolist()})
+        t["calibrated_sensor"].append(
+            {
+                "token": calib[channel],
+                "sensor_token": tree.sensor(channel),
+                **_pose_record(first.cam_to_ego[cam]),
+                "camera_intrinsic": first.intrinsics[cam].double().tolist(),
+            }
+        )
     calib[_LIDAR] = _tok("calibrated_sensor", name, _LIDAR)
-    t["calibrated_sensor"].append({"token": calib[_LIDAR], "sensor_token": tree.sensor(_LIDAR),
-                                   **_pose_record(first.lidar_to_ego), "camera_intrinsic": []})
+    t["calibrated_sensor"].append(
+        {
+            "token": calib[_LIDAR],
+            "sensor_token": tree.sensor(_LIDAR),
+            **_pose_record(first.lidar_to_ego),
+            "camera_intrinsic": [],
+        }
+    )
     epoch = _EPOCH + number * 10**9
     prev_sd: dict[str, str] = {}
     for k, frame in enumerate(frames):
         ts = epoch + round(frame.timestamp * 1e6)
         token = frame.token
-        t["sample"].append({"token": token, "timestamp": ts, "scene_token": scene_token,
-                            "prev": frames[k - 1].token if k else "", "next": frames[k + 1].token if k + 1 < len(frames) else ""})
+        t["sample"].append(
+            {
+                "token": token,
+                "timestamp": ts,
+                "scene_token": scene_token,
+                "prev": frames[k - 1].token if k else "",
+                "next": frames[k + 1].token if k + 1 < len(frames) else "",
+            }
+        )
         h, w = frame.image_size
         for cam, channel in enumerate(channels):
             sd = _tok("sample_data", token, channel)
             if channel == _LIDAR:
                 filename = f"samples/{_LIDAR}/{name}__{_LIDAR}__{ts}.pcd.bin"
                 _write_lidar(tree.out, filename, frame, sd, tree.version)
-                t["lidarseg"].append({"token": sd, "sample_data_token": sd,
-                                      "filename": f"lidarseg/{tree.version}/{sd}_lidarseg.bin"})
+                t["lidarseg"].append(
+                    {"token": sd, "sample_data_token": sd, "filename": f"lidarseg/{tree.version}/{sd}_lidarseg.bin"}
+                )
             else:
                 filename = f"samples/{channel}/{name}__{channel}__{ts}.png"
                 write_rgb(tree.out / filename, frame.images[cam])
             t["ego_pose"].append({"token": sd, "timestamp": ts, **_pose_record(frame.ego_to_global)})
-            t["sample_data"].append({
-                "token": sd, "sample_token": token, "ego_pose_token": sd, "calibrated_sensor_token": calib[channel],
-                "timestamp": ts, "fileformat": "pcd" if channel == _LIDAR else "png", "is_key_frame": True,
-                "height": 0 if channel == _LIDAR else h, "width": 0 if channel == _LIDAR else w, "filename": filename,
-                "prev": prev_sd.get(channel, ""), "next": "",
-            })
+            t["sample_data"].append(
+                {
+                    "token": sd,
+                    "sample_token": token,
+                    "ego_pose_token": sd,
+                    "calibrated_sensor_token": calib[channel],
+                    "timestamp": ts,
+                    "fileformat": "pcd" if channel == _LIDAR else "png",
+                    "is_key_frame": True,
+                    "height": 0 if channel == _LIDAR else h,
+                    "width": 0 if channel == _LIDAR else w,
+                    "filename": filename,
+                    "prev": prev_sd.get(channel, ""),
+                    "next": "",
+                }
+            )
             if channel in prev_sd:
                 t["sample_data"][-1 - len(channels)]["next"] = sd
             prev_sd[channel] = sd
         _write_annotations(tree, frame, scene_token, token)
-        write_labels(tree.out / "gts" / name / token / "labels.npz", frame.voxel_labels, frame.mask_lidar, frame.mask_camera)
+        write_labels(
+            tree.out / "gts" / name / token / "labels.npz", frame.voxel_labels, frame.mask_lidar, frame.mask_camera
+        )
         if labeler is not None:
             labeler.write(frame, tree.out / "pseudo")
-    t["scene"].append({"token": scene_token, "log_token": log_token, "nbr_samples": len(frames),
-                       "first_sample_token": frames[0].token, "last_sample_token": frames[-1].token, "name": name,
-                       "description": f"synthetic scene {name}"})
+    t["scene"].append(
+        {
+            "token": scene_token,
+            "log_token": log_token,
+            "nbr_samples": len(frames),
+            "first_sample_token": frames[0].token,
+            "last_sample_token": frames[-1].token,
+            "name": name,
+            "description": f"synthetic scene {name}",
+        }
+    )
 
 
 def _write_lidar(out: Path, filename: str, frame: Frame, sd: str, version: str) -> None:
@@ -239,9 +314,17 @@ def _write_annotations(tree: _Tree, frame: Frame, scene_token: str, sample_token
         c, s = math.cos(b[6]), math.sin(b[6])
         rot = e[:3, :3] @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         record = {
-            "token": ann, "sample_token": sample_token, "instance_token": instance, "visibility_token": "4",
-            "attribute_tokens": [], "translation": centre.tolist(), "size": [float(b[4]), float(b[3]), float(b[5])],
-            "rotation": matrix_to_quaternion(rot), "prev": "", "next": "", "num_lidar_pts": _points_in_box(points, b),
+            "token": ann,
+            "sample_token": sample_token,
+            "instance_token": instance,
+            "visibility_token": "4",
+            "attribute_tokens": [],
+            "translation": centre.tolist(),
+            "size": [float(b[4]), float(b[3]), float(b[5])],
+            "rotation": matrix_to_quaternion(rot),
+            "prev": "",
+            "next": "",
+            "num_lidar_pts": _points_in_box(points, b),
             "num_radar_pts": 0,
         }
         previous = tree.last_ann.get(instance)
@@ -250,9 +333,15 @@ def _write_annotations(tree: _Tree, frame: Frame, scene_token: str, sample_token
             record["prev"] = previous["token"]
         tree.tables["sample_annotation"].append(record)
         tree.last_ann[instance] = record
-        inst = tree.instances.setdefault(instance, {
-            "token": instance, "category_token": _tok("category", OCC3D_TO_CATEGORY.get(label, "static.other")),
-            "nbr_annotations": 0, "first_annotation_token": ann, "last_annotation_token": ann,
-        })
+        inst = tree.instances.setdefault(
+            instance,
+            {
+                "token": instance,
+                "category_token": _tok("category", OCC3D_TO_CATEGORY.get(label, "static.other")),
+                "nbr_annotations": 0,
+                "first_annotation_token": ann,
+                "last_annotation_token": ann,
+            },
+        )
         inst["nbr_annotations"] += 1
         inst["last_annotation_token"] = ann

@@ -74,7 +74,9 @@ def lidar_grid(config: SyntheticWorldConfig) -> GridSpec:
     _check_lidar_axes()
     t = LIDAR_TO_EGO[:3, 3].double().tolist()
     r = config.grid.range
-    return GridSpec(_tidy([r[0] - t[0], r[1] - t[1], r[2] - t[2], r[3] - t[0], r[4] - t[1], r[5] - t[2]]), config.grid.voxel_size)
+    return GridSpec(
+        _tidy([r[0] - t[0], r[1] - t[1], r[2] - t[2], r[3] - t[0], r[4] - t[1], r[5] - t[2]]), config.grid.voxel_size
+    )
 
 
 def semantickitti_world(config: SyntheticWorldConfig, grid: GridSpec | dict | None = None) -> SyntheticWorldConfig:
@@ -111,9 +113,14 @@ def _row(m: np.ndarray) -> str:
     return " ".join(repr(float(v)) for v in m.reshape(-1))
 
 
-def write_semantickitti(config: SyntheticWorldConfig, out: str | Path, splits: Sequence[str] = SPLITS,
-                        pseudo: str | dict | PseudoRealism | None = None, cache_dir: str | Path | None = "default",
-                        progress: bool = True) -> dict[str, list[str]]:
+def write_semantickitti(
+    config: SyntheticWorldConfig,
+    out: str | Path,
+    splits: Sequence[str] = SPLITS,
+    pseudo: str | dict | PseudoRealism | None = None,
+    cache_dir: str | Path | None = "default",
+    progress: bool = True,
+) -> dict[str, list[str]]:
     """Write the world as a SemanticKITTI-shaped tree (see the module docstring).
 
     Args:
@@ -140,20 +147,36 @@ def write_semantickitti(config: SyntheticWorldConfig, out: str | Path, splits: S
             for scene_index, seq in enumerate(names[split]):
                 frames = [ds.frame(scene_index, k) for k in range(ds.frames_per_scene)]
                 if frames[0].camera_names[0] != "CAM_FRONT":
-                    raise ValueError("the SemanticKITTI export writes the world's first camera, which must be CAM_FRONT")
-                _write_sequence(out / "sequences" / seq, frames, ds, scene_index, stride, config.fps, grid, labeler,
-                                out / "pseudo")
+                    raise ValueError(
+                        "the SemanticKITTI export writes the world's first camera, which must be CAM_FRONT"
+                    )
+                _write_sequence(
+                    out / "sequences" / seq, frames, ds, scene_index, stride, config.fps, grid, labeler, out / "pseudo"
+                )
                 bar.update(len(frames))
     (out / "splits.json").write_text(json.dumps(names, indent=2))
     if labeler is not None:
-        (out / "pseudo" / "semantics_mapping.yaml").write_text(mapping_table("semantickitti", labeler.realism.foreign_taxonomy))
+        (out / "pseudo" / "semantics_mapping.yaml").write_text(
+            mapping_table("semantickitti", labeler.realism.foreign_taxonomy)
+        )
         if labeler.has_auxiliary:
-            (out / "pseudo" / "semantics_aux_mapping.yaml").write_text(mapping_table("semantickitti", source="auxiliary"))
+            (out / "pseudo" / "semantics_aux_mapping.yaml").write_text(
+                mapping_table("semantickitti", source="auxiliary")
+            )
     return names
 
 
-def _write_sequence(folder: Path, frames: list[Frame], ds: SyntheticDataset, scene_index: int, stride: int, fps: float,
-                    grid: GridSpec, labeler: SyntheticPseudoLabels | None, pseudo_root: Path) -> None:
+def _write_sequence(
+    folder: Path,
+    frames: list[Frame],
+    ds: SyntheticDataset,
+    scene_index: int,
+    stride: int,
+    fps: float,
+    grid: GridSpec,
+    labeler: SyntheticPseudoLabels | None,
+    pseudo_root: Path,
+) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     first = frames[0]
     cam = first.cam_to_ego[0].double()

@@ -35,19 +35,30 @@ def generate_frame(config: SyntheticWorldConfig, scene: Scene, split: str, scene
     sun_ego = (world_to_ego[:3, :3] @ scene.sun.double()).float()
     names, intrinsics, cam_to_ego = camera_rig(config.num_cameras, config.image_size)
     noise = torch.Generator().manual_seed((scene.seed * 1_000_003 + frame_index) % (1 << 62))
-    cams = render_cameras(prims, scene.ground, ego_to_world, sun_ego, intrinsics, cam_to_ego, config.image_size,
-                          config.image_noise, noise)
-    lidar = render_lidar(prims, scene.ground, ego_to_world, config.lidar_beams, config.lidar_elevation_deg,
-                         config.lidar_azimuth_steps, config.lidar_max_range)
+    cams = render_cameras(
+        prims, scene.ground, ego_to_world, sun_ego, intrinsics, cam_to_ego, config.image_size, config.image_noise, noise
+    )
+    lidar = render_lidar(
+        prims,
+        scene.ground,
+        ego_to_world,
+        config.lidar_beams,
+        config.lidar_elevation_deg,
+        config.lidar_azimuth_steps,
+        config.lidar_max_range,
+    )
     grid = config.grid
     labels = voxel_labels(prims, scene.ground, ego_to_world, grid, config.label_subsamples)
     points_ego = lidar.points[:, :3] @ LIDAR_TO_EGO[:3, :3].T + LIDAR_TO_EGO[:3, 3]
     boxes, box_labels, track_ids = agent_boxes(scene.agents, t, ego_to_world, grid)
     lidar_origin = LIDAR_TO_EGO[:3, 3].double()
-    sequence_origins = torch.stack([
-        (world_to_ego @ scene.ego_to_world(k / config.fps))[:3] @ torch.cat([lidar_origin, lidar_origin.new_ones(1)])
-        for k in range(config.frames(split))
-    ]).float()
+    sequence_origins = torch.stack(
+        [
+            (world_to_ego @ scene.ego_to_world(k / config.fps))[:3]
+            @ torch.cat([lidar_origin, lidar_origin.new_ones(1)])
+            for k in range(config.frames(split))
+        ]
+    ).float()
     n = intrinsics.shape[0]
     return Frame(
         images=cams.images,
@@ -64,7 +75,9 @@ def generate_frame(config: SyntheticWorldConfig, scene: Scene, split: str, scene
         points=lidar.points,
         point_labels=lidar.labels,
         voxel_labels=labels,
-        mask_camera=camera_mask(labels != 17, grid, intrinsics, cam_to_ego, config.image_size, config.camera_mask_scale),
+        mask_camera=camera_mask(
+            labels != 17, grid, intrinsics, cam_to_ego, config.image_size, config.camera_mask_scale
+        ),
         mask_lidar=lidar_mask(grid, lidar.origin, points_ego),
         boxes=boxes,
         box_labels=box_labels,

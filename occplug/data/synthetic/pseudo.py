@@ -99,7 +99,11 @@ _OCC3D_TO_FOREIGN = {
     15: "wall", 16: "vegetation", 255: "sky",
 }  # fmt: skip
 # (Occ3D id, foreign name below the height, foreign name at/above it, height in metres of the ego frame)
-_HEIGHT_SPLITS = ((15, "wall", "building", 2.5), (2, "bicycle", "bicyclist", 1.0), (6, "motorcycle", "motorcyclist", 1.0))
+_HEIGHT_SPLITS = (
+    (15, "wall", "building", 2.5),
+    (2, "bicycle", "bicyclist", 1.0),
+    (6, "motorcycle", "motorcyclist", 1.0),
+)
 
 #: Foreign name -> target class, per target taxonomy (``None``: no target class).
 _TO_TARGET: dict[str, dict[str, str | None]] = {
@@ -181,11 +185,27 @@ class PseudoRealism:
 
 #: ``perfect`` (no noise; the foreign taxonomy's merges remain), ``default`` and ``noisy``.
 PSEUDO_PRESETS: dict[str, PseudoRealism] = {
-    "perfect": PseudoRealism(depth_noise=0.0, depth_scale_error=0.0, depth_max=1e9, semantic_noise=0.0, boundary_error=0,
-                             auxiliary_boundary_error=0, auxiliary_miss=0.0, feature_noise=0.0),
+    "perfect": PseudoRealism(
+        depth_noise=0.0,
+        depth_scale_error=0.0,
+        depth_max=1e9,
+        semantic_noise=0.0,
+        boundary_error=0,
+        auxiliary_boundary_error=0,
+        auxiliary_miss=0.0,
+        feature_noise=0.0,
+    ),
     "default": PseudoRealism(),
-    "noisy": PseudoRealism(depth_noise=0.15, depth_scale_error=0.15, depth_max=60.0, semantic_noise=0.1, boundary_error=2,
-                           auxiliary_boundary_error=2, auxiliary_miss=0.25, feature_noise=0.6),
+    "noisy": PseudoRealism(
+        depth_noise=0.15,
+        depth_scale_error=0.15,
+        depth_max=60.0,
+        semantic_noise=0.1,
+        boundary_error=2,
+        auxiliary_boundary_error=2,
+        auxiliary_miss=0.25,
+        feature_noise=0.6,
+    ),
 }
 
 
@@ -219,7 +239,10 @@ def mapping_table(taxonomy: str = "occ3d", foreign: bool = True, source: str = "
         raise ValueError(f"unknown semantic source '{source}' (valid: primary, auxiliary)")
     if source == "auxiliary":
         mapped = _AUX_TO_TARGET[taxonomy]
-        data = {"classes": dict(AUXILIARY_CLASSES), "map": {n: mapped.get(n, "ignore") for n in AUXILIARY_CLASSES.values()}}
+        data = {
+            "classes": dict(AUXILIARY_CLASSES),
+            "map": {n: mapped.get(n, "ignore") for n in AUXILIARY_CLASSES.values()},
+        }
         header = f"# the synthetic open-vocabulary segmenter -> {taxonomy}: only the classes the primary lacks\n"
         return header + yaml.safe_dump(data, sort_keys=False)
     if not foreign:
@@ -231,7 +254,9 @@ def mapping_table(taxonomy: str = "occ3d", foreign: bool = True, source: str = "
             "classes": dict(sorted(FOREIGN_CLASSES.items())),
             "map": {name: (target or "ignore") for name, target in _TO_TARGET[taxonomy].items()},
         }
-        header = (f"# the synthetic segmenter's foreign taxonomy -> {taxonomy} (splits and merges as in OccLE's Table B.1)\n")
+        header = (
+            f"# the synthetic segmenter's foreign taxonomy -> {taxonomy} (splits and merges as in OccLE's Table B.1)\n"
+        )
     return header + yaml.safe_dump(data, sort_keys=False)
 
 
@@ -259,8 +284,12 @@ class SyntheticPseudoLabels:
             goes through :data:`~occplug.data.synthetic.export_semantickitti.OCC3D_TO_SSC`).
     """
 
-    def __init__(self, realism: str | dict[str, Any] | PseudoRealism | None = None,
-                 kinds: tuple[str, ...] = ("depth", "semantics", "features"), taxonomy: str = "occ3d") -> None:
+    def __init__(
+        self,
+        realism: str | dict[str, Any] | PseudoRealism | None = None,
+        kinds: tuple[str, ...] = ("depth", "semantics", "features"),
+        taxonomy: str = "occ3d",
+    ) -> None:
         self.realism = pseudo_realism(realism)
         for kind in kinds:
             if kind not in ("depth", "semantics", "features"):
@@ -290,7 +319,7 @@ class SyntheticPseudoLabels:
         # group (unit) + weighted class embedding: classes of a group overlap
         groups = torch.tensor([_FEATURE_GROUP.get(c, 0) for c in range(257)])
         group_embedding = F.normalize(torch.randn(6, dim, generator=g), dim=-1) * math.sqrt(dim)
-        self._class_embedding = (group_embedding[groups] + self.realism.feature_class_weight * self._class_embedding)
+        self._class_embedding = group_embedding[groups] + self.realism.feature_class_weight * self._class_embedding
         self._freq = torch.randn(3, max(1, dim // 2), generator=g, dtype=torch.float64) / 10.0
         self._phase = torch.rand(max(1, dim // 2), generator=g, dtype=torch.float64) * 2 * math.pi
 
@@ -298,8 +327,9 @@ class SyntheticPseudoLabels:
     def _points(self, frame: Frame) -> tuple[Tensor, Tensor]:
         """Ego-frame and global-frame ``(N, H, W, 3)`` float64 surface points of every pixel (NaN-free; 0 for sky)."""
         h, w = frame.image_size
-        origins, dirs, z_per_m = camera_rays(frame.intrinsics.double(), frame.cam_to_ego.double(), h, w,
-                                             frame.img_aug.double())
+        origins, dirs, z_per_m = camera_rays(
+            frame.intrinsics.double(), frame.cam_to_ego.double(), h, w, frame.img_aug.double()
+        )
         rng = frame.depth.double() / z_per_m
         ego = origins[:, None, None, :] + dirs * rng[..., None]
         e = frame.ego_to_global.double()
@@ -390,7 +420,9 @@ class SyntheticPseudoLabels:
         emb = self._class_embedding[truth]  # (H, W, F)
         surface = (frame.depth[cam] > 0)[..., None]
         phase = glob[cam] @ self._freq + self._phase
-        pos = torch.cat([phase.sin(), phase.cos()], -1)[..., : r.feature_dim].float() / math.sqrt(max(1, r.feature_dim // 2))
+        pos = torch.cat([phase.sin(), phase.cos()], -1)[..., : r.feature_dim].float() / math.sqrt(
+            max(1, r.feature_dim // 2)
+        )
         if pos.shape[-1] < r.feature_dim:
             pos = F.pad(pos, (0, r.feature_dim - pos.shape[-1]))
         full = (emb + r.feature_position_weight * math.sqrt(r.feature_dim) * pos * surface).permute(2, 0, 1)
@@ -441,8 +473,14 @@ class SyntheticPseudoLabels:
             out.pseudo_features = maps["features"]
         return out
 
-    def write(self, frame: Frame, root: str | Path, cameras: tuple[int, ...] | None = None,
-              names: tuple[str, ...] | None = None, token: str | None = None) -> None:
+    def write(
+        self,
+        frame: Frame,
+        root: str | Path,
+        cameras: tuple[int, ...] | None = None,
+        names: tuple[str, ...] | None = None,
+        token: str | None = None,
+    ) -> None:
         """Write the frame's pseudo labels under ``root`` in the layout of :mod:`occplug.data.pseudo_labels`.
 
         ``root/depth/<token>/<camera>.npy`` (float32), ``root/semantics/<token>/<camera>.png``

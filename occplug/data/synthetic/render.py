@@ -15,7 +15,16 @@ from .appearance import ground_albedo, lidar_reflectivity, shade, sky_color, sol
 from .primitives import Primitives, intersect_rays, local_normal
 from .world import GroundMap
 
-__all__ = ["CAMERA_RIG", "LIDAR_TO_EGO", "NO_SURFACE", "Surface", "camera_rig", "render_cameras", "render_lidar", "trace"]
+__all__ = [
+    "CAMERA_RIG",
+    "LIDAR_TO_EGO",
+    "NO_SURFACE",
+    "Surface",
+    "camera_rig",
+    "render_cameras",
+    "render_lidar",
+    "trace",
+]
 
 #: ``semantics_2d`` value of pixels that see no surface (sky).
 NO_SURFACE = 255
@@ -53,7 +62,9 @@ def camera_rig(num_cameras: int, image_size: tuple[int, int]) -> tuple[tuple[str
         f = (w / 2) / math.tan(math.radians(hfov_deg) / 2)
         ks.append(torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]]))
         yaw = math.radians(yaw_deg)
-        rot_z = torch.tensor([[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
+        rot_z = torch.tensor(
+            [[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0], [0.0, 0.0, 1.0]]
+        )
         pose = torch.eye(4)
         pose[:3, :3] = rot_z @ _CAM_AXES
         pose[:3, 3] = torch.tensor(position)
@@ -87,8 +98,15 @@ class Surface:
     normal_unit: Tensor
 
 
-def trace(prims: Primitives, ground: GroundMap, ego_to_world: Tensor, origin: Tensor, directions: Tensor,
-          max_range: float = math.inf, bundles: Tensor | None = None) -> Surface:
+def trace(
+    prims: Primitives,
+    ground: GroundMap,
+    ego_to_world: Tensor,
+    origin: Tensor,
+    directions: Tensor,
+    max_range: float = math.inf,
+    bundles: Tensor | None = None,
+) -> Surface:
     """Cast rays sharing one ego-frame ``origin`` (above the ground) against solids and ground.
 
     Args:
@@ -123,8 +141,9 @@ def trace(prims: Primitives, ground: GroundMap, ego_to_world: Tensor, origin: Te
     return Surface(t, label, normal, solid, on_ground, ground_xy, ground.marking_at(ground_xy), hit.normal_unit)
 
 
-def _colors(surface: Surface, prims: Primitives, origin: Tensor, directions: Tensor, ego_to_world: Tensor,
-            sun_ego: Tensor) -> Tensor:
+def _colors(
+    surface: Surface, prims: Primitives, origin: Tensor, directions: Tensor, ego_to_world: Tensor, sun_ego: Tensor
+) -> Tensor:
     """``(R, 3)`` shaded colour of each ray: ground and solids textured and lit, the rest sky."""
     rgb = sky_color(directions @ ego_to_world[:3, :3].float().T)
     g = surface.ground
@@ -158,9 +177,17 @@ class CameraImages:
     origins: Tensor
 
 
-def render_cameras(prims: Primitives, ground: GroundMap, ego_to_world: Tensor, sun_ego: Tensor,
-                   intrinsics: Tensor, cam_to_ego: Tensor, image_size: tuple[int, int], noise: float,
-                   generator: torch.Generator) -> CameraImages:
+def render_cameras(
+    prims: Primitives,
+    ground: GroundMap,
+    ego_to_world: Tensor,
+    sun_ego: Tensor,
+    intrinsics: Tensor,
+    cam_to_ego: Tensor,
+    image_size: tuple[int, int],
+    noise: float,
+    generator: torch.Generator,
+) -> CameraImages:
     """Render every camera: one ray through each pixel centre.
 
     Args:
@@ -212,9 +239,17 @@ class LidarSweep:
     origin: Tensor
 
 
-def render_lidar(prims: Primitives, ground: GroundMap, ego_to_world: Tensor, beams: int,
-                 elevation_deg: tuple[float, float], azimuth_steps: int, max_range: float,
-                 lidar_to_ego: Tensor = LIDAR_TO_EGO, sectors: int = 12) -> LidarSweep:
+def render_lidar(
+    prims: Primitives,
+    ground: GroundMap,
+    ego_to_world: Tensor,
+    beams: int,
+    elevation_deg: tuple[float, float],
+    azimuth_steps: int,
+    max_range: float,
+    lidar_to_ego: Tensor = LIDAR_TO_EGO,
+    sectors: int = 12,
+) -> LidarSweep:
     """Fire every beam at every azimuth step; keep returns within ``max_range``.
 
     Intensity is the class reflectivity (road paint: high) times the cosine of the incidence angle.

@@ -62,7 +62,9 @@ class GroundMap:
 
     def classes_at(self, xy: Tensor) -> Tensor:
         """``(K,)`` int64 ground class at ``(K, 2)`` world points."""
-        idx = torch.floor((xy.to(torch.float64) - torch.tensor(self.origin, dtype=torch.float64)) / self.resolution).long()
+        idx = torch.floor(
+            (xy.to(torch.float64) - torch.tensor(self.origin, dtype=torch.float64)) / self.resolution
+        ).long()
         nx, ny = self.classes.shape
         inside = (idx[:, 0] >= 0) & (idx[:, 0] < nx) & (idx[:, 1] >= 0) & (idx[:, 1] < ny)
         out = torch.full((xy.shape[0],), TERRAIN, dtype=torch.int64)
@@ -100,8 +102,17 @@ class _Canvas:
         j0, j1 = (max(0, min(ny, round((v - self.y0) / _RASTER_RES))) for v in (y0, y1))
         self.classes[i0:i1, j0:j1] = label
 
-    def paint(self, x0: float, x1: float, y0: float, y1: float, dash_axis: int = -1, period: float = 1.0,
-              on: float = 1.0, color: int = 1) -> None:
+    def paint(
+        self,
+        x0: float,
+        x1: float,
+        y0: float,
+        y1: float,
+        dash_axis: int = -1,
+        period: float = 1.0,
+        on: float = 1.0,
+        color: int = 1,
+    ) -> None:
         self.markings.append([x0, x1, y0, y1, dash_axis, period, on, color])
 
     def finish(self) -> GroundMap:
@@ -191,7 +202,8 @@ class Agents:
         c, s = yaw.cos(), yaw.sin()
         local = self.parts.center.to(torch.float64)
         center = torch.stack(
-            [pos[:, 0] + c * local[:, 0] - s * local[:, 1], pos[:, 1] + s * local[:, 0] + c * local[:, 1], local[:, 2]], -1
+            [pos[:, 0] + c * local[:, 0] - s * local[:, 1], pos[:, 1] + s * local[:, 0] + c * local[:, 1], local[:, 2]],
+            -1,
         )
         out = self.parts.select(slice(None))
         out.center = center.to(torch.float32)
@@ -244,13 +256,36 @@ class Scene:
 # ----------------------------------------------------------------------------------------------
 # Generation
 
-_BUILDING_COLORS = [(0.72, 0.62, 0.5), (0.6, 0.3, 0.22), (0.62, 0.62, 0.62), (0.82, 0.8, 0.74), (0.5, 0.42, 0.36),
-                    (0.55, 0.6, 0.66), (0.7, 0.55, 0.45)]
-_CAR_COLORS = [(0.85, 0.85, 0.85), (0.08, 0.08, 0.09), (0.6, 0.61, 0.63), (0.38, 0.39, 0.41), (0.6, 0.08, 0.08),
-               (0.12, 0.22, 0.55), (0.12, 0.3, 0.18), (0.7, 0.63, 0.5), (0.85, 0.7, 0.1)]
+_BUILDING_COLORS = [
+    (0.72, 0.62, 0.5),
+    (0.6, 0.3, 0.22),
+    (0.62, 0.62, 0.62),
+    (0.82, 0.8, 0.74),
+    (0.5, 0.42, 0.36),
+    (0.55, 0.6, 0.66),
+    (0.7, 0.55, 0.45),
+]
+_CAR_COLORS = [
+    (0.85, 0.85, 0.85),
+    (0.08, 0.08, 0.09),
+    (0.6, 0.61, 0.63),
+    (0.38, 0.39, 0.41),
+    (0.6, 0.08, 0.08),
+    (0.12, 0.22, 0.55),
+    (0.12, 0.3, 0.18),
+    (0.7, 0.63, 0.5),
+    (0.85, 0.7, 0.1),
+]
 _BUS_COLORS = [(0.75, 0.12, 0.1), (0.15, 0.3, 0.65), (0.88, 0.88, 0.86), (0.9, 0.72, 0.1)]
-_CLOTH_COLORS = [(0.1, 0.1, 0.12), (0.2, 0.25, 0.45), (0.6, 0.1, 0.12), (0.75, 0.75, 0.72), (0.35, 0.3, 0.25),
-                 (0.15, 0.4, 0.25), (0.8, 0.55, 0.2)]
+_CLOTH_COLORS = [
+    (0.1, 0.1, 0.12),
+    (0.2, 0.25, 0.45),
+    (0.6, 0.1, 0.12),
+    (0.75, 0.75, 0.72),
+    (0.35, 0.3, 0.25),
+    (0.15, 0.4, 0.25),
+    (0.8, 0.55, 0.2),
+]
 _SKIN_COLORS = [(0.87, 0.7, 0.58), (0.7, 0.52, 0.4), (0.45, 0.32, 0.24), (0.95, 0.8, 0.68)]
 
 _SIZES = {  # (length, width, height) ranges
@@ -268,17 +303,39 @@ _PARKED_MIX = ((CAR, 0.86), (TRUCK, 0.05), (TRAILER, 0.04), (CONSTRUCTION, 0.05)
 
 
 def _box(center, half, label, material, color, yaw=0.0) -> dict:
-    return {"shape": BOX, "center": center, "half": half, "yaw": yaw, "label": label, "material": material, "color": color}
+    return {
+        "shape": BOX,
+        "center": center,
+        "half": half,
+        "yaw": yaw,
+        "label": label,
+        "material": material,
+        "color": color,
+    }
 
 
 def _cyl(center, radius, half_height, label, material, color, yaw=0.0) -> dict:
-    return {"shape": CYLINDER, "center": center, "half": (radius, radius, half_height), "yaw": yaw, "label": label,
-            "material": material, "color": color}
+    return {
+        "shape": CYLINDER,
+        "center": center,
+        "half": (radius, radius, half_height),
+        "yaw": yaw,
+        "label": label,
+        "material": material,
+        "color": color,
+    }
 
 
 def _ball(center, radius, half_height, label, material, color) -> dict:
-    return {"shape": SPHEROID, "center": center, "half": (radius, radius, half_height), "yaw": 0.0, "label": label,
-            "material": material, "color": color}
+    return {
+        "shape": SPHEROID,
+        "center": center,
+        "half": (radius, radius, half_height),
+        "yaw": 0.0,
+        "label": label,
+        "material": material,
+        "color": color,
+    }
 
 
 def _agent_parts(label: int, length: float, width: float, height: float, color, rng: np.random.Generator) -> list[dict]:
@@ -393,7 +450,11 @@ class _SceneBuilder:
         (l0, l1), (w0, w1), (h0, h1) = _SIZES[label]
         size = (rng.uniform(l0, l1), rng.uniform(w0, w1), rng.uniform(h0, h1))
         if color is None:
-            palette = {BUS: _BUS_COLORS, CONSTRUCTION: [(0.85, 0.65, 0.1)], TRAILER: _BUILDING_COLORS[2:4] + _CAR_COLORS[:1]}
+            palette = {
+                BUS: _BUS_COLORS,
+                CONSTRUCTION: [(0.85, 0.65, 0.1)],
+                TRAILER: _BUILDING_COLORS[2:4] + _CAR_COLORS[:1],
+            }
             color = _pick(rng, palette.get(label, _CAR_COLORS))
         row = len(self.agent_rows)
         for part in _agent_parts(label, *size, color, rng):
@@ -405,7 +466,9 @@ class _SceneBuilder:
         (_, l1), _, _ = _SIZES[label]
         return l1
 
-    def fill_line(self, start: float, end: float, per_100m: float, min_gap: float, mix: tuple) -> list[tuple[float, int]]:
+    def fill_line(
+        self, start: float, end: float, per_100m: float, min_gap: float, mix: tuple
+    ) -> list[tuple[float, int]]:
         """Positions and classes along ``[start, end]`` with mean spacing ``100 / per_100m`` metres."""
         out: list[tuple[float, int]] = []
         if per_100m <= 0:
@@ -537,8 +600,16 @@ def _add_lots(b: _SceneBuilder, canvas: _Canvas, origin, along, outward, length:
             gap = float(rng.uniform(1.0, 5.0))
             setback, depth, height = float(rng.uniform(0.5, 4.0)), float(rng.uniform(8, 16)), float(rng.uniform(4, 16))
             cx, cy = at(a + lot / 2, setback + depth / 2)
-            b.static.append(_box((cx, cy, height / 2), ((lot - gap) / 2, depth / 2, height / 2), MANMADE, M["building"],
-                                 _pick(rng, _BUILDING_COLORS), yaw))
+            b.static.append(
+                _box(
+                    (cx, cy, height / 2),
+                    ((lot - gap) / 2, depth / 2, height / 2),
+                    MANMADE,
+                    M["building"],
+                    _pick(rng, _BUILDING_COLORS),
+                    yaw,
+                )
+            )
         elif kind == 1:  # parking lot: gravel, a back wall, cars parked nose-in
             corners = [at(a, 0), at(a + lot, 16)]
             xs, ys = sorted(c[0] for c in corners), sorted(c[1] for c in corners)
@@ -557,8 +628,16 @@ def _add_lots(b: _SceneBuilder, canvas: _Canvas, origin, along, outward, length:
             if rng.random() < 0.5 * density:
                 hx, hy = at(a + lot / 2, 0.8)
                 h = float(rng.uniform(0.8, 1.5))
-                b.static.append(_box((hx, hy, h / 2), ((lot - 2) / 2, 0.5, h / 2), VEGETATION, M["hedge"],
-                                     _pick(rng, [(0.12, 0.28, 0.1)]), yaw))
+                b.static.append(
+                    _box(
+                        (hx, hy, h / 2),
+                        ((lot - 2) / 2, 0.5, h / 2),
+                        VEGETATION,
+                        M["hedge"],
+                        _pick(rng, [(0.12, 0.28, 0.1)]),
+                        yaw,
+                    )
+                )
         a += lot
 
 
@@ -568,11 +647,21 @@ def _tree(b: _SceneBuilder, xy: tuple[float, float]) -> None:
     crown_r, crown_h = float(rng.uniform(1.4, 2.6)), float(rng.uniform(1.2, 2.0))
     bark = _pick(rng, [(0.35, 0.25, 0.16)])
     b.static.append(_cyl((xy[0], xy[1], trunk_h / 2), trunk_r, trunk_h / 2, VEGETATION, M["bark"], bark))
-    b.static.append(_ball((xy[0], xy[1], trunk_h + 0.7 * crown_h), crown_r, crown_h, VEGETATION, M["crown"],
-                          _pick(rng, [(0.22, 0.42, 0.14), (0.3, 0.45, 0.18), (0.18, 0.35, 0.16)])))
+    b.static.append(
+        _ball(
+            (xy[0], xy[1], trunk_h + 0.7 * crown_h),
+            crown_r,
+            crown_h,
+            VEGETATION,
+            M["crown"],
+            _pick(rng, [(0.22, 0.42, 0.14), (0.3, 0.45, 0.18), (0.18, 0.35, 0.16)]),
+        )
+    )
 
 
-def _add_street_furniture(b: _SceneBuilder, road: _Road, x_range: tuple[float, float]) -> list[tuple[int, float, float]]:
+def _add_street_furniture(
+    b: _SceneBuilder, road: _Road, x_range: tuple[float, float]
+) -> list[tuple[int, float, float]]:
     """Trees and hedges on the verges, street lights, a road-works zone; returns the zones
     ``(side, x0, x1)`` kept free of parked cars."""
     rng, density = b.rng, b.config.structure_density
@@ -590,8 +679,15 @@ def _add_street_furniture(b: _SceneBuilder, road: _Road, x_range: tuple[float, f
                     else:
                         length = float(rng.uniform(3, 8))
                         h = float(rng.uniform(0.8, 1.4))
-                        b.static.append(_box((x, y, h / 2), (length / 2, min(0.5, road.verge / 2 - 0.1), h / 2), VEGETATION,
-                                             M["hedge"], _pick(rng, [(0.12, 0.28, 0.1)])))
+                        b.static.append(
+                            _box(
+                                (x, y, h / 2),
+                                (length / 2, min(0.5, road.verge / 2 - 0.1), h / 2),
+                                VEGETATION,
+                                M["hedge"],
+                                _pick(rng, [(0.12, 0.28, 0.1)]),
+                            )
+                        )
                 x += float(rng.uniform(7, 14)) / density
         if density > 0:
             y = side * (road.curb(side) + 0.35)
@@ -626,8 +722,15 @@ def _add_street_furniture(b: _SceneBuilder, road: _Road, x_range: tuple[float, f
     return zones
 
 
-def _add_traffic(b: _SceneBuilder, road: _Road, ego: EgoPath, x_range: tuple[float, float],
-                 y_range: tuple[float, float], zones: list[tuple[int, float, float]], turning: bool) -> None:
+def _add_traffic(
+    b: _SceneBuilder,
+    road: _Road,
+    ego: EgoPath,
+    x_range: tuple[float, float],
+    y_range: tuple[float, float],
+    zones: list[tuple[int, float, float]],
+    turning: bool,
+) -> None:
     cfg, rng, duration = b.config, b.rng, b.duration
     xa, xb = x_range
     ya, yb = y_range
@@ -676,7 +779,9 @@ def _add_traffic(b: _SceneBuilder, road: _Road, ego: EgoPath, x_range: tuple[flo
                 queue += 2 * half + float(rng.uniform(1.0, 2.5))
             if not (turning and side < 0):  # that lane is the ego's way out
                 speed = float(rng.uniform(4.0, 10.0))
-                for d, label in b.fill_line(edge + 8, far + speed * duration, cfg.vehicle_density, 4.0, _TRAFFIC_MIX[:3]):
+                for d, label in b.fill_line(
+                    edge + 8, far + speed * duration, cfg.vehicle_density, 4.0, _TRAFFIC_MIX[:3]
+                ):
                     b.agent(label, (outbound_x, side * d), away, speed)
     # pedestrians: along the main sidewalks (crossing the cross road on its zebra crossings) ...
     if cfg.pedestrian_density <= 0:
@@ -703,7 +808,9 @@ def _add_traffic(b: _SceneBuilder, road: _Road, ego: EgoPath, x_range: tuple[flo
             count = int(rng.poisson(cfg.pedestrian_density * max(0.0, far - start) / 200))
             for _ in range(count):
                 d = float(rng.uniform(start, far))
-                x = road.cross_x + xside * (road.cross_lane + float(rng.uniform(0.6, max(0.7, road.cross_sidewalk - 0.5))))
+                x = road.cross_x + xside * (
+                    road.cross_lane + float(rng.uniform(0.6, max(0.7, road.cross_sidewalk - 0.5)))
+                )
                 b.agent(PEDESTRIAN, (x, side * d), side * math.pi / 2, float(rng.uniform(0.8, 1.5)))
 
 
