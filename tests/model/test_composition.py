@@ -250,3 +250,48 @@ def test_two_encoders_and_a_reading_head_fit_validate_and_predict(tmp_path):
         assert n > 0
         pred = np.load(next((tmp_path / "preds").glob("*.npz")))["pred"]
         assert pred.shape == tuple(GridSpec.from_config(cfg["grid"]).shape)
+
+
+# ------------------------------------------------------------------ conformance inputs a component supplies
+
+
+class BevScene(occplug.SceneRepresentation):
+    """A BEV scene: needs a (B, C, X, Y) lifted plane, so it supplies its own conformance inputs."""
+
+    def __init__(self, in_channels: int, out_channels: int = 4) -> None:
+        super().__init__()
+        self.out_channels = out_channels
+        self.proj = nn.Conv2d(in_channels, out_channels, 1)
+
+    def forward(self, lifted, batch):
+        if lifted.volume.dim() != 4:
+            raise ValueError("bev scene needs a (B, C, X, Y) plane")
+        plane = self.proj(lifted.volume)  # (B, C, X, Y) -> a volume repeated along z, so it samples like voxels
+        z = lifted.grid.shape[2]
+        from occplug.interfaces import DenseVoxelScene
+
+        return DenseVoxelScene(plane[..., None].expand(-1, -1, -1, -1, z).contiguous(), lifted.grid)
+
+    @classmethod
+    def conformance_inputs(cls, batch, grid, channels):
+        from occplug.interfaces import Lifted
+
+        plane = torch.randn(len(batch), channels, *grid.shape[:2], generator=torch.Generator().manual_seed(0))
+        return (Lifted(volume=plane, grid=grid), batch)
+
+
+class BevScenePlugin:
+    @occplug.hookimpl
+    def occplug_register_components(self, registry):
+        registry.add("scene", "toy_bev", BevScene)
+
+
+def test_a_component_supplies_its_own_conformance_inputs(monkeypatch):
+    from occplug.testing import check_component
+
+    with isolated(plugins=[("bev", BevScenePlugin())]):
+        check_component("scene", "toy_bev", batch=make_tiny_batch())  # passes with its own BEV inputs
+        # with the interface's default (a dense volume) the same component fails: the inputs really came from it
+        monkeypatch.setattr(BevScene, "conformance_inputs", classmethod(occplug.SceneRepresentation.conformance_inputs.__func__))
+        with pytest.raises(ValueError, match="needs a"):
+            check_component("scene", "toy_bev", batch=make_tiny_batch())
