@@ -2,21 +2,21 @@
 
 from __future__ import annotations
 
+import inspect
 import sys
 import warnings
 from typing import Annotated, Any
 
-import lightning as L
 import torch
 from torch import Tensor, nn
 
 from occplug import interfaces as I
-from occplug.config.slots import Slot
+from occplug.config.slots import Slot, component_params
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces.encoder import feature_levels
 from occplug.interfaces.model import OccupancyModel
-from occplug.kinds import KINDS
+from occplug.kinds import KINDS, given_arguments
 from occplug.plugins import get_registry
 from occplug.queries import check_query_support
 from occplug.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
@@ -31,6 +31,20 @@ def build_component(kind: str, spec: dict[str, Any] | str, **defaults: Any) -> A
     kind's ``given``: ``in_channels`` from the previous component, ...).
     """
     node = {"type": spec} if isinstance(spec, str) else spec
+    entry = get_registry().get(kind, node["type"])
+    not_passed = [
+        name
+        for name, (param, _) in component_params(entry.factory).items()
+        if param.default is inspect.Parameter.empty
+        and name not in node
+        and name not in defaults
+        and name in given_arguments(kind, entry.factory)
+    ]
+    if not_passed:
+        raise ValueError(
+            f"{kind} '{entry.name}' (plugin {entry.plugin}) expects its parent to give '{not_passed[0]}', which this model "
+            f"does not pass (it passes: {', '.join(sorted(defaults)) or 'nothing'}); set it in the config"
+        )
     obj = get_registry().build(kind, node, **defaults)
     base = KINDS[kind].interface() if kind in KINDS else None
     if base is not None and not isinstance(obj, base):
@@ -245,6 +259,11 @@ class OccModel(OccupancyModel):
             and tuple(logits.shape[2:]) == self.grid.shape
         ):
             return logits.argmax(dim=1)
+        if getattr(head, "reads", ()) or getattr(head, "reads_outputs", False):
+            raise ValueError(
+                f"model.heads.{self.occupancy_head} reads other outputs, so it is evaluated from its forward logits, "
+                f"which must lie on the evaluation grid {self.grid.shape}; got {tuple(logits.shape[2:]) if logits is not None else 'none'}"
+            )
         return head.occupancy_logits(outputs.scene, self.grid).argmax(dim=1)
 
     @torch.no_grad()
@@ -332,12 +351,6 @@ class OccModel(OccupancyModel):
 
     def predict_step(self, batch: Batch, batch_idx: int) -> dict[str, Any]:
         return {"token": list(batch.token), "pred": self.predict_occupancy(batch)}
-
-    def configure_callbacks(self) -> list[L.Callback]:
-        """:class:`~occplug.streams.StreamStages` when a component holds a stream state (one store per loop)."""
-        from occplug.streams import StreamStages, find_streams
-
-        return [StreamStages()] if any(True for _ in find_streams(self)) else []
 
     # ---------------------------------------------------------------- optimisation
     def _effective_batch(self) -> EffectiveBatch | None:

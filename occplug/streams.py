@@ -264,7 +264,8 @@ def check_streaming(model: nn.Module, datamodule: Any) -> None:
     Raises:
         ValueError: naming ``data.sequential`` and the first stateful component.
     """
-    stateful = [name for name, sub in model.named_modules() if name and is_stateful(sub)]
+    holders = {name.rsplit(".", 1)[0] if "." in name else "" for name, _ in find_streams(model)}
+    stateful = [name for name, sub in model.named_modules() if name and (is_stateful(sub) or name in holders)]
     if stateful and not getattr(datamodule, "sequential", False):
         first = stateful[0]
         raise ValueError(

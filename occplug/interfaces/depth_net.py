@@ -5,8 +5,9 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar, NamedTuple
 
-import torch
 from torch import Tensor, nn
+
+from .view_transform import random_image_features
 
 __all__ = ["DepthAndContext", "DepthNet"]
 
@@ -65,6 +66,4 @@ class DepthNet(nn.Module, ABC):
     def conformance_inputs(cls, batch: Any, grid: Any, channels: int) -> tuple[Any, ...]:
         """Positional ``forward`` inputs for the conformance check: random stride-4 features
         ``(B, N, channels, H // 4, W // 4)`` (requiring grad) and the batch."""
-        b, n, _, h, w = batch.images.shape
-        gen = torch.Generator().manual_seed(0)
-        return (torch.randn(b, n, channels, h // 4, w // 4, generator=gen, requires_grad=True), batch)
+        return (random_image_features(batch, channels), batch)

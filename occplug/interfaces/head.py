@@ -34,7 +34,8 @@ class Head(nn.Module, ABC):
         :class:`~occplug.interfaces.ModelOutputs` so far (earlier heads in ``outputs.heads``,
         every image level, point-encoder volumes; it may add to ``outputs.extras``).
         conformance: :meth:`conformance_inputs` gives a dense voxel scene; a head that needs
-        another scene (a BEV plane, a query set) overrides it.
+        another scene (a BEV plane, a query set) overrides it, and a head that reads outputs returns
+        ``(scene, batch, outputs)`` with the outputs it reads.
 
     .. versionadded:: 0.1
     .. versionchanged:: 0.2 ``reads`` / ``reads_outputs``: heads that consume other heads.
@@ -46,6 +47,9 @@ class Head(nn.Module, ABC):
     reads: tuple[str, ...] = ()
     #: Whether ``forward`` takes a third argument, the :class:`~occplug.interfaces.ModelOutputs` so far.
     reads_outputs: ClassVar[bool] = False
+    #: Whether it carries state from frame to frame (a :class:`~occplug.streams.StreamState`); a stateful model
+    #: needs ``data.sequential``.
+    stateful: ClassVar[bool] = False
 
     #: Optional :class:`~occplug.data.Frame` fields this component reads (e.g. ``{"points"}``):
     #: data modules skip loading what no component requires (a camera-only model opens no LiDAR file).

@@ -85,3 +85,11 @@ class OccupancyModel(L.LightningModule, ABC):
         default runs :meth:`forward` and :meth:`predict_occupancy`."""
         self(batch)
         self.predict_occupancy(batch)
+
+    def configure_callbacks(self) -> list[L.Callback]:
+        """:class:`~occplug.streams.StreamStages` when a component holds a stream state (one store per loop:
+        the sanity check and mid-epoch validation never touch the training state). A subclass that adds
+        callbacks of its own extends this list."""
+        from occplug.streams import StreamStages, find_streams
+
+        return [StreamStages()] if any(True for _ in find_streams(self)) else []

@@ -95,6 +95,9 @@ class SceneRepresentation(nn.Module, ABC):
     given: ClassVar[tuple[str, ...]] = ("in_channels",)
     #: Whether ``forward`` takes a third argument, the :class:`~occplug.interfaces.ModelOutputs` so far.
     reads_outputs: ClassVar[bool] = False
+    #: Whether it carries state from frame to frame (a :class:`~occplug.streams.StreamState`); a stateful model
+    #: needs ``data.sequential``.
+    stateful: ClassVar[bool] = False
 
     #: Optional :class:`~occplug.data.Frame` fields this component reads (e.g. ``{"points"}``):
     #: data modules skip loading what no component requires (a camera-only model opens no LiDAR file).

@@ -5,7 +5,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from torch import Tensor, nn
 
@@ -66,6 +66,13 @@ class SupervisionSource(nn.Module, ABC):
 
     #: Constructor arguments the model fills in when the config leaves them out.
     given: ClassVar[tuple[str, ...]] = ("free_label", "ignore_label")
+
+    @classmethod
+    def conformance_outputs(cls, batch: Batch, grid: Any, channels: int) -> ModelOutputs | None:
+        """The :class:`ModelOutputs` the conformance check trains this source on, or None (the default) for a
+        small LSS model's outputs on ``batch``. A source that reads heads or ``extras`` that model lacks returns
+        its own (with tensors that require grad)."""
+        return None
 
     #: Optional :class:`~occplug.data.Frame` fields this component reads (e.g. ``{"points"}``):
     #: data modules skip loading what no component requires (a camera-only model opens no LiDAR file).

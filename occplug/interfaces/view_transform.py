@@ -12,7 +12,7 @@ from torch import Tensor, nn
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 
-__all__ = ["Lifted", "ViewTransform"]
+__all__ = ["Lifted", "ViewTransform", "random_image_features"]
 
 
 @dataclass
@@ -53,9 +53,12 @@ class ViewTransform(nn.Module, ABC):
     """
 
     #: Constructor arguments the model fills in when the config leaves them out.
-    given: ClassVar[tuple[str, ...]] = ("in_channels", "image_stride")
+    given: ClassVar[tuple[str, ...]] = ("in_channels", "image_stride", "level_channels", "level_strides")
     #: Whether ``forward`` takes a third argument, the :class:`~occplug.interfaces.ModelOutputs` so far.
     reads_outputs: ClassVar[bool] = False
+    #: Whether it carries state from frame to frame (a :class:`~occplug.streams.StreamState`); a stateful model
+    #: needs ``data.sequential``.
+    stateful: ClassVar[bool] = False
 
     #: Optional :class:`~occplug.data.Frame` fields this component reads (e.g. ``{"points"}``):
     #: data modules skip loading what no component requires (a camera-only model opens no LiDAR file).
@@ -81,6 +84,11 @@ class ViewTransform(nn.Module, ABC):
     def conformance_inputs(cls, batch: Batch, grid: GridSpec, channels: int) -> tuple[Any, ...]:
         """Positional ``forward`` inputs for the conformance check: random stride-4 features
         ``(B, N, channels, H // 4, W // 4)`` (requiring grad) and the batch."""
-        b, n, _, h, w = batch.images.shape
-        gen = torch.Generator().manual_seed(0)
-        return (torch.randn(b, n, channels, h // 4, w // 4, generator=gen, requires_grad=True), batch)
+        return (random_image_features(batch, channels), batch)
+
+
+def random_image_features(batch: Batch, channels: int, stride: int = 4) -> Tensor:
+    """Seeded random ``(B, N, channels, H // stride, W // stride)`` features requiring grad (conformance inputs)."""
+    b, n, _, h, w = batch.images.shape
+    gen = torch.Generator().manual_seed(0)
+    return torch.randn(b, n, channels, h // stride, w // stride, generator=gen, requires_grad=True)

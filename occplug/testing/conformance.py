@@ -191,7 +191,8 @@ def _check_head(head: I.Head, batch: Batch, grid: GridSpec) -> None:
     for key in first:
         assert torch.equal(first[key], second[key]), f"head output '{key}' is not deterministic in eval mode"
     _finite(first, "head output")
-    if isinstance(head, I.OccupancyHead):
+    reads = bool(getattr(head, "reads", ())) or head.reads_outputs
+    if isinstance(head, I.OccupancyHead) and not reads:  # a reading head is evaluated from its forward logits
         head.eval()
         logits = head.occupancy_logits(scene, grid)
         assert logits.shape == (len(batch), head.num_classes, *grid.shape), f"occupancy_logits {tuple(logits.shape)}"
@@ -235,13 +236,17 @@ def _check_supervision(source: I.SupervisionSource, batch: Batch, grid: GridSpec
         supervision={},
         grid=grid.to_dict(),
     )
-    outputs = model(batch)
+    own = type(source).conformance_outputs(batch, grid, IN_CHANNELS)
+    outputs = model(batch) if own is None else own
     losses = source(batch, outputs)
     assert isinstance(losses, dict) and losses, "a supervision source returns a non-empty dict of losses"
     for key, value in losses.items():
         assert value.dim() == 0 and torch.isfinite(value), f"loss '{key}' must be a finite scalar"
-    torch.stack(list(losses.values())).sum().backward()
-    _has_grad(model, "model under this supervision")
+    total = torch.stack(list(losses.values())).sum()
+    assert total.requires_grad, "the losses carry no gradient"
+    total.backward()
+    if own is None:
+        _has_grad(model, "model under this supervision")
 
 
 def _check_metric(metric: OccMetric, batch: Batch, grid: GridSpec) -> None:

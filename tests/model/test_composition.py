@@ -17,12 +17,11 @@ import occplug
 from occplug import runner
 from occplug.components import SmallCNN, VoxelPoints
 from occplug.components.point_encoders import voxel_point_statistics
-from occplug.config import ConfigError, validate
+from occplug.config import validate
 from occplug.geometry import GridSpec
 from occplug.interfaces import ModelOutputs, OccupancyHead, Scene, SupervisionSource
-from occplug.interfaces.model import OccupancyModel
 from occplug.kinds import KINDS, given_arguments
-from occplug.model import OccModel, head_order
+from occplug.model import head_order
 from occplug.plugins import isolated
 from occplug.testing import make_tiny_batch
 
@@ -54,6 +53,15 @@ class RefineHead(OccupancyHead):
     def occupancy_logits(self, scene: Scene, grid: GridSpec) -> Tensor:  # evaluation reuses forward's logits
         raise TypeError("refine reads another head: evaluate through forward")
 
+    @classmethod
+    def conformance_inputs(cls, batch, grid, channels):
+        scene, batch = OccupancyHead.conformance_inputs(batch, grid, channels)
+        gen = torch.Generator().manual_seed(1)
+        outputs = ModelOutputs(image_features=None, lifted=None, scene=scene, query=None,
+                               heads={"occupancy": {"logits": torch.randn(len(batch), 18, *grid.shape, generator=gen)}},
+                               encoded={"lidar": torch.randn(len(batch), 8, *grid.shape, generator=gen)})
+        return scene, batch, outputs
+
 
 class DeltaPenalty(SupervisionSource):
     """Reads a model-level extra: an L2 penalty on the refine head's correction."""
@@ -64,6 +72,12 @@ class DeltaPenalty(SupervisionSource):
 
     def forward(self, batch, outputs: ModelOutputs) -> dict[str, Tensor]:
         return {"l2": outputs.extras["refine/delta"].square().mean()}
+
+    @classmethod
+    def conformance_outputs(cls, batch, grid, channels):
+        delta = torch.randn(len(batch), 18, *grid.shape, requires_grad=True)
+        return ModelOutputs(image_features=None, lifted=None, scene=None, heads={}, query=None,
+                            extras={"refine/delta": delta})
 
 
 class ComposedPlugin:
@@ -162,7 +176,7 @@ def test_every_kind_names_an_interface_and_its_given_arguments():
     for kind in KINDS.values():
         assert isinstance(kind.interface(), type)
     assert given_arguments("head") == {"in_channels", "num_classes", "free_label"}
-    assert given_arguments("view_transform") == {"in_channels", "image_stride"}
+    assert given_arguments("view_transform") == {"in_channels", "image_stride", "level_channels", "level_strides"}
     assert "grid" in given_arguments("model") and "metrics" in given_arguments("model")
 
 
@@ -176,28 +190,47 @@ def test_registration_checks_the_base_class():
     reg.add("head", "fine", RefineHead)  # a proper head registers
 
 
-class WiderModel(OccModel):
-    """A plugin model that injects one more argument into itself (``given`` widened)."""
+class LevelTransform(occplug.ViewTransform):
+    """A view transform that needs the encoder's levels: ``level_strides`` is given by the model."""
 
-    given = (*OccupancyModel.given, "teacher_grid")
+    def __init__(self, in_channels: int, image_stride: int, level_strides: list[int], grid: dict,
+                 out_channels: int = 4) -> None:
+        super().__init__()
+        self.level_strides, self.out_channels = list(level_strides), out_channels
+        self.grid = GridSpec.from_config(grid)
 
-    def __init__(self, teacher_grid: dict, **kwargs) -> None:
-        super().__init__(**kwargs)
+    def forward(self, features, batch):
+        raise NotImplementedError
 
 
-def test_validation_accepts_what_a_plugin_model_declares_given():
-    class P:
-        @occplug.hookimpl
-        def occplug_register_components(self, registry):
-            registry.add("model", "wider", WiderModel)
+class TeacherHead(RefineHead):
+    """A head that widens ``given`` with an argument no core model passes."""
 
-    with isolated(plugins=[("wider", P())]) as reg:
-        cfg = runner.load_config(["configs/baseline.yaml"], ["data.preset=tiny", "model.type=wider"])
-        validate(cfg, reg)  # teacher_grid is required but given: no error
-        cfg["model"]["type"] = "occ_model"
-        cfg["model"]["teacher_grid"] = {}
-        with pytest.raises(ConfigError, match="has no parameter 'teacher_grid'"):
-            validate(cfg, reg)
+    given = (*OccupancyHead.given, "teacher_grid")
+
+    def __init__(self, in_channels: int, teacher_grid: dict, num_classes: int = 18) -> None:
+        super().__init__(in_channels, num_classes)
+
+
+class GivenPlugin:
+    @occplug.hookimpl
+    def occplug_register_components(self, registry):
+        registry.add("view_transform", "toy_levels", LevelTransform)
+        registry.add("head", "toy_teacher", TeacherHead)
+
+
+def test_given_arguments_are_left_out_of_configs_and_passed_by_the_parent():
+    with isolated(plugins=[("given", GivenPlugin())]) as reg:
+        base = ["data.preset=tiny", "model.encoder.levels=2"]
+        cfg = runner.load_config(["configs/baseline.yaml"], [*base, "model.view_transform.type=toy_levels"])
+        validate(cfg, reg)  # level_strides is required but given
+        model = runner.build_model(cfg, runner.build_datamodule(cfg))
+        assert model.view_transform.level_strides == [8, 16]  # the baseline encoder: stride 8, two levels
+        # a widened given that this model does not pass: validation accepts it, the build names it in one line
+        cfg = runner.load_config(["configs/baseline.yaml"], [*base, "model.heads.extra={type: toy_teacher}"])
+        validate(cfg, reg)
+        with pytest.raises(ValueError, match=r"^head 'toy_teacher' \(plugin given\) expects its parent to give 'teacher_grid'"):
+            runner.build_model(cfg, runner.build_datamodule(cfg))
 
 
 # ------------------------------------------------------------------ end to end
@@ -295,3 +328,11 @@ def test_a_component_supplies_its_own_conformance_inputs(monkeypatch):
         monkeypatch.setattr(BevScene, "conformance_inputs", classmethod(occplug.SceneRepresentation.conformance_inputs.__func__))
         with pytest.raises(ValueError, match="needs a"):
             check_component("scene", "toy_bev", batch=make_tiny_batch())
+
+
+def test_parts_that_read_outputs_pass_the_conformance_check():
+    from occplug.testing import check_component
+
+    with isolated(plugins=[("composed", ComposedPlugin())]):
+        check_component("head", "toy_refine", {"lidar_channels": 8}, batch=make_tiny_batch())
+        check_component("supervision", "toy_delta_penalty", batch=make_tiny_batch())
