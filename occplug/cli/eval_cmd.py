@@ -30,7 +30,7 @@ what ``occplug predict`` wrote (the val split). Where each sample belongs, first
   the Occ3D layouts), SemanticKITTI sequences (train 00-07, 09, 10; val 08; test 11-21).
 
 A sample whose split none of them tells (a scene in no list, the flat ``DIR/<token>/`` layout) is one
-error line suggesting ``--splits`` or ``--split all``.
+error line suggesting ``--splits`` (``--index`` for the flat layout) or ``--split all``.
 
 Every sample is checked before anything is written: a missing or mismatched file is one error line
 naming the first offending token and how many samples are affected (exit code 2). A prediction for a
@@ -95,7 +95,8 @@ the first that applies:
   DIR/splits.json  the split record occplug data synth writes beside its trees (as --splits)
   official lists   nuScenes v1.0-trainval/v1.0-test scenes (the <scene> folder of the Occ3D
                    layouts); SemanticKITTI train 00-07, 09, 10, val 08, test 11-21
-A sample none of them places is an error; pass --splits FILE or --split all.
+A sample none of them places is an error; pass --splits FILE (flat layout: --index DIR) or
+--split all.
 
 A missing or mismatched file (a missing prediction inside the split included) is one error line
 naming the first offending token and the number of samples affected (exit code 2); nothing is
@@ -292,16 +293,17 @@ def _select_split(layout: _Layout, args: argparse.Namespace) -> dict[str, Path]:
     members, where = _split_members(layout, args)
     unknown = [t for t, m in members.items() if m is None]
     if unknown:
-        path = layout.files[unknown[0]]
-        what = (
-            f"sequence {unknown[0].split('_')[0]}"
-            if layout.name == "semantickitti"
-            else f"scene folder {path.parent.parent.name}"
-        )
+        scene_dir = layout.files[unknown[0]].parent.parent
+        fix = "pass --splits FILE (a JSON {split: [names]}) or --split all"
+        if layout.name == "semantickitti":
+            what = f"sequence {unknown[0].split('_')[0]} is in no split of {where}"
+        elif scene_dir.resolve() == Path(args.gt).resolve():
+            what, fix = "the flat <token>/labels.npz layout names no scene", "pass --index DIR or --split all"
+        else:
+            what = f"scene folder {scene_dir.name} is in no split of {where}"
         raise UsageError(
-            f"--split {args.split}: cannot tell the split of token {unknown[0]} ({what} is in no split of {where}); "
-            f"pass --splits FILE (a JSON {{split: [names]}}) or --split all ({len(unknown)} of {len(members)} "
-            "samples affected)"
+            f"--split {args.split}: cannot tell the split of token {unknown[0]} ({what}); {fix} "
+            f"({len(unknown)} of {len(members)} samples affected)"
         )
     chosen = {t: p for t, p in layout.files.items() if args.split in members[t]}
     if not chosen:

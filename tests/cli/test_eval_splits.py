@@ -126,8 +126,10 @@ def test_occ3d_flat_layout_has_no_scene(tmp_path, capsys):
     predict(pred, "flat-1", 1)
     assert run(gt, pred) == 2
     line = one_error(capsys)
-    assert line.startswith("--split val: cannot tell the split of token flat-1 (scene folder gt is in no split")
-    assert line.endswith("pass --splits FILE (a JSON {split: [names]}) or --split all (1 of 1 samples affected)")
+    assert line == (
+        "--split val: cannot tell the split of token flat-1 (the flat <token>/labels.npz layout names no scene); "
+        "pass --index DIR or --split all (1 of 1 samples affected)"
+    )
     assert run(gt, pred, "--split", "all") == 0
 
 
