@@ -67,8 +67,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "check",
         help="verify a data tree or a prepared index (read only; exit 2 on any problem)",
         description="Verify every label file (keys, dtypes, shapes), the files the tables name "
-        "(images, LiDAR), and the scenes / sequences of the official split. Writes nothing; "
-        "reports the first offending file with the number of files affected and exits 2.",
+        "(images, LiDAR), and the scenes / sequences of the official split. The grid every label file "
+        "must have is --shape when given (a benchmark's grid), else the tree's own record (grid.json, "
+        "written by occplug data synth), else the shape most label files share (nuScenes / Occ3D) or "
+        "the SSC grid (SemanticKITTI). Writes nothing; reports the first offending file with the number "
+        "of files affected and exits 2.",
     )
     targets = check.add_subparsers(dest="dataset", required=True, metavar="DATASET")
     cn = targets.add_parser(
@@ -88,7 +91,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     cn.add_argument(
         "--sweeps", type=int, default=10, help="earlier LiDAR sweeps checked per sample (default 10, as prepare)"
     )
-    _check_common(cn, "200 200 16 (Occ3D)")
+    _check_common(cn, "the Occ3D folder's grid.json, else the shape most label files share")
     cn.set_defaults(func=cmd_check)
     ck = targets.add_parser("semantickitti", help="a SemanticKITTI tree (sequences/XX/)")
     ck.add_argument(
@@ -100,7 +103,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="a JSON file {split: [sequences]} replacing splits of the standard "
         "one (train 00-07, 09, 10; val 08; test 11-21, optional)",
     )
-    _check_common(ck, "256 256 32 (SSC)")
+    _check_common(ck, "the tree's grid.json, else 256 256 32, the SSC grid")
     ck.set_defaults(func=cmd_check)
     ci = targets.add_parser("index", help="an index written by prepare nuscenes, and every file it names")
     ci.add_argument("--index", required=True, metavar="DIR", help="the index folder (or its nuscenes_index.npz)")
@@ -112,7 +115,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         metavar="official|FILE",
         help="the scenes each split should hold: the official lists, or a JSON file {split: [scene names]}",
     )
-    _check_common(ci, "200 200 16 (Occ3D)")
+    _check_common(ci, "the Occ3D folder's grid.json, else the shape most label files share")
     ci.set_defaults(func=cmd_check)
 
 
@@ -122,7 +125,7 @@ def _check_common(p: argparse.ArgumentParser, default_shape: str) -> None:
         type=int,
         nargs=3,
         metavar=("X", "Y", "Z"),
-        help=f"the voxel grid every label file must have (default {default_shape})",
+        help=f"the voxel grid every label file must have, e.g. 200 200 16 for Occ3D (default: {default_shape})",
     )
     p.add_argument("--no-lidar", action="store_true", help="camera-only data: do not check LiDAR files")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (shown on large trees)")
@@ -173,6 +176,10 @@ def cmd_synth(args: argparse.Namespace) -> int:
                 f"index it with: occplug data prepare nuscenes --root {out} --version {args.version} --occ {out} "
                 f"--out {out}/index --splits {out}/splits.json"
             )
+            print(
+                f"check it with: occplug data check nuscenes --root {out} --version {args.version} --occ {out} "
+                f"--splits {out}/splits.json"
+            )
             print(f"its label grid: {{range: {list(grid.range)}, voxel_size: {list(grid.voxel_size)}}}")
         else:
             from occplug.data.synthetic.export_semantickitti import lidar_grid as grid_of
@@ -188,6 +195,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
                 f"read it with data: {{type: semantickitti, root: {out}, splits: {names}, "
                 f"grid: {{range: {list(grid.range)}, voxel_size: {list(grid.voxel_size)}}}}}"
             )
+            print(f"check it with: occplug data check semantickitti --root {out} --splits {out}/splits.json")
     except (ValueError, FileNotFoundError) as exc:
         raise UsageError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
     return 0

@@ -18,8 +18,23 @@ the token's scene in its ego frame), or ``--origins FILE.npz`` maps each token (
 either, every sample uses the one origin ``--origin`` (default: the nuScenes LiDAR position for
 Occ3D, the sensor origin for SemanticKITTI) and a notice says the score is not the leaderboard's.
 
+Split (``--split``, default ``val``, the benchmark's evaluation split; ``all`` scores every sample):
+ground-truth samples outside it are skipped, so ``--gt`` may be the whole tree while ``--pred`` holds
+what ``occplug predict`` wrote (the val split). Where each sample belongs, first source that applies:
+
+* ``--splits FILE``: a JSON ``{split: [names]}`` as ``occplug data prepare --splits`` reads it (scene
+  names for Occ3D, sequences for SemanticKITTI, replacing the named splits of the standard one);
+* ``--index DIR`` (Occ3D): the split the prepared index records for each token;
+* ``<gt>/splits.json`` (what ``occplug data synth`` writes beside its tree), read as ``--splits``;
+* the official lists: nuScenes ``v1.0-trainval`` / ``v1.0-test`` scenes (the ``<scene>`` folder of
+  the Occ3D layouts), SemanticKITTI sequences (train 00-07, 09, 10; val 08; test 11-21).
+
+A sample whose split none of them tells (a scene in no list, the flat ``DIR/<token>/`` layout) is one
+error line suggesting ``--splits`` (``--index`` for the flat layout) or ``--split all``.
+
 Every sample is checked before anything is written: a missing or mismatched file is one error line
-naming the first offending token and how many samples are affected (exit code 2).
+naming the first offending token and how many samples are affected (exit code 2). A prediction for a
+ground-truth sample outside the split is ignored; one with no ground truth at all is an error.
 """
 
 from __future__ import annotations
@@ -48,6 +63,10 @@ from .errors import UsageError
 
 #: ``--metric`` choices: Occ3D mIoU, RayIoU, SemanticKITTI SSC.
 METRICS = ("miou", "rayiou", "ssc")
+#: ``--split`` choices (``all``: every ground-truth sample).
+EVAL_SPLITS = ("train", "val", "test", "all")
+#: The split record ``occplug data synth`` writes at the root of its trees (read as ``--splits`` when present).
+TREE_SPLITS = "splits.json"
 
 _DESCRIPTION = """\
 predictions: --pred DIR holds <token>.npz files with key 'pred', the (X, Y, Z) class-id grid
@@ -67,8 +86,21 @@ RayIoU origins (the leaderboard casts from the LiDAR positions of the sample's s
                    for Occ3D, the sensor origin for SemanticKITTI); a notice says the score is
                    then not comparable with the leaderboard's
 
-A missing or mismatched file is one error line naming the first offending token and the number
-of samples affected (exit code 2); nothing is written then.
+split (--split, default val; all = every sample): ground truth outside it is skipped, so --gt can
+be the whole tree while --pred holds what occplug predict wrote (val). A sample's split comes from
+the first that applies:
+  --splits FILE    JSON {split: [names]} as in occplug data prepare --splits (scene names for
+                   Occ3D; sequences for SemanticKITTI, replacing those splits of the standard one)
+  --index DIR      (Occ3D) the split the prepared index records per token
+  DIR/splits.json  the split record occplug data synth writes beside its trees (as --splits)
+  official lists   nuScenes v1.0-trainval/v1.0-test scenes (the <scene> folder of the Occ3D
+                   layouts); SemanticKITTI train 00-07, 09, 10, val 08, test 11-21
+A sample none of them places is an error; pass --splits FILE (flat layout: --index DIR) or
+--split all.
+
+A missing or mismatched file (a missing prediction inside the split included) is one error line
+naming the first offending token and the number of samples affected (exit code 2); nothing is
+written then.
 """
 
 
@@ -90,6 +122,18 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="miou, rayiou and/or ssc (default: miou for Occ3D, ssc for SemanticKITTI)",
     )
     p.add_argument("--json", metavar="OUT", help="write the results to this JSON file")
+    p.add_argument(
+        "--split",
+        choices=EVAL_SPLITS,
+        default="val",
+        help="score the ground truth of this split only (default val, the benchmark's; all: every sample)",
+    )
+    p.add_argument(
+        "--splits",
+        metavar="FILE",
+        help="JSON {split: [scene names or sequences]} placing each sample (as data prepare --splits; "
+        "default: DIR/splits.json if present, else the official lists)",
+    )
     p.add_argument(
         "--mask",
         choices=("none", "camera", "lidar", "camera_and_lidar"),
@@ -200,6 +244,76 @@ def _layout(args: argparse.Namespace) -> _Layout:
         raise UsageError(str(exc)) from None
 
 
+def _split_members(layout: _Layout, args: argparse.Namespace) -> tuple[dict[str, set[str] | None], str]:
+    """``({token: the splits it belongs to, or None when unknown}, where the splits came from)``."""
+    root = Path(args.gt)
+    record = root / TREE_SPLITS
+    split_file = args.splits or (str(record) if record.is_file() else None)
+    try:
+        if layout.name == "semantickitti":
+            from occplug.data.semantickitti.check import read_sequence_splits
+
+            lists = dict(semantickitti.SPLIT_SEQUENCES)
+            if split_file is not None:
+                lists.update(read_sequence_splits(split_file))
+            where = split_file or "the standard SemanticKITTI split"
+            return {t: {s for s, seqs in lists.items() if t.split("_")[0] in seqs} or None for t in layout.files}, where
+        from occplug.data.nuscenes.index import official_splits, read_index, split_lists
+
+        if args.splits is None and args.index:
+            index = read_index(args.index)
+            recorded = {rec["token"]: rec["split"] for rec in index.samples}
+            return {t: {recorded[t]} if t in recorded else None for t in layout.files}, f"the index {index.path}"
+        if split_file is not None:
+            lists, where = split_lists("v1.0-trainval", split_file)
+        else:
+            lists, where = {**official_splits("v1.0-trainval"), **official_splits("v1.0-test")}, (
+                "the official nuScenes v1.0-trainval / v1.0-test split"
+            )
+    except FormatError as exc:
+        raise UsageError(str(exc)) from None
+    out: dict[str, set[str] | None] = {}
+    for token, path in layout.files.items():
+        scene_dir = path.parent.parent
+        scene = None if scene_dir.resolve() == root.resolve() else scene_dir.name  # flat layout: no scene
+        out[token] = {s for s, names in lists.items() if scene in names} or None
+    return out, where
+
+
+def _select_split(layout: _Layout, args: argparse.Namespace) -> dict[str, Path]:
+    """The ground-truth files of ``--split`` (all of them for ``all``).
+
+    Raises:
+        UsageError: a sample whose split cannot be told, or no sample in the split (one line).
+    """
+    if args.split == "all":
+        if args.splits is not None:
+            raise UsageError("--splits places samples in splits; it needs --split train, val or test, not all")
+        return layout.files
+    members, where = _split_members(layout, args)
+    unknown = [t for t, m in members.items() if m is None]
+    if unknown:
+        scene_dir = layout.files[unknown[0]].parent.parent
+        fix = "pass --splits FILE (a JSON {split: [names]}) or --split all"
+        if layout.name == "semantickitti":
+            what = f"sequence {unknown[0].split('_')[0]} is in no split of {where}"
+        elif scene_dir.resolve() == Path(args.gt).resolve():
+            what, fix = "the flat <token>/labels.npz layout names no scene", "pass --index DIR or --split all"
+        else:
+            what = f"scene folder {scene_dir.name} is in no split of {where}"
+        raise UsageError(
+            f"--split {args.split}: cannot tell the split of token {unknown[0]} ({what}); {fix} "
+            f"({len(unknown)} of {len(members)} samples affected)"
+        )
+    chosen = {t: p for t, p in layout.files.items() if args.split in members[t]}
+    if not chosen:
+        raise UsageError(
+            f"--gt {args.gt}: none of its {len(members)} samples is in the {args.split} split of {where}; "
+            "pick another --split (train, val, test, all) or pass --splits FILE"
+        )
+    return chosen
+
+
 def _metrics(names: list[str], layout: _Layout, args: argparse.Namespace, device: torch.device) -> dict:
     from occplug.metrics import Occ3DMIoU, RayIoU, SSCMetrics
 
@@ -302,14 +416,17 @@ def evaluate_folder(args: argparse.Namespace) -> tuple[dict[str, dict[str, float
             f"--gt {args.gt}: no {layout.name} ground truth found (see occplug eval --help for the layouts)"
         )
     preds = find_predictions(pred_dir)
+    everything = layout.files
+    layout.files = _select_split(layout, args)
     tokens = sorted(layout.files)
     missing = [t for t in tokens if t not in preds]
     if missing:
+        within = "" if args.split == "all" else f" of the {args.split} split"
         raise UsageError(
-            f"no prediction for token {missing[0]} ({pred_dir / (missing[0] + '.npz')}); "
+            f"no prediction for token {missing[0]}{within} ({pred_dir / (missing[0] + '.npz')}); "
             f"{len(missing)} of {len(tokens)} samples affected"
         )
-    extra = sorted(set(preds) - set(layout.files))
+    extra = sorted(set(preds) - set(everything))  # predictions of ground truth outside the split are ignored
     if extra:
         raise UsageError(
             f"prediction {preds[extra[0]]} has no ground truth in {args.gt}; {len(extra)} predictions affected"
@@ -381,10 +498,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
         f"{name}: " + ", ".join(f"{k}={v:.2f}" for k, v in res.items() if _is_headline(k))
         for name, res in results.items()
     )
-    print(f"evaluated {count} samples — {summary}")
+    within = "" if args.split == "all" else f" of the {args.split} split"
+    print(f"evaluated {count} samples{within} — {summary}")
     if args.json:
         payload = {
             "samples": count,
+            "split": args.split,
             "gt": str(args.gt),
             "pred": str(args.pred),
             "metrics": {

@@ -9,13 +9,19 @@ number of files affected by the same problem, e.g.::
 
 Nothing is written anywhere; every problem raises :class:`DataCheckError` (a
 :class:`~occplug.data.formats.FormatError`) with one line.
+
+The grid a check expects, unless told (``--shape``): the tree's own record (:data:`GRID_RECORD`, which
+``occplug data synth`` writes beside its trees: :func:`write_grid_record` / :func:`read_grid_record`), else
+what the layout itself tells (the shape most Occ3D label files share; SemanticKITTI's SSC grid).
 """
 
 from __future__ import annotations
 
+import json
 import re
 import stat
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,7 +29,20 @@ from tqdm.auto import tqdm
 
 from .formats import FormatError
 
-__all__ = ["PROGRESS_DELAY", "CheckSummary", "DataCheckError", "Findings", "progress_bar"]
+__all__ = [
+    "GRID_RECORD",
+    "PROGRESS_DELAY",
+    "CheckSummary",
+    "DataCheckError",
+    "Findings",
+    "progress_bar",
+    "read_grid_record",
+    "write_grid_record",
+]
+
+#: The record of a tree's voxel grid, at its root: ``{"shape": [X, Y, Z], "range": [x0, y0, z0, x1, y1, z1],
+#: "voxel_size": [vx, vy, vz]}`` (metres; the frame the tree's labels are in).
+GRID_RECORD = "grid.json"
 
 #: A progress bar appears once a check has run this long (seconds): large trees get one, small ones stay quiet.
 PROGRESS_DELAY = 2.0
@@ -121,6 +140,36 @@ class Findings:
             more = f" and {len(others) - 1} more kind(s) of problem" if len(others) > 1 else ""
             text += f"; also {line2} ({count2} of {self.checked[cat2]} {cat2}){more}"
         raise DataCheckError(text)
+
+
+def write_grid_record(folder: str | Path, shape: Sequence[int], range_: Sequence[float],
+                      voxel_size: Sequence[float]) -> Path:
+    """Write :data:`GRID_RECORD` into ``folder`` (created); returns its path."""
+    path = Path(folder) / GRID_RECORD
+    path.parent.mkdir(parents=True, exist_ok=True)
+    record = {"shape": [int(v) for v in shape], "range": [float(v) for v in range_],
+              "voxel_size": [float(v) for v in voxel_size]}
+    path.write_text(json.dumps(record, indent=2) + "\n")
+    return path
+
+
+def read_grid_record(folder: str | Path | None) -> tuple[tuple[int, int, int], Path] | None:
+    """``((X, Y, Z), path)`` of the :data:`GRID_RECORD` in ``folder``, or None when there is none.
+
+    Raises:
+        DataCheckError: a record that is not JSON or has no ``shape`` of three positive integers (one line).
+    """
+    if folder is None or not (Path(folder) / GRID_RECORD).is_file():
+        return None
+    path = Path(folder) / GRID_RECORD
+    try:
+        shape = json.loads(path.read_text())["shape"]
+        ok = len(shape) == 3 and all(isinstance(v, int) and v > 0 for v in shape)
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError):
+        ok = False
+    if not ok:
+        raise DataCheckError(f'{path}: not a grid record; expected {{"shape": [X, Y, Z], ...}} (positive integers)')
+    return (int(shape[0]), int(shape[1]), int(shape[2])), path
 
 
 def progress_bar(total: int, desc: str, progress: bool) -> tqdm:

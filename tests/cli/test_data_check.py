@@ -1,8 +1,11 @@
 """``occplug data check``: a correct synthetic tree passes; each kind of damage exits 2 with one line naming the
 first offending file (or scene) and how many files share the problem; the tree is never changed."""
 
+import contextlib
 import hashlib
+import io
 import json
+import shlex
 import shutil
 
 import numpy as np
@@ -16,30 +19,21 @@ TINY = preset("tiny")
 SHAPE = [str(v) for v in TINY.grid.shape]  # the tiny world's Occ3D-layout labels: 40 x 40 x 8
 KITTI_GRID = lidar_grid(TINY)
 KITTI_SHAPE = [str(v) for v in KITTI_GRID.shape]
+PRINTED: dict = {}  # {tree: what data synth printed when writing it}
+
+
+def synth(root, *args):
+    """``occplug data synth`` into ``root``; what it prints is kept in :data:`PRINTED`."""
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main(["data", "synth", "--out", str(root), *args]) == 0
+    PRINTED[root] = out.getvalue()
 
 
 @pytest.fixture(scope="module")
 def nuscenes(tmp_path_factory):
     root = tmp_path_factory.mktemp("check") / "nuscenes"
-    assert (
-        main(
-            [
-                "data",
-                "synth",
-                "--format",
-                "occ3d",
-                "--preset",
-                "tiny",
-                "--splits",
-                "train",
-                "val",
-                "--out",
-                str(root),
-                "train_scenes=1",
-            ]
-        )
-        == 0
-    )
+    synth(root, "--format", "occ3d", "--preset", "tiny", "train_scenes=1", "--splits", "train", "val")
     return root
 
 
@@ -47,26 +41,7 @@ def nuscenes(tmp_path_factory):
 def kitti(tmp_path_factory):
     root = tmp_path_factory.mktemp("check") / "kitti"
     grid = f"grid={{range: {list(KITTI_GRID.range)}, voxel_size: {KITTI_GRID.voxel_size[0]}}}"
-    assert (
-        main(
-            [
-                "data",
-                "synth",
-                "--format",
-                "semantickitti",
-                "--preset",
-                "tiny",
-                "--splits",
-                "train",
-                "val",
-                "--out",
-                str(root),
-                "train_scenes=1",
-                grid,
-            ]
-        )
-        == 0
-    )
+    synth(root, "--format", "semantickitti", "--preset", "tiny", "train_scenes=1", grid, "--splits", "train", "val")
     return root
 
 
@@ -81,6 +56,9 @@ def listing(root):
 
 
 def check_ns(tree, *extra):
+    """``data check nuscenes`` of a synthetic tree, against the tiny grid (``--shape``) unless ``extra`` gives one."""
+    shape = [] if "--shape" in extra or "no-shape" in extra else ["--shape", *SHAPE]
+    extra = [e for e in extra if e != "no-shape"]
     return main(
         [
             "data",
@@ -94,8 +72,7 @@ def check_ns(tree, *extra):
             str(tree),
             "--splits",
             str(tree / "splits.json"),
-            "--shape",
-            *SHAPE,
+            *shape,
             *extra,
         ]
     )
@@ -118,25 +95,8 @@ def test_a_correct_nuscenes_tree_passes_and_is_left_unchanged(nuscenes, capsys):
         "  checked: 30 images, 5 LiDAR files (keyframes and sweeps), 5 lidarseg files, 5 label files (40, 40, 8)"
     )
     assert listing(nuscenes) == before
-    # the default grid is Occ3D's: every label file of this tree has another shape
-    assert (
-        main(
-            [
-                "data",
-                "check",
-                "nuscenes",
-                "--root",
-                str(nuscenes),
-                "--version",
-                "v1.0-trainval",
-                "--occ",
-                str(nuscenes),
-                "--splits",
-                str(nuscenes / "splits.json"),
-            ]
-        )
-        == 2
-    )
+    # an explicit benchmark grid (Occ3D's): every label file of this tree has another shape
+    assert check_ns(nuscenes, "--shape", "200", "200", "16") == 2
     assert "'semantics' has shape (40, 40, 8); expected (200, 200, 16) (5 of 5 label files affected)" in one_error_line(
         capsys
     )
@@ -240,6 +200,10 @@ def test_index_check(nuscenes, tmp_path, capsys):
     out = capsys.readouterr().out.splitlines()
     assert out[0] == f"ok: index {index / 'nuscenes_index.npz'} (root {tree}; scenes per {tree / 'splits.json'})"
     assert out[1:3] == ["  train: 1 scene, 3 samples", "  val: 1 scene, 2 samples"]
+    assert main(check[:-4]) == 0  # no --shape: the grid record of the Occ3D folder the index names
+    assert f"  grid (40, 40, 8) from {tree / 'grid.json'}" in capsys.readouterr().out.splitlines()
+    assert main([*check[:-4], "--shape", "200", "200", "16"]) == 2
+    assert "expected (200, 200, 16) (5 of 5 label files affected)" in one_error_line(capsys)
     # files the index names vanish: every CAM_FRONT image, and one label file
     shutil.rmtree(tree / "samples" / "CAM_FRONT")
     label = sorted((tree / "gts").rglob("labels.npz"))[3]
@@ -336,3 +300,88 @@ def test_progress_bar_shows_once_a_check_runs_long(nuscenes, monkeypatch, capsys
     assert "nuScenes index: " in err and "data check: " in err and "sample/s" in err
     assert check_ns(nuscenes, "--no-progress") == 0
     assert capsys.readouterr().err == ""
+
+
+# ----------------------------------------------------------------------------------------------
+# the grid a check expects: --shape, else the tree's grid record, else what the label files share
+
+
+@pytest.mark.parametrize("layout", ["nuscenes", "kitti"])
+def test_synth_prints_the_check_command_and_it_passes_without_shape(layout, request, capsys):
+    tree = request.getfixturevalue(layout)
+    record = json.loads((tree / "grid.json").read_text())
+    grid = TINY.grid if layout == "nuscenes" else KITTI_GRID
+    assert record == {"shape": list(grid.shape), "range": list(grid.range), "voxel_size": list(grid.voxel_size)}
+    lines = [line for line in PRINTED[tree].splitlines() if line.startswith("check it with: ")]
+    assert len(lines) == 1
+    command = shlex.split(lines[0][len("check it with: ") :])
+    name = "nuscenes" if layout == "nuscenes" else "semantickitti"
+    tail = ["--version", "v1.0-trainval", "--occ", str(tree)] if layout == "nuscenes" else []
+    assert command == ["occplug", "data", "check", name, "--root", str(tree), *tail, "--splits", f"{tree}/splits.json"]
+    before = listing(tree)
+    capsys.readouterr()
+    assert main(command[1:]) == 0
+    out = capsys.readouterr().out.splitlines()
+    files = "label files" if layout == "nuscenes" else "voxel files"
+    assert f"{files} {grid.shape}" in out[3] and f"  grid {grid.shape} from {tree / 'grid.json'}" in out
+    # an explicit --shape is still the check against a benchmark's grid
+    wrong = ["--shape", "200", "200", "16"]
+    assert main([*command[1:], *wrong]) == 2
+    line = one_error_line(capsys)
+    assert ("expected (200, 200, 16) (5 of 5 label files affected)" in line) if layout == "nuscenes" else (
+        "(640000 uint16 voxels of a (200, 200, 16) grid)" in line or "expected 80000 (640000 voxels" in line
+    ), line
+    assert listing(tree) == before
+
+
+def test_without_a_record_the_shape_most_label_files_share_is_expected(nuscenes, tmp_path, capsys):
+    tree = tmp_path / "tree"
+    shutil.copytree(nuscenes, tree)
+    (tree / "grid.json").unlink()
+    capsys.readouterr()
+    assert check_ns(tree, "no-shape") == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[3].endswith("5 label files (40, 40, 8)")
+    assert "  grid (40, 40, 8): the shape most label files share (no --shape, no grid record)" in out
+    victim = sorted((tree / "gts").rglob("labels.npz"))[1]
+    good = np.load(victim)
+    np.savez_compressed(
+        victim,
+        semantics=good["semantics"][:, :, :4],
+        mask_lidar=good["mask_lidar"][:, :, :4],
+        mask_camera=good["mask_camera"][:, :, :4],
+    )
+    before = listing(tree)
+    assert check_ns(tree, "no-shape") == 2
+    assert one_error_line(capsys) == (
+        f"{victim}: 'semantics' has shape (40, 40, 4); expected (40, 40, 8), the shape most label files share "
+        "(1 of 5 label files affected)"
+    )
+    assert listing(tree) == before
+    # with the record back, the same file is reported against the recorded grid
+    shutil.copy(nuscenes / "grid.json", tree / "grid.json")
+    assert check_ns(tree, "no-shape") == 2
+    assert one_error_line(capsys) == (
+        f"{victim}: 'semantics' has shape (40, 40, 4); expected (40, 40, 8) (1 of 5 label files affected)"
+    )
+    (tree / "grid.json").write_text("{not json")
+    assert check_ns(tree, "no-shape") == 2
+    assert one_error_line(capsys) == (
+        f'{tree / "grid.json"}: not a grid record; expected {{"shape": [X, Y, Z], ...}} (positive integers)'
+    )
+
+
+def test_a_semantickitti_tree_without_a_record_is_checked_against_the_ssc_grid(kitti, kitti_split, tmp_path, capsys):
+    tree = tmp_path / "tree"
+    shutil.copytree(kitti, tree)
+    (tree / "grid.json").unlink()
+    capsys.readouterr()
+    assert main(["data", "check", "semantickitti", "--root", str(tree), "--splits", str(kitti_split)]) == 2
+    count, voxels = 256 * 256 * 32, tree / "sequences" / "00" / "voxels"
+    tiny = int(np.prod(KITTI_GRID.shape))
+    assert one_error_line(capsys) == (
+        f"{voxels / '000000.bin'}: {tiny // 8} bytes; expected {count // 8} ({count} voxels, 8 per byte) "
+        f"(15 of 20 voxel files affected); also {voxels / '000000.label'}: {2 * tiny} bytes; expected {2 * count} "
+        f"({count} uint16 voxels of a (256, 256, 32) grid) (5 of 20 voxel files)"
+    )
+    assert check_kitti(tree, kitti_split) == 0  # told the grid, it passes

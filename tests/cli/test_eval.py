@@ -186,7 +186,9 @@ def labels_batch(labels, **fields):
 
 
 def run_eval(gt, pred, *extra):
-    return main(["eval", "--gt", str(gt), "--pred", str(pred), *extra])
+    """These hand-built trees record no split: every sample is scored (``--split all``) unless told otherwise."""
+    split = [] if "--split" in extra else ["--split", "all"]
+    return main(["eval", "--gt", str(gt), "--pred", str(pred), *split, *extra])
 
 
 def test_eval_equals_the_metrics_on_the_same_batch(occ3d_tree, tmp_path, capsys):

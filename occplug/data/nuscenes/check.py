@@ -6,6 +6,9 @@
   empty), every ``LIDAR_TOP`` keyframe and the ``--sweeps`` earlier sweeps (exist, whole 5-float32
   points), every lidarseg file (one byte per point of its scan), and every ``labels.npz`` (keys
   ``semantics`` / ``mask_lidar`` / ``mask_camera``, dtypes, the grid shape, class ids 0-17 or 255).
+  The grid shape is ``shape`` when given (a benchmark's, e.g. Occ3D's ``200 x 200 x 16``), else the
+  Occ3D folder's own record (:data:`occplug.data.check.GRID_RECORD`, written by ``occplug data synth``),
+  else the shape most label files share: the files of another shape are reported.
 * :func:`check_index` (a prepared ``nuscenes_index.npz``): the index itself, its scenes against the
   official split (or a ``--splits`` file), and every file it names, as above (every recorded sweep).
 
@@ -14,14 +17,15 @@ Problems are reported as :mod:`occplug.data.check` describes (one line, read onl
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 
 from .. import check as common
-from ..check import CheckSummary, DataCheckError, Findings, progress_bar
+from ..check import CheckSummary, DataCheckError, Findings, progress_bar, read_grid_record
 from ..classes import OCC3D_CLASSES
 from ..formats import FormatError
-from .format import OCC3D_SHAPE, read_labels
+from .format import read_labels
 from .index import NuScenesIndex, collect_index, read_index, split_lists
 
 __all__ = ["check_index", "check_nuscenes"]
@@ -30,7 +34,7 @@ _PCD_POINT = 20  # bytes of a nuScenes .pcd.bin point (5 float32)
 
 
 def check_nuscenes(root: str | Path, version: str, occ_root: str | Path | None = None, splits: str | Path = "official",
-                   sweeps: int = 10, lidar: bool = True, shape: Sequence[int] = OCC3D_SHAPE,
+                   sweeps: int = 10, lidar: bool = True, shape: Sequence[int] | None = None,
                    progress: bool = True) -> CheckSummary:
     """Check a nuScenes tree (with Occ3D labels under ``occ_root``) without writing anything.
 
@@ -41,7 +45,8 @@ def check_nuscenes(root: str | Path, version: str, occ_root: str | Path | None =
         splits: ``official`` or a JSON file ``{split: [scene names]}`` (as ``prepare``).
         sweeps: earlier LiDAR sweeps checked per sample (as ``prepare --sweeps``).
         lidar: check LiDAR files (False for a camera-only tree).
-        shape: the ``(X, Y, Z)`` every ``labels.npz`` must have.
+        shape: the ``(X, Y, Z)`` every ``labels.npz`` must have; None: the Occ3D folder's grid record, else
+            the shape most label files share (see the module docstring).
         progress: show a progress bar on large trees.
 
     Raises:
@@ -74,7 +79,7 @@ def check_index(
     occ_root: str | Path | None = None,
     splits: str | Path = "official",
     lidar: bool = True,
-    shape: Sequence[int] = OCC3D_SHAPE,
+    shape: Sequence[int] | None = None,
     progress: bool = True,
 ) -> CheckSummary:
     """Check a prepared index and every file it names, without writing anything.
@@ -86,7 +91,8 @@ def check_index(
         splits: ``official`` (the lists of the index's version) or a JSON file ``{split: [scene names]}``:
             the scenes each split should hold.
         lidar: check LiDAR files (keyframes, every recorded sweep, lidarseg).
-        shape: the ``(X, Y, Z)`` every ``labels.npz`` must have.
+        shape: the ``(X, Y, Z)`` every ``labels.npz`` must have; None: the Occ3D folder's grid record, else
+            the shape most label files share (see the module docstring).
         progress: show a progress bar on large indexes.
 
     Raises:
@@ -124,7 +130,7 @@ def _check_index_files(
     index: NuScenesIndex,
     root: Path,
     occ_root: Path | None,
-    shape: Sequence[int],
+    shape: Sequence[int] | None,
     lidar: bool,
     findings: Findings,
     progress: bool,
@@ -134,7 +140,12 @@ def _check_index_files(
     Returns:
         ``{split: (scenes, samples)}``, ``{kind of file: count checked}`` and notes.
     """
-    shape = tuple(int(v) for v in shape)
+    notes = []
+    if shape is None and (record := read_grid_record(occ_root)) is not None:
+        shape, record_path = record
+        notes.append(f"grid {shape} from {record_path}")
+    shape = None if shape is None else tuple(int(v) for v in shape)
+    shapes: list[tuple[Path, tuple[int, ...]]] = []  # without a grid: each file's shape, compared at the end
     seen_lidar: set[Path] = set()
     num_classes = len(OCC3D_CLASSES)
     with progress_bar(len(index.samples), "data check", progress) as bar:
@@ -166,11 +177,13 @@ def _check_index_files(
                 path = occ_root / rec["occ"]
                 findings.check("label files")
                 try:
-                    labels = read_labels(path, expected_shape=shape)
+                    labels = read_labels(path, expected_shape=shape)  # None: any 3-D grid
                 except FormatError as exc:
                     findings.add_error("label files", path, exc)
                 else:
                     sem = labels.semantics
+                    if shape is None:
+                        shapes.append((path, tuple(sem.shape)))
                     bad = sem[(sem >= num_classes) & (sem != 255)]
                     if bad.numel():
                         findings.add(
@@ -180,6 +193,17 @@ def _check_index_files(
                             f"0..{num_classes - 1} (or 255, ignored)",
                         )
             bar.update()
+    if shape is None and shapes:
+        shape = Counter(s for _, s in shapes).most_common(1)[0][0]
+        notes.append(f"grid {shape}: the shape most label files share (no --shape, no grid record)")
+        for path, other in shapes:
+            if other != shape:
+                findings.add(
+                    "label files",
+                    path,
+                    f"'semantics' has shape {other}; expected {shape}, the shape most label files share",
+                    "shape",
+                )
     splits: dict[str, tuple[int, int]] = {}
     for split in ("train", "val", "test"):
         items = index.split_indices(split)
@@ -191,7 +215,6 @@ def _check_index_files(
         "lidarseg files": findings.checked["lidarseg files"],
         f"label files {shape}": findings.checked["label files"],
     }
-    notes = []
     if not lidar:
         notes.append("LiDAR files not checked (--no-lidar)")
     if occ_root is None:

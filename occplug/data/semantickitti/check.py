@@ -4,7 +4,10 @@
 ``--splits`` file, present or missing; per sequence ``calib.txt`` and ``poses.txt``; per labelled scan the
 ``image_2`` image, ``voxels/*.bin|.label|.invalid|.occluded`` (sizes of the grid), ``velodyne/*.bin`` (whole
 4-float32 points) and ``labels/*.label`` (one ``uint32`` per point). Test sequences (11-21) are checked when
-present (images, velodyne). Problems are reported as :mod:`occplug.data.check` describes (one line, read only).
+present (images, velodyne). The grid is ``shape`` when given, else the tree's own record
+(:data:`occplug.data.check.GRID_RECORD`, written by ``occplug data synth``), else SemanticKITTI's SSC grid
+(``256 x 256 x 32``: the voxel files are headerless, their sizes alone do not tell a shape). Problems are
+reported as :mod:`occplug.data.check` describes (one line, read only).
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from ..check import CheckSummary, DataCheckError, Findings, progress_bar
+from ..check import CheckSummary, DataCheckError, Findings, progress_bar, read_grid_record
 from ..formats import FormatError, read_split_file
 from .format import SPLIT_SEQUENCES, SSC_SHAPE, VOXEL_EXTENSIONS, voxel_file_problem
 from .reader import _Sequence
@@ -33,7 +36,7 @@ def read_sequence_splits(path: str | Path) -> dict[str, tuple[str, ...]]:
 
 
 def check_semantickitti(root: str | Path, splits: str | Path | None = None, lidar: bool = True,
-                        shape: Sequence[int] = SSC_SHAPE, progress: bool = True) -> CheckSummary:
+                        shape: Sequence[int] | None = None, progress: bool = True) -> CheckSummary:
     """Check a SemanticKITTI tree (``<root>/sequences/XX/``) without writing anything.
 
     Args:
@@ -41,7 +44,7 @@ def check_semantickitti(root: str | Path, splits: str | Path | None = None, lida
         splits: a JSON file ``{split: [sequences]}`` replacing splits of the standard one (train 00-07,
             09, 10; val 08; test 11-21), or None.
         lidar: check ``velodyne/`` and ``labels/`` (False for a camera-only tree).
-        shape: the voxel grid of the ``voxels/`` files.
+        shape: the voxel grid of the ``voxels/`` files; None: the tree's grid record, else the SSC grid.
         progress: show a progress bar on large trees.
 
     Raises:
@@ -55,6 +58,11 @@ def check_semantickitti(root: str | Path, splits: str | Path | None = None, lida
     if splits is not None:
         expected.update(read_sequence_splits(splits))
         where = str(splits)
+    grid_note = None
+    if shape is None:
+        record = read_grid_record(root)
+        shape = SSC_SHAPE if record is None else record[0]
+        grid_note = f"grid {tuple(shape)} from {record[1]}" if record else f"grid {tuple(shape)}: SemanticKITTI's SSC grid"
     shape = tuple(int(v) for v in shape)
     findings = Findings()
     category = f"sequences of {where}"
@@ -112,7 +120,9 @@ def check_semantickitti(root: str | Path, splits: str | Path | None = None, lida
                             )
                 bar.update()
     findings.raise_first()
-    notes = [] if lidar else ["velodyne/ and labels/ not checked (--no-lidar)"]
+    notes = [] if grid_note is None else [grid_note]
+    if not lidar:
+        notes.append("velodyne/ and labels/ not checked (--no-lidar)")
     absent = [s for s in expected.get("test", ()) if not (root / "sequences" / s).is_dir()]
     if absent:
         notes.append(f"test sequences not present: {', '.join(absent)} (optional)")

@@ -14,6 +14,8 @@ can be tested end to end::
       lidarseg/v1.0-trainval/<sample_data token>_lidarseg.bin   uint8 lidarseg category index per point
       gts/<scene>/<sample token>/labels.npz                    Occ3D: semantics, mask_lidar, mask_camera
       splits.json                         {"train": [scene names], "val": [...], "test": [...]}
+      grid.json                           the labels' grid: {"shape", "range", "voxel_size"} (ego frame;
+                                          occplug.data.check.GRID_RECORD, read by occplug data check)
       pseudo/                             (optional) pseudo labels, see occplug.data.pseudo_labels:
         depth/<token>/<CAM>.npy, semantics/<token>/<CAM>.png, features/<token>/<CAM>.npy,
         semantics_mapping.yaml; the auxiliary segmenter's semantics_aux/<token>/<CAM>.png and
@@ -42,6 +44,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from occplug.data.check import write_grid_record
 from occplug.data.classes import NUSCENES_LIDARSEG_CATEGORIES as LIDARSEG_CATEGORIES
 from occplug.data.classes import OCC3D_TO_NUSCENES as OCC3D_TO_CATEGORY
 from occplug.data.frame import Frame
@@ -172,6 +175,7 @@ def write_occ3d_nuscenes(
                 bar.update(len(frames))
     tree.write_tables()
     (out / "splits.json").write_text(json.dumps(scene_names, indent=2))
+    write_grid_record(out, config.grid.shape, config.grid.range, config.grid.voxel_size)
     if labeler is not None:
         (out / "pseudo" / "semantics_mapping.yaml").write_text(mapping_table("occ3d", labeler.realism.foreign_taxonomy))
         if labeler.has_auxiliary:

@@ -14,6 +14,8 @@
       poses.txt                       per scan, cam0 pose in the sequence's first cam0 frame (3 x 4 row-major)
       times.txt                       per scan, seconds since the sequence start
     <out>/splits.json                 {"train": [sequences], "val": [...], "test": [...]}
+    <out>/grid.json                   the voxel grid: {"shape", "range", "voxel_size"} (LiDAR frame;
+                                      occplug.data.check.GRID_RECORD, read by occplug data check)
     <out>/pseudo/...                  (optional) pseudo labels of image_2 (see occplug.data.pseudo_labels),
                                       with semantics_mapping.yaml to the SemanticKITTI classes (and the
                                       auxiliary segmenter's semantics_aux/ with semantics_aux_mapping.yaml)
@@ -43,6 +45,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from occplug.data.check import write_grid_record
 from occplug.data.classes import OCC3D_TO_SEMANTIC_KITTI as OCC3D_TO_SSC
 from occplug.data.classes import SEMANTIC_KITTI_LEARNING_MAP_INV as LEARNING_MAP_INV
 from occplug.data.frame import Frame
@@ -155,6 +158,7 @@ def write_semantickitti(
                 )
                 bar.update(len(frames))
     (out / "splits.json").write_text(json.dumps(names, indent=2))
+    write_grid_record(out, grid.shape, grid.range, grid.voxel_size)
     if labeler is not None:
         (out / "pseudo" / "semantics_mapping.yaml").write_text(
             mapping_table("semantickitti", labeler.realism.foreign_taxonomy)
