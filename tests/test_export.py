@@ -85,8 +85,10 @@ def test_exported_graph_takes_the_calibration(checkpoint, tmp_path):
     _, moved = run(*ex.inputs_of(other))
     with torch.no_grad():
         eager = ex.occupancy_logits(model, model(other))
-    assert float((moved - same).abs().max()) > 1e-3  # the geometry is an input, not a constant
-    assert float((moved - eager).abs().max()) <= 1e-4
+    change, error = float((moved - same).abs().max()), float((moved - eager).abs().max())
+    assert error <= 1e-4
+    # the geometry is an input, not a constant: the rig moves the output far beyond the export's error
+    assert change > max(100 * error, 1e-5)
 
 
 def test_cached_splat_plan_cannot_be_traced(checkpoint, monkeypatch):
