@@ -516,8 +516,9 @@ def one_line(report: dict[str, Any]) -> str:
 def export_checkpoint(ckpt: Path, fmt: str, out: Path, samples: int = 4) -> dict[str, Any]:
     """``occplug export``: rebuild the model from ``ckpt`` alone, export it to ``out``, check parity.
 
-    The first ``samples`` frames of the checkpoint's validation split (batch size 1) are the parity
-    frames; the first fixes the exported shapes. Writes the report (:func:`parity`, plus
+    The first ``samples`` frames of the checkpoint's validation split (then of its training split,
+    where the validation split is shorter), batch size 1, are the parity frames; the first fixes the
+    exported shapes (batch size 1, camera count, image size). Writes the report (:func:`parity`, plus
     ``checkpoint``, ``artefact`` and ``passed``) to :func:`report_path` and returns it.
 
     Raises:
@@ -534,12 +535,14 @@ def export_checkpoint(ckpt: Path, fmt: str, out: Path, samples: int = 4) -> dict
     cfg = runner.resolve_run_config([], [], ckpt)
     dm, model = runner._restore(cfg, runner.load_checkpoint(ckpt), ckpt)
     model.eval()
+    batches: list[Batch] = []
     with runner._data_errors():
-        dataset = dm.dataset("val")
-        count = min(int(samples), len(dataset))  # type: ignore[arg-type]
-        if count == 0:
-            raise ExportError("data: the validation split is empty; nothing to check the export on")
-        batches = [dm.collate([dataset[i]]) for i in range(count)]
+        for split in ("val", "train"):  # a small validation split is topped up with training frames
+            dataset = dm.dataset(split)
+            take = min(int(samples) - len(batches), len(dataset))  # type: ignore[arg-type]
+            batches += [dm.collate([dataset[i]]) for i in range(max(take, 0))]
+    if not batches:
+        raise ExportError("data: the validation and training splits are empty; nothing to check the export on")
     export_model(model, batches[0], fmt, out)
     report = parity(model, load_exported(out, fmt), batches, fmt)
     report = {"checkpoint": str(ckpt), "artefact": str(out), **report, "passed": passes(report)}

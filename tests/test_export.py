@@ -58,12 +58,12 @@ def test_export_parity(checkpoint, fmt, tmp_path, capsys):
     if fmt == "onnx" and importlib.util.find_spec("onnxruntime") is None:
         pytest.skip("the export extra (onnx, onnxruntime, onnxscript) is not installed")
     out = tmp_path / ("model.pt2" if fmt == "torch_export" else "model.onnx")
-    assert main(["export", "--ckpt", str(checkpoint), "--format", fmt, "--out", str(out), "--samples", "2"]) == 0
+    assert main(["export", "--ckpt", str(checkpoint), "--format", fmt, "--out", str(out), "--samples", "3"]) == 0
     printed = capsys.readouterr().out.strip().splitlines()
-    assert len(printed) == 1 and printed[0].startswith(f"parity {fmt}: 2 frames + 2 perturbed")
+    assert len(printed) == 1 and printed[0].startswith(f"parity {fmt}: 3 frames + 3 perturbed")
     report = json.loads((tmp_path / f"{out.name}.parity.json").read_text())
     assert out.is_file() and sorted(p.name for p in tmp_path.iterdir()) == [out.name, f"{out.name}.parity.json"]
-    assert report["frames"] == 2 and report["frames_perturbed"] == 2 and report["passed"] is True
+    assert report["frames"] == 3 and report["frames_perturbed"] == 3 and report["passed"] is True
     assert report["class_agreement"] >= 0.9999
     assert report["max_abs_logit_diff"] <= 1e-4
     assert report["eager_latency_ms"] > 0 and report["exported_latency_ms"] > 0
@@ -202,3 +202,23 @@ def test_cli_user_mistakes(tmp_path, capsys):
     assert main(["export", "--ckpt", str(missing), "--format", "onnx", "--out", str(below)]) == 2
     assert capsys.readouterr().err.strip() == f"error: --out {below}: {below.parent} is not a folder"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_parity_outside_the_thresholds_exits_1(checkpoint, tmp_path, monkeypatch, capsys):
+    """The artefact and its report stay for inspection; the command says which thresholds failed."""
+
+    def bad_parity(model, exported, batches, fmt, repeats=3):
+        return {"format": fmt, "frames": len(batches), "frames_perturbed": len(batches), "voxels": 10,
+                "max_abs_logit_diff": 0.5, "class_agreement": 0.9, "eager_latency_ms": 1.0,
+                "exported_latency_ms": 1.0, "versions": {"torch": torch.__version__}}
+
+    monkeypatch.setattr(ex, "parity", bad_parity)
+    out = tmp_path / "model.pt2"
+    assert main(["export", "--ckpt", str(checkpoint), "--format", "torch_export", "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert captured.out.startswith("parity torch_export: ") and "classes agree on 90.0000 %" in captured.out
+    assert captured.err.strip() == (
+        "error: the exported model disagrees with the eager one beyond the thresholds (classes agree on >= 99.99 %, "
+        f"max |logit diff| <= 0.0001); see {tmp_path / 'model.pt2.parity.json'}"
+    )
+    assert json.loads((tmp_path / "model.pt2.parity.json").read_text())["passed"] is False and out.is_file()

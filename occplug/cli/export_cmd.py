@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from occplug import runner
@@ -28,14 +29,20 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from occplug.export import export_checkpoint, one_line
+    """Exit 0: exported and within the parity thresholds; 1: exported, outside them; 2: a user mistake."""
+    from occplug.export import MAX_LOGIT_DIFF, MIN_CLASS_AGREEMENT, export_checkpoint, one_line, report_path
 
+    out = Path(args.out)
     try:
-        report = export_checkpoint(Path(args.ckpt), args.format, Path(args.out), samples=args.samples)
+        report = export_checkpoint(Path(args.ckpt), args.format, out, samples=args.samples)
     except runner.RunError as exc:
         raise UsageError(str(exc)) from None
     print(one_line(report))
     if not report["passed"]:
-        print(f"error: the exported model disagrees with the eager one (see {report['artefact']}.parity.json)")
+        print(
+            f"error: the exported model disagrees with the eager one beyond the thresholds (classes agree on >= "
+            f"{100 * MIN_CLASS_AGREEMENT:g} %, max |logit diff| <= {MAX_LOGIT_DIFF:g}); see {report_path(out)}",
+            file=sys.stderr,
+        )
         return 1
     return 0
