@@ -181,9 +181,7 @@ def _module_names(model: nn.Module) -> dict[int, str]:
     return {id(m): (f"model.{n}" if n else "model") for n, m in model.named_modules()}
 
 
-def _describe_component(names: dict[int, str], module: nn.Module | None) -> str:
-    if module is None:
-        return "model"
+def _describe_component(names: dict[int, str], module: nn.Module) -> str:
     return f"{names.get(id(module), 'model')} ({type(module).__name__})"
 
 
@@ -195,17 +193,16 @@ def _first_line(exc: BaseException) -> str:
 def _trace_failure(exc: BaseException, model: nn.Module) -> ExportError:
     """One line naming the innermost model component on the failing call stack and the failing line."""
     names = _module_names(model)
-    component: nn.Module | None = None
+    component: nn.Module = model
     where = ""
-    tb = exc.__traceback__
-    for frame, lineno in traceback.walk_tb(tb):
+    skipped = (os.path.dirname(torch.__file__), os.path.dirname(contextlib.__file__), __file__)
+    for frame, lineno in traceback.walk_tb(exc.__traceback__):
         owner = frame.f_locals.get("self")
-        if isinstance(owner, nn.Module) and id(owner) in names and owner is not model:
+        if isinstance(owner, nn.Module) and id(owner) in names:
             component = owner
         path = frame.f_code.co_filename
-        if "/torch/" not in path and "/site-packages/" not in path or "occplug" in path:
-            if "occplug/export.py" not in path:
-                where = f"{Path(path).name}:{lineno} {_source_line(path, lineno)}"
+        if not path.startswith(skipped[:2]) and path != skipped[2] and "/lightning" not in path:
+            where = f"{Path(path).name}:{lineno} {_source_line(path, lineno)}"
     reason = _first_line(exc)
     if "data-dependent" in reason:
         reason = f"data-dependent control flow ({reason})"
