@@ -14,6 +14,8 @@ Conventions
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -28,7 +30,7 @@ def effective_intrinsics(intrinsics: Tensor, img_aug: Tensor | None = None) -> T
 
 
 def _flatten_points(points: Tensor, batch_shape: torch.Size) -> tuple[Tensor, int]:
-    lead = int(torch.tensor(batch_shape).prod()) if len(batch_shape) else 1
+    lead = math.prod(batch_shape)  # plain ints: traceable by torch.export
     return points.reshape(lead, -1, 3), lead
 
 
@@ -78,7 +80,7 @@ def unproject_from_image(
         ``(..., P, 3)`` ego-frame points.
     """
     batch = cam_to_ego.shape[:-2]
-    lead = int(torch.tensor(batch).prod()) if len(batch) else 1
+    lead = math.prod(batch)  # plain ints: traceable by torch.export
     p = uv.shape[-2]
     k = effective_intrinsics(intrinsics, img_aug).reshape(lead, 3, 3)
     uv1 = torch.cat([uv.reshape(lead, p, 2), torch.ones_like(uv.reshape(lead, p, 2)[..., :1])], -1)

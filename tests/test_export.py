@@ -1,0 +1,224 @@
+"""``occplug export``: both formats on the tiny preset, the parity report, refusals with one line.
+
+Adding a plugin's model is one line: a ``pytest.param`` in :data:`RECIPES` (its config refs and overrides).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from occplug import export as ex
+from occplug import runner
+from occplug.cli import main
+from occplug.plugins import get_registry
+from occplug.testing import run_config
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["data.preset=tiny", "trainer.max_steps=2"]
+
+
+def _example_installed() -> bool:
+    return importlib.util.find_spec("occplug_example") is not None and get_registry().has("head", "tiny_mlp")
+
+
+#: (config refs, overrides) of every model whose export is checked; one line per model.
+RECIPES = [
+    pytest.param(((str(ROOT / "configs" / "baseline.yaml"),), ()), id="baseline"),
+    pytest.param(
+        (("example/tiny",), ()), id="example",
+        marks=pytest.mark.skipif(not _example_installed(), reason="the example plugin is not installed"),
+    ),
+]
+
+
+@pytest.fixture(scope="module", params=RECIPES)
+def checkpoint(request, tmp_path_factory) -> Path:
+    refs, overrides = request.param
+    run = tmp_path_factory.mktemp("export") / "run"
+    run_config(*refs, run_dir=run, overrides=[*TINY, *overrides])
+    return run / "checkpoints" / "last.ckpt"
+
+
+def _restored(ckpt: Path, frames: int = 2):
+    cfg = runner.resolve_run_config([], [], ckpt)
+    dm, model = runner._restore(cfg, runner.load_checkpoint(ckpt), ckpt)
+    model.eval()
+    data = dm.dataset("val")
+    return model, [dm.collate([data[i]]) for i in range(frames)]
+
+
+@pytest.mark.parametrize("fmt", ["torch_export", "onnx"])
+def test_export_parity(checkpoint, fmt, tmp_path, capsys):
+    if fmt == "onnx" and importlib.util.find_spec("onnxruntime") is None:
+        pytest.skip("the export extra (onnx, onnxruntime, onnxscript) is not installed")
+    out = tmp_path / ("model.pt2" if fmt == "torch_export" else "model.onnx")
+    assert main(["export", "--ckpt", str(checkpoint), "--format", fmt, "--out", str(out), "--samples", "3"]) == 0
+    printed = capsys.readouterr().out.strip().splitlines()
+    assert len(printed) == 1 and printed[0].startswith(f"parity {fmt}: 3 frames + 3 perturbed")
+    report = json.loads((tmp_path / f"{out.name}.parity.json").read_text())
+    assert out.is_file() and sorted(p.name for p in tmp_path.iterdir()) == [out.name, f"{out.name}.parity.json"]
+    assert report["frames"] == 3 and report["frames_perturbed"] == 3 and report["passed"] is True
+    assert report["class_agreement"] >= 0.9999
+    assert report["max_abs_logit_diff"] <= 1e-4
+    assert report["eager_latency_ms"] > 0 and report["exported_latency_ms"] > 0
+    assert report["versions"]["torch"] == torch.__version__
+    if fmt == "onnx":
+        import onnxruntime
+
+        assert report["versions"]["onnxruntime"] == onnxruntime.__version__
+
+
+def test_exported_graph_takes_the_calibration(checkpoint, tmp_path):
+    """Another rig through the same artefact: the output moves with the geometry and still matches eager."""
+    model, (batch, _) = _restored(checkpoint)
+    out = tmp_path / "model.pt2"
+    ex.export_model(model, batch, "torch_export", out)
+    run = ex.load_exported(out, "torch_export")
+    other = ex.perturb(batch, seed=3)
+    _, same = run(*ex.inputs_of(batch))
+    _, moved = run(*ex.inputs_of(other))
+    with torch.no_grad():
+        eager = ex.occupancy_logits(model, model(other))
+    change, error = float((moved - same).abs().max()), float((moved - eager).abs().max())
+    assert error <= 1e-4
+    # the geometry is an input, not a constant: the rig moves the output far beyond the export's error
+    assert change > max(100 * error, 1e-5)
+
+
+def test_cached_splat_plan_cannot_be_traced(checkpoint, monkeypatch):
+    """Without export_ready the splat's plan cache (a host-side hash of the calibration) stops torch.export."""
+    model, (batch,) = _restored(checkpoint, frames=1)
+    if not hasattr(model, "view_transform") or not hasattr(model.view_transform, "splatter"):
+        pytest.skip("no lift-splat view transform")
+    monkeypatch.setattr(ex, "export_ready", lambda model: contextlib.nullcontext())
+    with pytest.raises(ex.ExportError) as err:
+        ex.trace(model, batch)
+    message = str(err.value)
+    assert "\n" not in message
+    assert message.startswith("export: model.view_transform (LSSViewTransform) cannot be traced at splat.py:")
+    assert "data-dependent control flow" in message
+
+
+def test_untraceable_component_is_named(checkpoint, monkeypatch):
+    model, (batch,) = _restored(checkpoint, frames=1)
+    head = model.heads[model.occupancy_head]
+    forward = head.forward
+
+    def branchy(scene, batch):
+        out = forward(scene, batch)
+        if out["logits"].sum() > 0:  # data-dependent Python control flow
+            return out
+        return out
+
+    monkeypatch.setattr(head, "forward", branchy)
+    with pytest.raises(ex.ExportError) as err:
+        ex.trace(model, batch)
+    message = str(err.value)
+    assert "\n" not in message
+    assert message.startswith(f"export: model.heads.occupancy ({type(head).__name__}) cannot be traced at test_export.py:")
+    assert "`if out[\"logits\"].sum() > 0:" in message and "data-dependent control flow" in message
+
+
+@pytest.mark.skipif(importlib.util.find_spec("onnxscript") is None, reason="the export extra is not installed")
+def test_operation_without_onnx_translation_is_named(checkpoint, monkeypatch, tmp_path):
+    model, (batch,) = _restored(checkpoint, frames=1)
+    head = model.heads[model.occupancy_head]
+    forward = head.forward
+
+    def inverting(scene, batch):
+        out = forward(scene, batch)
+        pose = torch.linalg.inv(batch.cam_to_ego[:, :1].float())  # a 4x4 inverse: ONNX has none
+        return {"logits": out["logits"] + pose[:, 0, 0, 0].view(-1, 1, 1, 1, 1) * 0}
+
+    monkeypatch.setattr(head, "forward", inverting)
+    with pytest.raises(ex.ExportError) as err:
+        ex.export_model(model, batch, "onnx", tmp_path / "model.onnx")
+    assert str(err.value) == (
+        f"export to onnx: model.heads.occupancy ({type(head).__name__}): no ONNX translation for operation "
+        "aten.linalg_inv.default, a 4x4 matrix inverse (3x3 only)"
+    )
+    assert list(tmp_path.iterdir()) == []  # nothing half-written
+
+
+def test_stateful_model_is_refused():
+    cfg = runner.load_config(
+        [str(ROOT / "configs" / "baseline.yaml"), "occplug/trainer/debug"],
+        ["data.preset=tiny", "data.sequential=true", "model.scene.type=dense_voxels_history"],
+    )
+    _, model = runner._build(cfg)
+    with pytest.raises(ex.ExportError) as err:
+        ex.check_exportable(model)
+    assert str(err.value) == (
+        "model.scene (DenseVoxelsHistory) is stateful (it carries features from frame to frame); export of "
+        "streaming models (state as explicit inputs and outputs) is not supported yet"
+    )
+
+
+def test_inverse3_matches_linalg_inv():
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(5, 2, 3, 3, generator=g, dtype=torch.float64) + 3 * torch.eye(3, dtype=torch.float64)
+    inv, info = ex._inverse3(a)
+    assert torch.allclose(inv, torch.linalg.inv(a), atol=1e-12) and info.shape == (5, 2) and not info.any()
+    k = torch.tensor([[500.0, 0.0, 320.0], [0.0, 400.0, 240.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    expected = torch.tensor([[1 / 500, 0.0, -320 / 500], [0.0, 1 / 400, -240 / 400], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    assert torch.allclose(ex._inverse3(k)[0], expected, atol=1e-15)
+
+
+def test_perturb_flips_and_scales_about_the_centre():
+    from occplug.testing import hand_batch
+
+    batch = hand_batch(2, cameras=3, image_hw=(8, 12))
+    b, n, _, h, w = batch.images.shape
+    moved = ex.perturb(batch, seed=0)
+    assert torch.equal(moved.images, batch.images.flip(-1))
+    aug = moved.img_aug.float() @ torch.linalg.inv(batch.img_aug.float())  # the added augmentation
+    centre = torch.tensor([(w - 1) / 2, (h - 1) / 2, 1.0])
+    assert torch.allclose(aug @ centre, centre.expand(b, n, 3), atol=1e-4)  # the centre stays
+    left = aug @ torch.tensor([0.0, (h - 1) / 2, 1.0])
+    scale = -aug[..., 0, 0]
+    assert torch.allclose(left[..., 0], (w - 1) / 2 * (1 + scale), atol=1e-4)  # the left edge goes right
+    assert (scale > 0.89).all() and (scale < 1.11).all()
+    ratio = moved.intrinsics[..., 0, 0] / batch.intrinsics[..., 0, 0]
+    assert (ratio - 1).abs().max() <= 0.08 + 1e-6 and not torch.equal(moved.intrinsics, batch.intrinsics)
+
+
+def test_cli_user_mistakes(tmp_path, capsys):
+    missing = tmp_path / "none.ckpt"
+    assert main(["export", "--ckpt", str(missing), "--format", "onnx", "--out", str(tmp_path / "m.onnx")]) == 2
+    assert capsys.readouterr().err.strip() == f"error: checkpoint {missing} does not exist"
+    assert main(["export", "--ckpt", str(missing), "--format", "onnx", "--out", str(tmp_path)]) == 2
+    assert capsys.readouterr().err.strip().startswith(f"error: --out {tmp_path}: is a folder")
+    deep = tmp_path / "no" / "m.onnx"
+    assert main(["export", "--ckpt", str(missing), "--format", "onnx", "--out", str(deep)]) == 2
+    assert capsys.readouterr().err.strip() == f"error: --out {deep}: folder {deep.parent} does not exist"
+    (tmp_path / "file").write_text("x")
+    below = tmp_path / "file" / "m.onnx"
+    assert main(["export", "--ckpt", str(missing), "--format", "onnx", "--out", str(below)]) == 2
+    assert capsys.readouterr().err.strip() == f"error: --out {below}: {below.parent} is not a folder"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_parity_outside_the_thresholds_exits_1(checkpoint, tmp_path, monkeypatch, capsys):
+    """The artefact and its report stay for inspection; the command says which thresholds failed."""
+
+    def bad_parity(model, exported, batches, fmt, repeats=3):
+        return {"format": fmt, "frames": len(batches), "frames_perturbed": len(batches), "voxels": 10,
+                "max_abs_logit_diff": 0.5, "class_agreement": 0.9, "eager_latency_ms": 1.0,
+                "exported_latency_ms": 1.0, "versions": {"torch": torch.__version__}}
+
+    monkeypatch.setattr(ex, "parity", bad_parity)
+    out = tmp_path / "model.pt2"
+    assert main(["export", "--ckpt", str(checkpoint), "--format", "torch_export", "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert captured.out.startswith("parity torch_export: ") and "classes agree on 90.0000 %" in captured.out
+    assert captured.err.strip() == (
+        "error: the exported model disagrees with the eager one beyond the thresholds (classes agree on >= 99.99 %, "
+        f"max |logit diff| <= 0.0001); see {tmp_path / 'model.pt2.parity.json'}"
+    )
+    assert json.loads((tmp_path / "model.pt2.parity.json").read_text())["passed"] is False and out.is_file()
