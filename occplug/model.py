@@ -12,6 +12,7 @@ from torch import Tensor, nn
 
 from occplug import interfaces as I
 from occplug.config.slots import Slot, component_params
+from occplug.constraints import NonNegative
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces.encoder import feature_levels
@@ -135,7 +136,7 @@ class OccModel(OccupancyModel):
         supervision: Annotated[dict, Slot("supervision", mapping=True)],
         grid: GridSpec | dict,
         class_names: list[str] | None = None,
-        free_label: int = 17,
+        free_label: Annotated[int, NonNegative] = 17,
         ignore_label: int | None = 255,
         occupancy_head: str = "occupancy",
         optimizer: dict | None = None,

@@ -11,11 +11,12 @@ Constructors take ``in_channels`` (the image features' channels), ``num_bins`` (
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 import torch
 from torch import Tensor, nn
 
+from occplug.constraints import NonNegative, Positive
 from occplug.geometry import effective_intrinsics
 from occplug.interfaces.depth_net import DepthAndContext, DepthNet
 
@@ -56,7 +57,9 @@ class PlainDepthNet(DepthNet):
         hidden: width of the 3x3 conv (0: a single 1x1 conv).
     """
 
-    def __init__(self, in_channels: int, num_bins: int, out_channels: int, hidden: int = 64) -> None:
+    def __init__(
+        self, in_channels: int, num_bins: int, out_channels: int, hidden: Annotated[int, NonNegative] = 64
+    ) -> None:
         super().__init__()
         self.num_bins, self.out_channels = int(num_bins), int(out_channels)
         self.net = PixelNet(in_channels, hidden, self.num_bins + self.out_channels)
@@ -102,9 +105,9 @@ class CameraAwareDepthNet(DepthNet):
         in_channels: int,
         num_bins: int,
         out_channels: int,
-        hidden: int = 64,
-        camera_hidden: int = 64,
-        depth_blocks: int = 0,
+        hidden: Annotated[int, Positive] = 64,
+        camera_hidden: Annotated[int, Positive] = 64,
+        depth_blocks: Annotated[int, NonNegative] = 0,
         norm: str = "batch",
     ) -> None:
         super().__init__()

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from occplug.constraints import NonNegative
 from occplug.data.frame import Batch
 from occplug.geometry import project_to_image, transform_points
 from occplug.interfaces import ModelOutputs, SupervisionSource
@@ -93,7 +96,7 @@ class LidarDepthSupervision(SupervisionSource):
 
     requires = frozenset({"points"})
 
-    def __init__(self, weight: float = 1.0) -> None:
+    def __init__(self, weight: Annotated[float, NonNegative] = 1.0) -> None:
         super().__init__()
         self.weight = float(weight)
 

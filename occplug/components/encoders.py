@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import torch
 from torch import Tensor, nn
 
+from occplug.constraints import Positive
 from occplug.errors import UserError
 from occplug.interfaces import ImageEncoder
 
@@ -72,12 +73,12 @@ class SmallCNN(ImageEncoder):
 
     def __init__(
         self,
-        out_channels: int = 64,
-        width: int = 32,
+        out_channels: Annotated[int, Positive] = 64,
+        width: Annotated[int, Positive] = 32,
         stride: Literal[4, 8, 16] = 8,
-        num_blocks: int = 1,
+        num_blocks: Annotated[int, Positive] = 1,
         norm: Literal["batch", "group"] = "batch",
-        levels: int = 1,
+        levels: Annotated[int, Positive] = 1,
     ) -> None:
         super().__init__()
         if levels < 1:
@@ -165,7 +166,7 @@ class TimmEncoder(ImageEncoder):
     def __init__(
         self,
         model_name: str,
-        out_channels: int = 64,
+        out_channels: Annotated[int, Positive] = 64,
         feature_level: int = -1,
         weights: str | None = None,
         freeze: bool = False,

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from torch import Tensor, nn
 
+from occplug.constraints import NonNegative, Positive
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces import DEFAULT_QUERY_CHUNK, OccupancyHead, QueryResult, Scene
@@ -28,7 +31,9 @@ class VoxelClassifier(OccupancyHead):
     queryable = True
     temporal = False
 
-    def __init__(self, in_channels: int, num_classes: int = 18, hidden: int = 64) -> None:
+    def __init__(
+        self, in_channels: int, num_classes: Annotated[int, Positive] = 18, hidden: Annotated[int, NonNegative] = 64
+    ) -> None:
         super().__init__()
         if hidden < 0:
             raise ValueError(f"voxel_classifier hidden must be >= 0, got {hidden}")

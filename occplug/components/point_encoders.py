@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import torch
 from torch import Tensor, nn
 
+from occplug.constraints import Positive
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, transform_points
 from occplug.interfaces import PointEncoder
@@ -63,7 +66,12 @@ class VoxelPoints(PointEncoder):
 
     requires = frozenset({"points"})
 
-    def __init__(self, grid: GridSpec | dict, out_channels: int = 16, num_layers: int = 2) -> None:
+    def __init__(
+        self,
+        grid: GridSpec | dict,
+        out_channels: Annotated[int, Positive] = 16,
+        num_layers: Annotated[int, Positive] = 2,
+    ) -> None:
         super().__init__()
         if num_layers < 1:
             raise ValueError(f"voxel_points num_layers must be >= 1, got {num_layers}")

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from torch import nn
 
+from occplug.constraints import NonNegative, Positive
 from occplug.data.frame import Batch
 from occplug.interfaces import DenseVoxelScene, Lifted, SceneRepresentation
 
@@ -26,7 +29,9 @@ class DenseVoxels(SceneRepresentation):
         is not supported (``ValueError``).
     """
 
-    def __init__(self, in_channels: int, out_channels: int = 64, num_blocks: int = 2) -> None:
+    def __init__(
+        self, in_channels: int, out_channels: Annotated[int, Positive] = 64, num_blocks: Annotated[int, NonNegative] = 2
+    ) -> None:
         super().__init__()
         if num_blocks < 0:
             raise ValueError(f"dense_voxels num_blocks must be >= 0, got {num_blocks}")

@@ -7,10 +7,12 @@ RefineNet): it shows how a streaming component uses :class:`occplug.streams.Stre
 from __future__ import annotations
 
 import math
+from typing import Annotated
 
 import torch
 from torch import Tensor, nn
 
+from occplug.constraints import NonNegative, Positive, Range
 from occplug.data.frame import Batch
 from occplug.geometry import warp_volume
 from occplug.interfaces import Lifted
@@ -50,8 +52,16 @@ class DenseVoxelsHistory(DenseVoxels):
 
     stateful = True
 
-    def __init__(self, in_channels: int, out_channels: int = 64, num_blocks: int = 2, history_weight: float = 0.5,
-                 learn_weight: bool = False, reset: str = "current", max_gap_s: float | None = 2.0) -> None:
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: Annotated[int, Positive] = 64,
+        num_blocks: Annotated[int, NonNegative] = 2,
+        history_weight: Annotated[float, Range(low=0, high=1, low_open=True, high_open=True)] = 0.5,
+        learn_weight: bool = False,
+        reset: str = "current",
+        max_gap_s: Annotated[float | None, Positive] = 2.0,
+    ) -> None:
         super().__init__(in_channels, out_channels, num_blocks)
         if not 0.0 < history_weight < 1.0:
             raise ValueError(f"dense_voxels_history history_weight must be in (0, 1), got {history_weight}")

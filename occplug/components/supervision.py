@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from occplug.constraints import NonNegative, UnitInterval
 from occplug.data.frame import Batch
 from occplug.interfaces import ModelOutputs, SupervisionSource
 
@@ -45,13 +48,13 @@ class VoxelCrossEntropy(SupervisionSource):
 
     def __init__(
         self,
-        weight: float = 1.0,
+        weight: Annotated[float, NonNegative] = 1.0,
         head: str = "occupancy",
         camera_mask: bool = False,
         lidar_mask: bool = False,
         ignore_label: int | None = 255,
-        class_weights: list[float] | None = None,
-        label_smoothing: float = 0.0,
+        class_weights: list[Annotated[float, NonNegative]] | None = None,
+        label_smoothing: Annotated[float, UnitInterval] = 0.0,
     ) -> None:
         super().__init__()
         if not 0.0 <= label_smoothing <= 1.0:

@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from occplug.config.slots import Slot
+from occplug.constraints import Length, NonNegative, Positive
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, project_to_image
 from occplug.interfaces import Lifted, ViewTransform
@@ -55,6 +56,9 @@ __all__ = [
     "splat",
     "voxel_flat_index",
 ]
+
+#: ``[start, stop, step]`` metres, each >= 0 (:func:`depth_bin_centers` checks start < stop, step > 0).
+DepthBins = Annotated[list[Annotated[float, NonNegative]], Length(exact=3)]
 
 
 # ----------------------------------------------------------------------------- shared geometry
@@ -159,9 +163,9 @@ class LSSViewTransform(ViewTransform):
         in_channels: int,
         image_stride: int,
         grid: GridSpec | dict,
-        out_channels: int = 64,
-        depth_bins: list[float] = [1.0, 45.0, 1.0],  # noqa: B006 - read only, never mutated
-        hidden: int = 64,
+        out_channels: Annotated[int, Positive] = 64,
+        depth_bins: DepthBins = [1.0, 45.0, 1.0],  # noqa: B006 - read only, never mutated
+        hidden: Annotated[int, NonNegative] = 64,
         splat: Literal["fast", "reference"] = "fast",
         depth_net: Annotated[dict | DepthNet | None, Slot("depth_net")] = None,
     ) -> None:
@@ -272,10 +276,10 @@ class BackwardProjection(ViewTransform):
         in_channels: int,
         image_stride: int,
         grid: GridSpec | dict,
-        out_channels: int = 64,
-        depth_bins: list[float] = [1.0, 45.0, 1.0],  # noqa: B006 - read only, never mutated
-        hidden: int = 64,
-        points_per_voxel: int = 1,
+        out_channels: Annotated[int, Positive] = 64,
+        depth_bins: DepthBins = [1.0, 45.0, 1.0],  # noqa: B006 - read only, never mutated
+        hidden: Annotated[int, NonNegative] = 64,
+        points_per_voxel: Annotated[int, Positive] = 1,
     ) -> None:
         super().__init__()
         if points_per_voxel < 1:

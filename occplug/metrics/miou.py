@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Annotated
 
 import torch
 from torch import Tensor
 
+from occplug.constraints import NonNegative, Positive
 from occplug.data.classes import class_groups
 from occplug.data.frame import Batch
 
@@ -67,9 +69,9 @@ class Occ3DMIoU(OccMetric):
 
     def __init__(
         self,
-        num_classes: int = 18,
+        num_classes: Annotated[int, Positive] = 18,
         class_names: Sequence[str] | None = None,
-        free_label: int = 17,
+        free_label: Annotated[int, NonNegative] = 17,
         mask: EvalMask = "camera",
         ignore_label: int | None = 255,
         dynamic_classes: Sequence[str] | None = None,

@@ -53,12 +53,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Annotated, NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from occplug.constraints import Length, NonNegative, Positive
 from occplug.data.frame import Batch
 from occplug.data.nuscenes.format import OCC3D_GRID
 from occplug.geometry import GridSpec
@@ -218,14 +219,14 @@ class RayIoU(OccMetric):
 
     def __init__(
         self,
-        num_classes: int = 18,
+        num_classes: Annotated[int, Positive] = 18,
         class_names: Sequence[str] | None = None,
-        free_label: int = 17,
+        free_label: Annotated[int, NonNegative] = 17,
         ignore_label: int | None = 255,
         grid: GridSpec | dict | None = None,
-        thresholds: Sequence[float] = (1.0, 2.0, 4.0),
-        origin_limit: float = 39.0,
-        max_origins: int = 8,
+        thresholds: Annotated[Sequence[Annotated[float, Positive]], Length(min=1)] = (1.0, 2.0, 4.0),
+        origin_limit: Annotated[float, Positive] = 39.0,
+        max_origins: Annotated[int, Positive] = 8,
     ) -> None:
         super().__init__()
         self.num_classes = num_classes

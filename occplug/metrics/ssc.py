@@ -19,10 +19,12 @@ benchmark's remapping of raw label files happens in :mod:`occplug.data.semantick
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Annotated
 
 import torch
 from torch import Tensor
 
+from occplug.constraints import NonNegative, Positive
 from occplug.data.classes import SEMANTIC_KITTI_CLASSES
 from occplug.data.frame import Batch
 
@@ -74,9 +76,9 @@ class SSCMetrics(OccMetric):
 
     def __init__(
         self,
-        num_classes: int = 20,
+        num_classes: Annotated[int, Positive] = 20,
         class_names: Sequence[str] | None = None,
-        free_label: int = 0,
+        free_label: Annotated[int, NonNegative] = 0,
         ignore_label: int | None = 255,
     ) -> None:
         super().__init__()

@@ -16,10 +16,12 @@ of ``occplug fit``).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import lightning as L
 from lightning.pytorch.callbacks import Callback
+
+from occplug.constraints import Positive
 
 from .deps import require_matplotlib
 
@@ -35,7 +37,12 @@ class BevPanelLogger(Callback):
         dpi: resolution of the pictures.
     """
 
-    def __init__(self, samples: list[int] | None = None, every_n_epochs: int = 1, dpi: int = 80) -> None:
+    def __init__(
+        self,
+        samples: list[int] | None = None,
+        every_n_epochs: Annotated[int, Positive] = 1,
+        dpi: Annotated[int, Positive] = 80,
+    ) -> None:
         super().__init__()
         require_matplotlib("the bev_panel_logger callback")
         if every_n_epochs < 1:

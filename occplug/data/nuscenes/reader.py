@@ -32,11 +32,13 @@ from __future__ import annotations
 
 from collections.abc import Collection
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from occplug.constraints import Length, NonNegative, Positive
 from occplug.geometry import GridSpec
 
 from ..classes import OCC3D_CLASSES, OCC3D_FREE, nuscenes_to_occ3d
@@ -287,17 +289,17 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
         occ_root: str | None = None,
         grid: dict | None = None,
         cameras: list[str] | None = None,
-        image_size: list[int] | None = None,
-        num_sweeps: int = 1,
+        image_size: Annotated[list[Annotated[int, Positive]] | None, Length(exact=2)] = None,
+        num_sweeps: Annotated[int, Positive] = 1,
         load_points: bool | None = None,
         load_occupancy: bool = True,
-        min_box_points: int = 0,
+        min_box_points: Annotated[int, NonNegative] = 0,
         adjacent_offsets: list[int] | None = None,
         sequential: bool | dict = False,
         augment: str | dict | None = None,
         pseudo_labels: dict | None = None,
-        batch_size: int = 1,
-        num_workers: int = 0,
+        batch_size: Annotated[int, Positive] = 1,
+        num_workers: Annotated[int, NonNegative] = 0,
         pin_memory: bool = False,
         cache_dir: str | None = None,
         check_files: bool = True,

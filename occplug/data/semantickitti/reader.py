@@ -27,11 +27,13 @@ from __future__ import annotations
 from collections.abc import Collection
 from functools import partial
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from occplug.constraints import Length, NonNegative, Positive
 from occplug.geometry import GridSpec
 
 from ..classes import SEMANTIC_KITTI_CLASSES
@@ -325,14 +327,14 @@ class SemanticKITTIDataModule(ReaderDataModule):
         root: str,
         grid: dict | None = None,
         splits: dict[str, list[str]] | None = None,
-        image_size: list[int] | None = None,
+        image_size: Annotated[list[Annotated[int, Positive]] | None, Length(exact=2)] = None,
         load_points: bool | None = None,
         adjacent_offsets: list[int] | None = None,
         sequential: bool | dict = False,
         augment: str | dict | None = None,
         pseudo_labels: dict | None = None,
-        batch_size: int = 1,
-        num_workers: int = 0,
+        batch_size: Annotated[int, Positive] = 1,
+        num_workers: Annotated[int, NonNegative] = 0,
         pin_memory: bool = False,
         cache_dir: str | None = None,
         check_files: bool = True,

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 from torch.utils.data import Dataset, Sampler
 
+from occplug.constraints import Length, NonNegative, Positive, Range
 from occplug.data.classes import OCC3D_CLASSES, OCC3D_FREE
 from occplug.data.frame import Frame
 from occplug.data.pipeline import PipelineDataset, ReaderDataModule
@@ -62,19 +64,19 @@ class SyntheticDataModule(ReaderDataModule):
         preset: str = "default",
         grid: dict | None = None,
         seed: int | None = None,
-        train_scenes: int | None = None,
-        val_scenes: int | None = None,
-        test_scenes: int | None = None,
-        frames_per_scene: int | None = None,
-        image_size: list[int] | None = None,
-        num_cameras: int | None = None,
-        lidar_beams: int | None = None,
-        fps: float | None = None,
+        train_scenes: Annotated[int | None, NonNegative] = None,
+        val_scenes: Annotated[int | None, NonNegative] = None,
+        test_scenes: Annotated[int | None, NonNegative] = None,
+        frames_per_scene: Annotated[int | None, Positive] = None,
+        image_size: Annotated[list[Annotated[int, Range(low=4)]] | None, Length(exact=2)] = None,
+        num_cameras: Annotated[int | None, Range(low=1, high=6)] = None,
+        lidar_beams: Annotated[int | None, Positive] = None,
+        fps: Annotated[float | None, Positive] = None,
         adjacent_offsets: list[int] | None = None,
         cache: bool = True,
         cache_dir: str | None = None,
-        batch_size: int = 1,
-        num_workers: int = 0,
+        batch_size: Annotated[int, Positive] = 1,
+        num_workers: Annotated[int, NonNegative] = 0,
         pin_memory: bool = False,
         sequential: bool | dict = False,
         augment: str | dict | None = None,

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from torch import Tensor, nn
 
 import occplug
+from occplug.config.constraints import Positive
 
 
 class TinyMLPHead(occplug.OccupancyHead):
@@ -21,7 +24,9 @@ class TinyMLPHead(occplug.OccupancyHead):
 
     queryable = True  # any scene that can be sampled at points; current frame only (temporal = False)
 
-    def __init__(self, in_channels: int, num_classes: int = 18, hidden: int = 16) -> None:
+    def __init__(
+        self, in_channels: int, num_classes: Annotated[int, Positive] = 18, hidden: Annotated[int, Positive] = 16
+    ) -> None:
         super().__init__()
         self.num_classes = num_classes
         self.mlp = nn.Sequential(nn.Linear(in_channels, hidden), nn.GELU(), nn.Linear(hidden, num_classes))
