@@ -238,7 +238,7 @@ def resolve_target(ref: str, settings: BenchSettings, overrides: Sequence[str] =
         if isinstance(exc, BenchError):
             raise
         raise BenchError(f"{ref}: {exc}") from None
-    return Target(Path(ref).stem, ref, "config", cfg)
+    return Target(path.stem if path.is_file() else ref, ref, "config", cfg)  # a file: its stem; a reference as given
 
 
 def environment(device: str) -> tuple[str, str, dict[str, str]]:
