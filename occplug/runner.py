@@ -6,6 +6,7 @@ A run directory holds::
     plugins.json         installed plugins and their versions
     checkpoints/         last.ckpt (+ per-epoch checkpoints as configured)
     logs/version_0/      Lightning's CSV log (metrics.csv); each --resume adds a version
+    tensorboard/ mlruns/ wandb/   the other trainer.loggers, when the config names them
     metrics.json         final validation metrics (flat: {"mIoU": ..., "IoU": ..., ...})
 """
 
@@ -28,13 +29,13 @@ import torch
 import yaml
 from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import BasePredictionWriter, Callback, ModelCheckpoint
-from lightning.pytorch.loggers import CSVLogger
 
 from occplug.config import ConfigError, compose, validate
 from occplug.data.datamodule import OccDataModule
 from occplug.data.formats import FormatError
 from occplug.errors import UserError
 from occplug.interfaces.model import OccupancyModel
+from occplug.loggers import build_loggers, quiet_lightning_tips
 from occplug.plugins import get_registry, plugin_reports
 from occplug.streams import check_streaming
 
@@ -240,6 +241,8 @@ def _trainer(
     train_batches: int | None = None,
 ) -> L.Trainer:
     kwargs = dict(cfg.get("trainer") or {})
+    kwargs.pop("loggers", None)  # occplug's key: the loggers are built by build_loggers and passed as `logger`
+    quiet_lightning_tips()
     if train_batches is not None:  # log at least once per epoch: no "fewer batches than the logging interval" warning
         kwargs["log_every_n_steps"] = max(1, min(int(kwargs.get("log_every_n_steps", 50)), train_batches))
     try:
@@ -329,7 +332,10 @@ def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, f
     first_batch_check(model, dm)
     info = _RunInfoCallback(run_info(cfg, model, dm))
     checkpoint = ModelCheckpoint(dirpath=str(ckpt_dir), **{"save_last": True, **(cfg.get("checkpoint") or {})})
-    logger = CSVLogger(save_dir=str(run_dir), name="logs")  # logs/version_<n>/: a resume never overwrites
+    try:  # CSV (logs/version_<n>/: a resume never overwrites) and the trainer.loggers the config names
+        logger = build_loggers((cfg.get("trainer") or {}).get("loggers"), run_dir)
+    except UserError as exc:
+        raise RunError(str(exc)) from None
     trainer = _trainer(cfg, run_dir, [checkpoint, info], logger, train_batches=train_batches_per_epoch(cfg, dm))
     if trainer.is_global_zero:
         run_dir.mkdir(parents=True, exist_ok=True)

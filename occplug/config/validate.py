@@ -314,7 +314,13 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
             args, "scheduler", scheduler_factory(config["scheduler"]["type"]), {"optimizer", "total_steps"}
         )
     if config.get("trainer") is not None:
-        _validate_kwargs(config["trainer"], "trainer", L.Trainer, {"callbacks", "logger", "default_root_dir"})
+        trainer = config["trainer"]
+        if isinstance(trainer, dict) and "loggers" in trainer:  # occplug's own key, not a Trainer argument
+            from occplug.loggers import check_logger_names
+
+            check_logger_names(trainer["loggers"])
+            trainer = {k: v for k, v in trainer.items() if k != "loggers"}
+        _validate_kwargs(trainer, "trainer", L.Trainer, {"callbacks", "logger", "default_root_dir"})
     if config.get("checkpoint") is not None:
         _validate_kwargs(config["checkpoint"], "checkpoint", ModelCheckpoint, {"dirpath"})
     if isinstance(config["model"], dict):  # query supervision on a head that cannot answer it

@@ -9,8 +9,9 @@ At the end of every ``every_n_epochs``-th validation epoch (sanity checks exclud
 only) it predicts the listed validation samples and draws truth | prediction | error map
 (:func:`occplug.viz.panels.bev_figure`). Each picture goes to every active logger: through its
 image API when it has one (TensorBoard's ``experiment.add_image``, ``log_image`` of W&B-style
-loggers), otherwise as ``<logger.log_dir>/bev/epoch_XXX_sample_Y.png`` (CSVLogger, the default
-of ``occplug fit``).
+loggers, an MLflow run artifact ``bev/epoch_XXX_sample_Y.png``), otherwise as
+``<logger.log_dir>/bev/epoch_XXX_sample_Y.png`` (CSVLogger, always on in ``occplug fit``). Name
+``trainer.loggers: [csv, tensorboard]`` to see the pictures in TensorBoard.
 """
 
 from __future__ import annotations
@@ -120,17 +121,22 @@ class BevPanelLogger(Callback):
         from .panels import save_png
 
         tag = f"bev/sample_{index}"
+        name = f"epoch_{epoch:03d}_sample_{index}.png"
         loggers = list(trainer.loggers)
+        rgb = None
         for logger in loggers:
             experiment = getattr(logger, "experiment", None)
-            if hasattr(experiment, "add_image"):  # TensorBoard's SummaryWriter
-                experiment.add_image(tag, to_rgb(fig), global_step=trainer.global_step, dataformats="HWC")
+            if hasattr(experiment, "add_image"):  # TensorBoard's SummaryWriter: an image under the tag, per step
+                rgb = to_rgb(fig) if rgb is None else rgb
+                experiment.add_image(tag, rgb, global_step=trainer.global_step, dataformats="HWC")
             elif hasattr(logger, "log_image"):  # Weights & Biases and friends
-                logger.log_image(key=tag, images=[to_rgb(fig)], step=trainer.global_step)
+                rgb = to_rgb(fig) if rgb is None else rgb
+                logger.log_image(key=tag, images=[rgb], step=trainer.global_step)
+            elif hasattr(experiment, "log_image") and getattr(logger, "run_id", None):  # MLflow: a run artifact
+                rgb = to_rgb(fig) if rgb is None else rgb
+                experiment.log_image(logger.run_id, rgb, artifact_file=f"bev/{name}")
             else:  # CSVLogger and loggers without images: PNG files beside the logs
                 root = Path(getattr(logger, "log_dir", None) or trainer.default_root_dir)
-                self.written.append(save_png(fig, root / "bev" / f"epoch_{epoch:03d}_sample_{index}.png"))
+                self.written.append(save_png(fig, root / "bev" / name))
         if not loggers:
-            self.written.append(
-                save_png(fig, Path(trainer.default_root_dir) / "bev" / f"epoch_{epoch:03d}_sample_{index}.png")
-            )
+            self.written.append(save_png(fig, Path(trainer.default_root_dir) / "bev" / name))

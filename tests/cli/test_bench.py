@@ -1,0 +1,141 @@
+"""``occplug bench``: one row per model, recorded accuracy as written, interleaved rounds, clean errors."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from occplug import runner
+from occplug.bench import BenchReport, BenchRow, interleave, read_accuracy
+from occplug.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+BASELINE = str(ROOT / "configs" / "baseline.yaml")
+METRICS = {"mIoU": 12.5, "IoU": 40.25, "RayIoU": 9.75, "IoU_car": 3.0, "eval_mask": "camera", "global_step": 2}
+COLUMNS = [
+    "model", "source", "params", "latency_ms", "memory_mib", "train_step_ms", "train_memory_mib",
+    "mIoU", "IoU", "RayIoU", "eval_mask",
+]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def measured(tmp_path_factory):
+    """``occplug bench --json`` on a run directory (its metrics.json written here) and a config, both tiny."""
+    tmp = tmp_path_factory.mktemp("bench")
+    run = tmp / "myrun"
+    run.mkdir()
+    cfg = runner.load_config([BASELINE], ["data.preset=tiny"])
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    (run / "metrics.json").write_text(json.dumps(METRICS))
+    out = tmp / "bench.json"
+    code = main(
+        ["bench", str(run), BASELINE, "--preset", "tiny", "--device", "cpu", "--repeats", "2", "--warmup", "1",
+         "--train-repeats", "1", "--json", "-o", str(out)]
+    )  # fmt: skip
+    assert code == 0
+    return BenchReport.from_json(out.read_text()), cfg
+
+
+def test_one_row_per_model_with_every_column(measured):
+    report, cfg = measured
+    assert [r.model for r in report.rows] == ["myrun", "baseline"]
+    assert report.settings == {
+        "repeats": 2, "warmup": 1, "train_repeats": 1, "batch_size": 1, "preset": "tiny",
+    }  # fmt: skip
+    assert report.device.startswith("cpu") and "torch" in report.versions and "lightning" in report.versions
+    # both rows are the same architecture: the same parameter count, the baseline's own
+    dm, model = runner._build(cfg)
+    assert [r.params for r in report.rows] == [sum(p.numel() for p in model.parameters())] * 2
+    for r in report.rows:
+        assert r.latency_ms > 0 and r.train_step_ms > 0
+        assert r.memory_mib > 50 and r.train_memory_mib >= r.memory_mib  # peak RSS only grows
+    markdown = report.to_markdown().splitlines()
+    assert markdown[0].startswith("machine: ") and markdown[1].startswith("device: cpu")
+    assert markdown[2].startswith("versions: python ")
+    table = [line for line in markdown if line.startswith("|")]
+    assert len(table) == 2 + 2  # header, rule, one row per model
+    assert [c.strip() for c in table[0].strip("|").split("|")] == [
+        "model", "params", "latency (ms/frame)", "memory (MiB)", "train step (ms)", "train memory (MiB)",
+        "mIoU", "IoU", "RayIoU", "eval mask",
+    ]  # fmt: skip
+    assert all(len(line.strip("|").split("|")) == 10 for line in table)
+
+
+def test_accuracy_is_what_the_run_recorded_and_a_config_has_none(measured):
+    report, _ = measured
+    run, config = report.rows
+    assert (run.mIoU, run.IoU, run.RayIoU, run.eval_mask) == (12.5, 40.25, 9.75, "camera")
+    assert (config.mIoU, config.IoU, config.RayIoU, config.eval_mask) == (None, None, None, None)
+    cells = [c.strip() for c in report.to_markdown().splitlines()[-1].strip("|").split("|")]
+    assert cells[0] == "baseline" and cells[6:] == ["—"] * 4
+    cells = [c.strip() for c in report.to_markdown().splitlines()[-2].strip("|").split("|")]
+    assert cells[6:] == ["12.50", "40.25", "9.75", "camera"]
+
+
+def test_json_and_csv_round_trip(measured):
+    report, _ = measured
+    assert BenchReport.from_json(report.to_json()) == report
+    text = report.to_csv()
+    assert BenchReport.from_csv(text) == report
+    rows = list(csv.DictReader(line for line in io.StringIO(text) if not line.startswith("#")))
+    assert list(rows[0]) == COLUMNS and len(rows) == 2
+    assert rows[1]["mIoU"] == "—" and float(rows[0]["IoU"]) == 40.25
+
+
+def test_read_accuracy_takes_a_prefixed_key_and_leaves_missing_ones_empty():
+    found = read_accuracy({"occ3d_miou/mIoU": 7.0, "ssc/mIoU": 3.0, "IoU": 1.5, "eval_mask": "lidar"})
+    assert found == {"mIoU": 7.0, "IoU": 1.5, "RayIoU": None, "eval_mask": "lidar"}
+
+
+def test_rounds_are_interleaved_and_alternate_order():
+    calls: list[tuple[str, int]] = []
+
+    class Fake:
+        def __init__(self, name: str) -> None:
+            self.name, self.n = name, 0
+
+        def request(self, command: str) -> dict:
+            calls.append((self.name, self.n))
+            self.n += 1
+            return {"ms": 10.0 * self.n + (1 if self.name == "b" else 0)}
+
+    out = interleave([Fake("a"), Fake("b")], "latency", 3)
+    assert calls == [("a", 0), ("b", 0), ("b", 1), ("a", 1), ("a", 2), ("b", 2)]
+    assert out == [[10.0, 20.0, 30.0], [11.0, 21.0, 31.0]]
+
+
+def test_markdown_of_a_known_report():
+    row = BenchRow("m", "cfg.yaml", 1_234_567, 12.345, 100.4, 56.78, 200.6)
+    report = BenchReport(
+        "host: cpu", "cpu (2 torch threads)", {"torch": "2"},
+        {"repeats": 5, "warmup": 1, "train_repeats": 2, "batch_size": 1, "preset": None}, [row],
+    )  # fmt: skip
+    assert report.to_markdown().splitlines()[-1] == "| m | 1.23 M | 12.35 | 100 | 56.8 | 201 | — | — | — | — |"
+
+
+@pytest.mark.parametrize("case", ["missing", "no_run_dir", "missing_yaml", "bad_repeats"])
+def test_bad_inputs_are_one_error_line_exit_2(case, tmp_path, capsys):
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("not a run")
+    args = {
+        "missing": ["bench", str(tmp_path / "nope")],
+        "no_run_dir": ["bench", str(folder)],
+        "missing_yaml": ["bench", str(tmp_path / "nope.yaml")],
+        "bad_repeats": ["bench", BASELINE, "--repeats", "0"],
+    }[case]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("error: ")
+    expected = {
+        "missing": f"{tmp_path / 'nope'}: no such run directory or config file",
+        "no_run_dir": f"{folder}: a folder but not an occplug run directory (no config.yaml)",
+        "missing_yaml": f"{tmp_path / 'nope.yaml'}: no such run directory or config file",
+        "bad_repeats": "--repeats: expected an int >= 1, got 0",
+    }[case]
+    assert err == f"error: {expected}"
