@@ -295,7 +295,10 @@ def step_checkpoint(cfg: dict[str, Any], ckpt_dir: Path) -> list[Callback]:
         return []
     return [
         ModelCheckpoint(
-            dirpath=str(ckpt_dir), every_n_train_steps=int(every), save_top_k=0, save_last=True,
+            dirpath=str(ckpt_dir),
+            every_n_train_steps=int(every),
+            save_top_k=0,
+            save_last=True,
             enable_version_counter=False,  # both callbacks write last.ckpt, not last-v1.ckpt
         )
     ]

@@ -123,9 +123,9 @@ def test_a_bad_path_is_one_error_line(sandbox, capsys, line, kind):
         pytest.skip("root writes anywhere (below_a_file covers an unwritable place)")
     bad = _bad_path(sandbox, kind)
     argv = [
-        arg.replace("{P}", str(bad)).replace("{DIR}", str(sandbox / "empty")).replace(
-            "{FILE}", str(sandbox / "good_file.ckpt")
-        )
+        arg.replace("{P}", str(bad))
+        .replace("{DIR}", str(sandbox / "empty"))
+        .replace("{FILE}", str(sandbox / "good_file.ckpt"))
         for arg in line.split()
     ]
     argv = [BASELINE if arg == "BASELINE" else arg for arg in argv]
