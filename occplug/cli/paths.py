@@ -46,13 +46,14 @@ def input_file(flag: str, value: str | Path) -> Path:
     return path
 
 
-def input_dir(flag: str, value: str | Path) -> Path:
-    """An existing folder (data roots, ``--pred``, ``--gt``, ``--resume``)."""
+def input_dir(flag: str, value: str | Path, missing: str = "not a folder") -> Path:
+    """An existing folder (data roots, ``--pred``, ``--gt``, ``--resume``); ``missing`` says what an
+    absent one is."""
     path = Path(value)
     if path.exists() and not path.is_dir():
         raise UsageError(f"{flag} {path}: is a file; expected a folder")
     if not path.is_dir():
-        raise _missing(flag, path, "not a folder")
+        raise _missing(flag, path, missing)
     return path
 
 

@@ -159,7 +159,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from occplug.viz.deps import MissingExtraError
     from occplug.viz.runs import plot_run
 
-    run_dir = check.input_dir("RUN_DIR", args.run_dir)
+    run_dir = check.input_dir("RUN_DIR", args.run_dir, missing="no such run directory")
     if args.out:
         check.output_dir("--out", args.out)
     try:
