@@ -4,10 +4,14 @@ A run directory holds::
 
     config.yaml          the fully resolved config (re-usable with -c)
     plugins.json         installed plugins and their versions
-    checkpoints/         last.ckpt (+ per-epoch checkpoints as configured)
+    checkpoints/         last.ckpt (+ per-epoch checkpoints as configured; every N steps with
+                         trainer.checkpoint_every_n_steps)
     logs/version_0/      Lightning's CSV log (metrics.csv); each --resume adds a version
     tensorboard/ mlruns/ wandb/   the other trainer.loggers, when the config names them
     metrics.json         final validation metrics (flat: {"mIoU": ..., "IoU": ..., ...})
+
+Every file of it is written atomically (a temporary file in the same folder, then a rename), so a
+run killed at any moment leaves each file whole: the old version or the new one.
 """
 
 from __future__ import annotations
@@ -18,6 +22,8 @@ import inspect
 import json
 import math
 import os
+import tempfile
+import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +33,7 @@ import lightning as L
 import numpy as np
 import torch
 import yaml
+from lightning.fabric.plugins import TorchCheckpointIO
 from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import BasePredictionWriter, Callback, ModelCheckpoint
 
@@ -40,6 +47,7 @@ from occplug.plugins import get_registry, plugin_reports
 from occplug.streams import check_streaming
 
 __all__ = [
+    "AtomicCheckpointIO",
     "build_datamodule",
     "build_model",
     "Evaluation",
@@ -50,6 +58,7 @@ __all__ = [
     "load_config",
     "plugin_versions",
     "predict",
+    "write_text_atomic",
 ]
 
 CHECKPOINT_KEY = "occplug"
@@ -233,6 +242,69 @@ def build_callbacks(cfg: dict[str, Any]) -> list[Callback]:
     return out
 
 
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file in the same folder and a rename: a reader, or a
+    run killed meanwhile, sees the old file or the new one, never a part."""
+    _write_atomic(Path(path), lambda fh: fh.write(text.encode()))
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+#: Mode of the files written atomically (``mkstemp`` makes them private; plain ``open`` would not).
+_FILE_MODE = 0o666 & ~_umask()
+
+
+def _write_atomic(path: Path, write: Any) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        os.fchmod(fd, _FILE_MODE)
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Lightning's ``torch.save`` checkpoint IO, each file written atomically (see :func:`write_text_atomic`):
+    a fit killed while saving keeps its previous ``last.ckpt`` whole."""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None) -> None:
+        if storage_options is not None:
+            raise TypeError(f"{type(self).__name__} takes no storage_options")
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _write_atomic(path, lambda fh: torch.save(checkpoint, fh))
+
+
+#: occplug's own ``trainer.*`` keys (validated with the Trainer's; see ``config.validate.TRAINER_EXTRAS``).
+STEP_CHECKPOINT_KEY = "checkpoint_every_n_steps"
+
+
+def step_checkpoint(cfg: dict[str, Any], ckpt_dir: Path) -> list[Callback]:
+    """With ``trainer.checkpoint_every_n_steps: N``, a callback rewriting ``last.ckpt`` every N optimizer
+    steps (beside the per-epoch checkpoints, which stay); else none."""
+    every = (cfg.get("trainer") or {}).get(STEP_CHECKPOINT_KEY)
+    if every is None:
+        return []
+    return [
+        ModelCheckpoint(
+            dirpath=str(ckpt_dir),
+            every_n_train_steps=int(every),
+            save_top_k=0,
+            save_last=True,
+            enable_version_counter=False,  # both callbacks write last.ckpt, not last-v1.ckpt
+        )
+    ]
+
+
 def _trainer(
     cfg: dict[str, Any],
     root: Path | None,
@@ -242,6 +314,7 @@ def _trainer(
 ) -> L.Trainer:
     kwargs = dict(cfg.get("trainer") or {})
     kwargs.pop("loggers", None)  # occplug's key: the loggers are built by build_loggers and passed as `logger`
+    kwargs.pop(STEP_CHECKPOINT_KEY, None)  # occplug's, not a Trainer argument (see step_checkpoint)
     quiet_lightning_tips()
     if train_batches is not None:  # log at least once per epoch: no "fewer batches than the logging interval" warning
         kwargs["log_every_n_steps"] = max(1, min(int(kwargs.get("log_every_n_steps", 50)), train_batches))
@@ -253,6 +326,7 @@ def _trainer(
     user_keys = list(kwargs)
     if root is not None:
         kwargs["default_root_dir"] = str(root)
+        kwargs.setdefault("plugins", [AtomicCheckpointIO()])
     try:
         return L.Trainer(callbacks=callbacks, logger=logger, **kwargs)
     except (MisconfigurationException, ValueError, TypeError, RuntimeError) as exc:
@@ -331,20 +405,26 @@ def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, f
     check_trainable(model)
     first_batch_check(model, dm)
     info = _RunInfoCallback(run_info(cfg, model, dm))
-    checkpoint = ModelCheckpoint(dirpath=str(ckpt_dir), **{"save_last": True, **(cfg.get("checkpoint") or {})})
+    steps = step_checkpoint(cfg, ckpt_dir)
+    defaults = {"save_last": True, **({"enable_version_counter": False} if steps else {})}
+    checkpoint = ModelCheckpoint(dirpath=str(ckpt_dir), **{**defaults, **(cfg.get("checkpoint") or {})})
     try:  # CSV (logs/version_<n>/: a resume never overwrites) and the trainer.loggers the config names
         logger = build_loggers((cfg.get("trainer") or {}).get("loggers"), run_dir)
     except UserError as exc:
         raise RunError(str(exc)) from None
-    trainer = _trainer(cfg, run_dir, [checkpoint, info], logger, train_batches=train_batches_per_epoch(cfg, dm))
+    callbacks = [checkpoint, *steps, info]
+    trainer = _trainer(cfg, run_dir, callbacks, logger, train_batches=train_batches_per_epoch(cfg, dm))
     if trainer.is_global_zero:
         run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / "config.yaml").write_text(
+        write_text_atomic(
+            run_dir / "config.yaml",
             "# resolved occplug config; plugins and versions in plugins.json\n"
-            + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None)
+            + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None),
         )
-        (run_dir / "plugins.json").write_text(json.dumps(plugin_versions(), indent=2) + "\n")
-    with _data_errors():
+        write_text_atomic(run_dir / "plugins.json", json.dumps(plugin_versions(), indent=2) + "\n")
+    with _data_errors(), warnings.catch_warnings():
+        # the train loader does resume mid-epoch (OccDataModule.state_dict), through a path Lightning does not see
+        warnings.filterwarnings("ignore", message=".*your dataloader is not resumable")
         trainer.fit(model, datamodule=dm, ckpt_path=str(last) if resume else None)
         if info.last_val_step != trainer.global_step:  # training stopped between validations
             trainer.validate(model, datamodule=dm, verbose=False)
@@ -380,7 +460,7 @@ def write_json(path: Path, payload: dict[str, Any]) -> None:
             return [clean(x) for x in v]
         return v
 
-    Path(path).write_text(json.dumps(clean(payload), indent=2, allow_nan=False) + "\n")
+    write_text_atomic(Path(path), json.dumps(clean(payload), indent=2, allow_nan=False) + "\n")
 
 
 def print_tables(tables: dict[str, str], masks: dict[str, Any]) -> None:

@@ -11,6 +11,7 @@ from occplug.plugins import get_registry
 
 from . import add_config_args
 from .errors import UsageError
+from .paths import config_refs
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -31,6 +32,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 def cmd_show(args: argparse.Namespace) -> int:
     if not args.config:
         raise UsageError("config show needs at least one -c CONFIG")
+    config_refs(args.config)
     composed = compose(args.config, args.overrides)
     resolved = composed.resolved()
     if not args.no_validate:
@@ -50,6 +52,7 @@ def cmd_show(args: argparse.Namespace) -> int:
 def cmd_validate(args: argparse.Namespace) -> int:
     if not args.config:
         raise UsageError("config validate needs at least one -c CONFIG")
+    config_refs(args.config)
     validate(compose(args.config, args.overrides).resolved(), get_registry())
     print(f"ok: {' + '.join(args.config)}")
     return 0

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import yaml
 
@@ -12,6 +11,7 @@ from occplug.config import ConfigError
 from occplug.config.validate import _Validator
 from occplug.plugins import get_registry
 
+from . import paths as check
 from .errors import UsageError
 
 #: ``--format`` choices of ``data synth``: occplug's own frame files, or a real data set's layout.
@@ -144,9 +144,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     _Validator(registry).node(node, "data", "data")
     if args.pseudo is not None and args.format == "frames":
         raise UsageError("--pseudo needs --format occ3d or semantickitti (the frames format has no pseudo-label files)")
-    out = Path(args.out)
-    if out.exists() and any(out.iterdir()):
-        raise UsageError(f"--out {out}: the folder exists and is not empty")
+    out = check.output_dir("--out", args.out, empty=True)
     lidar_grid = node.pop("grid", None) if args.format == "semantickitti" else None
     try:
         dm = registry.build("data", node)
@@ -206,6 +204,8 @@ def cmd_prepare_nuscenes(args: argparse.Namespace) -> int:
 
     if args.sweeps < 0:
         raise UsageError(f"--sweeps must be >= 0, got {args.sweeps}")
+    _check_inputs(args)
+    check.output_dir("--out", args.out)
     try:
         path = build_index(
             args.root,
@@ -226,10 +226,22 @@ def cmd_prepare_nuscenes(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_inputs(args: argparse.Namespace) -> None:
+    """The data roots, ``--splits FILE`` and ``--index`` of prepare / check."""
+    for flag in ("root", "occ"):
+        if getattr(args, flag, None):
+            check.input_dir(f"--{flag}", getattr(args, flag))
+    if getattr(args, "splits", None) and args.splits != "official":
+        check.input_file("--splits", args.splits)
+    if getattr(args, "index", None):
+        check.input_path("--index", args.index, "nuScenes index")
+
+
 def cmd_check(args: argparse.Namespace) -> int:
     from occplug.data.nuscenes import check as nuscenes
     from occplug.data.semantickitti import check as semantickitti
 
+    _check_inputs(args)
     kwargs: dict = {"lidar": not args.no_lidar, "progress": not args.no_progress}
     if args.shape is not None:
         if min(args.shape) < 1:

@@ -59,6 +59,7 @@ from occplug.data.nuscenes import format as occ3d
 from occplug.data.semantickitti import format as semantickitti
 from occplug.geometry import GridSpec
 
+from . import paths as check
 from .errors import UsageError
 
 #: ``--metric`` choices: Occ3D mIoU, RayIoU, SemanticKITTI SSC.
@@ -489,8 +490,14 @@ def _is_headline(key: str) -> bool:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    if args.json and not Path(args.json).resolve().parent.is_dir():
-        raise UsageError(f"--json {args.json}: its folder does not exist")
+    check.input_dir("--pred", args.pred)
+    check.input_dir("--gt", args.gt)
+    if args.origins:
+        check.input_file("--origins", args.origins)
+    if args.index:
+        check.input_path("--index", args.index, "nuScenes index")
+    if args.json:
+        check.output_file("--json", args.json)
     results, tables, count = evaluate_folder(args)
     for table in tables.values():
         print(table)
@@ -512,5 +519,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         }
         if "miou" in results:
             payload["eval_mask"] = args.mask or "camera"
-        Path(args.json).write_text(json.dumps(payload, indent=2) + "\n")
+        from occplug.runner import write_text_atomic
+
+        write_text_atomic(Path(args.json), json.dumps(payload, indent=2) + "\n")
     return 0

@@ -12,6 +12,7 @@ from occplug import runner
 from occplug.plugins import broken_plugins_warning
 
 from . import add_config_args
+from . import paths as check
 from .errors import UsageError
 
 
@@ -43,6 +44,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
     warning = broken_plugins_warning()
     if warning and runner.is_rank_zero():
         print(warning, file=sys.stderr)
+    check.config_refs(args.config)
+    if args.resume:
+        check.input_dir("--resume", args.resume)
+    elif args.run_dir:
+        check.output_dir("--run-dir", args.run_dir)
     try:
         if args.resume:
             run_dir = Path(args.resume)
@@ -66,6 +72,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    check.config_refs(args.config)
+    check.input_file("--ckpt", args.ckpt)
+    if args.json:
+        check.output_file("--json", args.json)
     try:
         cfg = runner.resolve_run_config(args.config, args.overrides, Path(args.ckpt))
         found = runner.evaluate(cfg, Path(args.ckpt), stage=args.stage)
@@ -81,6 +91,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_predict(args: argparse.Namespace) -> int:
+    check.config_refs(args.config)
+    check.input_file("--ckpt", args.ckpt)
+    check.output_dir("--out", args.out)
     try:
         cfg = runner.resolve_run_config(args.config, args.overrides, Path(args.ckpt))
         count = runner.predict(cfg, Path(args.ckpt), Path(args.out))

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 from occplug import runner
 
 from . import add_config_args
+from . import paths as check
 from .errors import UsageError
 
 if TYPE_CHECKING:
@@ -82,6 +83,12 @@ def cmd_sample(args: argparse.Namespace) -> int:
 
     if not args.config and not args.ckpt:
         raise UsageError("viz sample needs -c CONFIG (ground truth) and/or --ckpt CKPT (predictions)")
+    check.config_refs(args.config)
+    if args.ckpt:
+        check.input_file("--ckpt", args.ckpt)
+    check.output_dir("--out", args.out)
+    if args.rerun:
+        check.output_file("--rerun", args.rerun)
     if args.rerun and not str(args.rerun).endswith(".rrd"):
         raise UsageError(f"--rerun {args.rerun}: the recording file must end in .rrd")
     if args.max_frames is not None and (args.max_frames < 1 or not args.rerun):
@@ -152,9 +159,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     from occplug.viz.deps import MissingExtraError
     from occplug.viz.runs import plot_run
 
-    run_dir = Path(args.run_dir)
-    if not run_dir.is_dir():
-        raise UsageError(f"{run_dir}: no such run directory")
+    run_dir = check.input_dir("RUN_DIR", args.run_dir, missing="no such run directory")
+    if args.out:
+        check.output_dir("--out", args.out)
     try:
         for path in plot_run(run_dir, args.out):
             print(f"wrote {path}")

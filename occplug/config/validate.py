@@ -215,10 +215,16 @@ RUN_CONSTRAINTS: dict[str, Any] = {
     "trainer.limit_test_batches": NonNegative,
     "trainer.limit_predict_batches": NonNegative,
     "trainer.num_nodes": Range(low=1),
+    "trainer.checkpoint_every_n_steps": Range(low=1),
     "checkpoint.save_top_k": Range(low=-1),
     "checkpoint.every_n_epochs": NonNegative,
     "checkpoint.every_n_train_steps": NonNegative,
 }
+
+
+#: occplug's own ``trainer.*`` keys, which are not ``lightning.Trainer`` arguments (the runner takes them out
+#: before building the Trainer): name -> annotation.
+TRAINER_EXTRAS: dict[str, Any] = {"checkpoint_every_n_steps": int | None}
 
 
 def _check_run_number(key: str, value: Any) -> None:
@@ -233,10 +239,13 @@ def _check_run_number(key: str, value: Any) -> None:
             raise ConfigError(f"{key}: expected {every}{kind} {rule.describe()}, got {_describe(value)}")
 
 
-def _validate_kwargs(value: Any, section: str, target: Any, skip: set[str]) -> None:
+def _validate_kwargs(
+    value: Any, section: str, target: Any, skip: set[str], extras: dict[str, Any] | None = None
+) -> None:
     if not isinstance(value, dict):
         raise ConfigError(f"{section}: expected a mapping, got {_describe(value)}")
     params = {k: v for k, v in component_params(target).items() if k not in skip}
+    params.update({k: (None, annotation) for k, annotation in (extras or {}).items()})
     for key, val in value.items():
         if key not in params:
             hint = closest(str(key), list(params))
@@ -320,7 +329,7 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
 
             check_logger_names(trainer["loggers"])
             trainer = {k: v for k, v in trainer.items() if k != "loggers"}
-        _validate_kwargs(trainer, "trainer", L.Trainer, {"callbacks", "logger", "default_root_dir"})
+        _validate_kwargs(trainer, "trainer", L.Trainer, {"callbacks", "logger", "default_root_dir"}, TRAINER_EXTRAS)
     if config.get("checkpoint") is not None:
         _validate_kwargs(config["checkpoint"], "checkpoint", ModelCheckpoint, {"dirpath"})
     if isinstance(config["model"], dict):  # query supervision on a head that cannot answer it

@@ -2,18 +2,24 @@
 
 from __future__ import annotations
 
-from collections.abc import Collection, Sequence
+import itertools
+import os
+import random
+from collections.abc import Collection, Iterator, Sequence
+from typing import Any
 
 import lightning as L
+import numpy as np
+import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 
 from occplug.geometry import GridSpec
 
 from .frame import Batch, FieldRule, Frame, FrameCollator
-from .sequences import SceneEvalSampler, StreamDataset, StreamRunSampler
+from .sequences import SceneEvalSampler, StreamDataset, StreamRunSampler, _dist_defaults
 
-__all__ = ["EvalShardSampler", "OccDataModule"]
+__all__ = ["EvalShardSampler", "OccDataModule", "ResumableLoader"]
 
 
 class OccDataModule(L.LightningDataModule):
@@ -57,6 +63,23 @@ class OccDataModule(L.LightningDataModule):
         self.required_fields: frozenset[str] | None = None
         # plugins' extra fields (occplug.data.extensions); undeclared extras are collated as lists
         self.field_rules: dict[str, FieldRule] = {}
+        self._train_loader: ResumableLoader | None = None
+        self._train_resume: dict[str, Any] | None = None
+
+    def state_dict(self) -> dict[str, Any]:
+        """The training loader's :meth:`~ResumableLoader.position` when a checkpoint is taken inside an
+        epoch (Lightning stores this in every checkpoint), else nothing."""
+        loader, trainer = self._train_loader, self.trainer
+        if loader is None or trainer is None or not 0 < loader.batches_done < trainer.num_training_batches:
+            return {}
+        return {"train_loader": loader.position()}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Resume the training loader inside its epoch (Lightning calls this before it asks for loaders)."""
+        self._train_resume = state_dict.get("train_loader")
+        if self._train_resume is not None and self._train_loader is not None:
+            self._train_loader.resume_at(self._train_resume)
+            self._train_resume = None
 
     def require_fields(self, fields: Collection[str]) -> None:
         """Declare the optional frame fields the model's components, metrics and callbacks read.
@@ -112,7 +135,11 @@ class OccDataModule(L.LightningDataModule):
                 batch_size = None  # it yields whole (shrinking) batches
         elif split in ("val", "test"):
             sampler = EvalShardSampler.for_current_process(dataset)
-        return DataLoader(
+        elif shuffle:  # a permutation per (seed, epoch), not the global RNG: a resumed epoch replays it
+            replicas, rank = _dist_defaults(None, None)
+            seed = int(os.environ.get("PL_GLOBAL_SEED", 0))
+            sampler, shuffle = DistributedSampler(dataset, replicas, rank, shuffle=True, seed=seed), False
+        loader = (ResumableLoader if split == "train" else DataLoader)(
             dataset,
             batch_size=batch_size,
             shuffle=shuffle,
@@ -122,6 +149,12 @@ class OccDataModule(L.LightningDataModule):
             persistent_workers=self.num_workers > 0,
             pin_memory=self.pin_memory,
         )
+        if isinstance(loader, ResumableLoader):
+            self._train_loader = loader
+            if self._train_resume is not None:
+                loader.resume_at(self._train_resume)
+                self._train_resume = None
+        return loader
 
     def train_dataloader(self) -> DataLoader[Batch]:
         return self._loader("train", shuffle=True)
@@ -165,3 +198,86 @@ class EvalShardSampler(DistributedSampler):
         if world < 2 or len(dataset) < world:  # type: ignore[arg-type]
             return None
         return cls(dataset, world, dist.get_rank())
+
+
+class ResumableLoader(DataLoader):
+    """A ``DataLoader`` that resumes mid-epoch where a checkpoint left it.
+
+    :meth:`position` is what a checkpoint stores (:meth:`OccDataModule.state_dict` carries it);
+    after :meth:`resume_at`, the next pass skips the batches already trained on *by index* (no sample is
+    loaded) and, right before fetching its first batch, restores the random-number generators (torch
+    CPU/CUDA, numpy, ``random``) to their state at the checkpoint. With a sampler whose order depends
+    only on ``(seed, epoch)`` (every occplug training sampler) and ``num_workers: 0``, the resumed pass
+    yields the very batches, and draws the very augmentations, the uninterrupted one would have.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.batches_done = 0  # batches handed out by the current pass
+        self._skip = 0  # batches the index iterator made next skips
+        self._resume: dict[str, Any] | None = None
+
+    @property
+    def _index_sampler(self) -> Any:  # torch builds every pass's index iterator from this
+        return _SkipFirst(super()._index_sampler, self)
+
+    def __iter__(self) -> Iterator[Any]:  # type: ignore[override]
+        self.batches_done = 0
+        return self._counted(super().__iter__())
+
+    def _counted(self, inner: Iterator[Any]) -> Iterator[Any]:
+        # Applied at the first next(), not in __iter__: Lightning makes the iterator before it restores
+        # a checkpoint (to count the steps of an epoch), and the loader draws a worker seed when it does.
+        if self._resume is not None:
+            resume, self._resume = self._resume, None
+            self._skip = int(resume["batches"])
+            inner = super().__iter__()  # a new index iterator, without the trained batches
+            self._skip = 0
+            self.batches_done = int(resume["batches"])
+            _set_rng_state(resume["rng"])
+        for batch in inner:
+            self.batches_done += 1
+            yield batch
+
+    def position(self) -> dict[str, Any]:
+        """``{"batches": batches of this pass handed out, "rng": generator states}`` (plain types and
+        tensors only, so checkpoints stay loadable with ``weights_only=True``)."""
+        return {"batches": self.batches_done, "rng": _rng_state()}
+
+    def resume_at(self, position: dict[str, Any]) -> None:
+        """Make the next pass continue after ``position["batches"]`` batches (see the class doc)."""
+        self._resume = dict(position)
+
+
+class _SkipFirst:
+    """An index sampler (or batch sampler) whose next iterator drops the loader's pending ``_skip`` items."""
+
+    def __init__(self, base: Any, loader: ResumableLoader) -> None:
+        self.base, self.loader = base, loader
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def __iter__(self) -> Iterator[Any]:
+        return itertools.islice(iter(self.base), self.loader._skip, None)  # lazy: nothing drawn before next()
+
+
+def _rng_state() -> dict[str, Any]:
+    kind, keys, pos, has_gauss, gauss = np.random.get_state()
+    state: dict[str, Any] = {
+        "torch": torch.get_rng_state(),
+        "numpy": [kind, keys.tolist(), pos, has_gauss, gauss],
+        "python": random.getstate(),
+    }
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def _set_rng_state(state: dict[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    kind, keys, pos, has_gauss, gauss = state["numpy"]
+    np.random.set_state((kind, np.asarray(keys, dtype=np.uint32), pos, has_gauss, gauss))
+    random.setstate(tuple(x if not isinstance(x, list) else tuple(x) for x in state["python"]))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
