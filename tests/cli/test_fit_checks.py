@@ -37,6 +37,7 @@ def fit_fails(tmp_path, capsys, *overrides: str) -> str:
             ["model.supervision.voxel_labels.weight=0.0"],
             "error: model.supervision: every loss weight is <= 0 (voxel_labels: 0)",
         ),
+        (["~model.heads.occupancy"], "error: model.heads.occupancy: the model evaluates through an occupancy head"),
     ],
 )
 def test_fit_refuses_models_that_train_nothing(tmp_path, capsys, overrides, expected):
