@@ -78,9 +78,10 @@ def _writable_parent(flag: str, path: Path) -> None:
         raise UsageError(f"{flag} {path}: cannot write in {parent} (permission denied)")
 
 
-def output_dir(flag: str, value: str | Path, empty: bool = False) -> Path:
+def output_dir(flag: str, value: str | Path, empty: bool = False, make_parents: bool = False) -> Path:
     """A folder to write into: an existing folder (``empty``: without entries) or a new one in an
-    existing, writable folder."""
+    existing, writable folder; with ``make_parents`` (run directories, like the default ``runs/<time>``)
+    missing parent folders are created too, below the nearest existing, writable folder."""
     path = Path(value)
     if path.exists():
         if not path.is_dir():
@@ -89,6 +90,14 @@ def output_dir(flag: str, value: str | Path, empty: bool = False) -> Path:
             raise UsageError(f"{flag} {path}: cannot write in it (permission denied)")
         if empty and any(path.iterdir()):
             raise UsageError(f"{flag} {path}: the folder exists and is not empty")
+        return path
+    if make_parents:
+        blocker = _blocking_file(path.absolute())
+        if blocker is not None:
+            raise UsageError(f"{flag} {path}: {blocker} is a file, not a folder")
+        existing = next(p for p in path.absolute().parents if p.exists())
+        if not os.access(existing, os.W_OK | os.X_OK):
+            raise UsageError(f"{flag} {path}: cannot write in {existing} (permission denied)")
         return path
     _writable_parent(flag, path)
     return path

@@ -48,7 +48,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.resume:
         check.input_dir("--resume", args.resume)
     elif args.run_dir:
-        check.output_dir("--run-dir", args.run_dir)
+        check.output_dir("--run-dir", args.run_dir, make_parents=True)
     try:
         if args.resume:
             run_dir = Path(args.resume)

@@ -19,11 +19,12 @@ BASELINE = str(ROOT / "configs" / "baseline.yaml")
 
 # What each argument expects: an input folder / file / either, an output folder / file, or a -c config.
 IN_DIR, IN_FILE, IN_ANY, OUT_DIR, OUT_FILE, CONFIG = "in_dir", "in_file", "in_any", "out_dir", "out_file", "config"
+RUN_DIR = "run_dir"  # an output folder whose missing parents are created (as the default runs/<time> is)
 
 #: (command line with {P} for the bad path, {DIR} for a good empty folder, {FILE} for a good file; what {P} is)
 ARGUMENTS: list[tuple[str, str]] = [
     ("fit -c {P}", CONFIG),
-    ("fit -c BASELINE --run-dir {P}", OUT_DIR),
+    ("fit -c BASELINE --run-dir {P}", RUN_DIR),
     ("fit --resume {P}", IN_DIR),
     ("fit -c BASELINE -c occplug/data/occ3d_nuscenes data.root={P} --run-dir {DIR}/run", IN_DIR),
     ("fit -c BASELINE -c occplug/data/semantickitti data.root={P} --run-dir {DIR}/run", IN_DIR),
@@ -69,6 +70,7 @@ KINDS = {
     IN_ANY: ("below_a_file", "missing_parent"),
     CONFIG: ("a_folder", "below_a_file", "missing_parent"),
     OUT_DIR: ("a_file", "below_a_file", "missing_parent", "unwritable"),
+    RUN_DIR: ("a_file", "below_a_file", "unwritable"),
     OUT_FILE: ("a_folder", "below_a_file", "missing_parent", "unwritable"),
 }
 
@@ -163,3 +165,12 @@ def test_good_paths_pass_and_come_back():
     assert paths.input_file("-c", BASELINE) == Path(BASELINE)
     assert paths.output_file("--json", ROOT / "new.json") == ROOT / "new.json"
     paths.config_refs([BASELINE, "occplug/data/synthetic"])
+
+
+def test_a_run_directory_gets_its_missing_parents(tmp_path):
+    """``fit --run-dir runs/smoke`` works in a fresh clone, where ``runs/`` does not exist yet."""
+    from occplug.cli import paths
+
+    target = tmp_path / "runs" / "deeper" / "smoke"
+    assert paths.output_dir("--run-dir", target, make_parents=True) == target
+    assert not (tmp_path / "runs").exists()  # checked, not created: fit creates it once everything is built
