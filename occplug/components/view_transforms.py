@@ -192,7 +192,7 @@ class LSSViewTransform(ViewTransform):
     def voxel_index(self, batch: Batch, h: int, w: int) -> Tensor:
         """``(B, N, D, h, w)`` int64 flat voxel index (:func:`voxel_flat_index`) of every frustum point, -1 outside."""
         with _no_autocast(self.depth_centers.device):
-            points = frustum_points(batch, h, w, self.image_stride, self.depth_centers)
+            points = frustum_points(batch, h, w, self.image_stride, self.depth_centers, dtype=torch.float64)
             return voxel_flat_index(points, self.grid)
 
     def splat_plans(self, batch: Batch, h: int, w: int) -> list[SplatPlan]:

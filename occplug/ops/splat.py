@@ -65,7 +65,7 @@ __all__ = [
     "splat_points",
 ]
 
-#: A point -> cell hook: ``(..., 3)`` float32 ego-frame points to ``(..., 3)`` int64 ``(i, j, k)``
+#: A point -> cell hook: ``(..., 3)`` float64 ego-frame points to ``(..., 3)`` int64 ``(i, j, k)``
 #: cells of the target grid; cells outside ``[0, X) x [0, Y) x [0, Z)`` are dropped.
 PointToIndex = Callable[[Tensor], Tensor]
 
@@ -483,7 +483,9 @@ def _depths_per_camera(depths: Tensor, b: int, n: int) -> Tensor:
     return depths.float().expand(b, n, depths.shape[-1])
 
 
-def frustum_points(batch: Any, h: int, w: int, stride: int, depths: Tensor) -> Tensor:
+def frustum_points(
+    batch: Any, h: int, w: int, stride: int, depths: Tensor, dtype: torch.dtype = torch.float32
+) -> Tensor:
     """Ego-frame points of every feature cell centre at every depth.
 
     Args:
@@ -492,21 +494,24 @@ def frustum_points(batch: Any, h: int, w: int, stride: int, depths: Tensor) -> T
         h, w: feature map size; stride: pixels per feature cell.
         depths: camera-frame z values, metres: ``(D,)`` for every camera, ``(N, D)`` per camera or
             ``(B, N, D)`` per sample and camera.
+        dtype: what the unprojection computes in. Voxel assignment uses float64: in float32 a
+            point within an ulp of a voxel face lands on either side depending on the matmul
+            kernel, so an exported graph (another runtime, another CPU) could move it.
 
     Returns:
-        ``(B, N, D, h, w, 3)`` float32 ego-frame points: cell ``(r, c)``'s centre
+        ``(B, N, D, h, w, 3)`` ``dtype`` ego-frame points: cell ``(r, c)``'s centre
         (:func:`feature_cell_centers`) unprojected through ``img_aug @ intrinsics`` at depth ``depths[..., d]``.
     """
     b, n = batch.cam_to_ego.shape[:2]
     z = _depths_per_camera(depths, b, n)
     d = z.shape[-1]
-    uv = feature_cell_centers(h, w, stride, device=depths.device).expand(d, h, w, 2).reshape(1, 1, -1, 2)
+    uv = feature_cell_centers(h, w, stride, device=depths.device).to(dtype).expand(d, h, w, 2).reshape(1, 1, -1, 2)
     pts = unproject_from_image(
         uv.expand(b, n, -1, 2),
-        z[..., None, None].expand(b, n, d, h, w).reshape(b, n, -1),
-        batch.intrinsics.float(),
-        batch.cam_to_ego.float(),
-        batch.img_aug.float(),
+        z.to(dtype)[..., None, None].expand(b, n, d, h, w).reshape(b, n, -1),
+        batch.intrinsics.to(dtype),
+        batch.cam_to_ego.to(dtype),
+        batch.img_aug.to(dtype),
     )
     return pts.view(b, n, d, h, w, 3)
 
@@ -527,7 +532,7 @@ class FrustumSplatter:
 
     A frustum point is a feature cell ``(r, c)`` of camera ``n`` at depth centre ``d``: the cell
     centre (:func:`feature_cell_centers`) unprojected through ``img_aug @ intrinsics`` and
-    ``cam_to_ego`` (:func:`frustum_points`). ``point_to_index`` maps it to a cell ``(i, j, k)`` of
+    ``cam_to_ego`` (:func:`frustum_points`, in float64). ``point_to_index`` maps it to a cell ``(i, j, k)`` of
     ``grid`` (default: :meth:`GridSpec.coord_to_index`, which contracts x and y on a contracted
     grid, so far points land in the border cells); cells outside the grid are dropped. For a BEV
     target the cells ``(i, j, k)`` of one column sum into BEV cell ``(i, j)`` (``k`` must still
@@ -604,7 +609,7 @@ class FrustumSplatter:
         The flat cell is ``(i*Y + j)*Z + k`` (3D) or ``i*Y + j`` (BEV), the layout of :attr:`out_shape`.
         """
         with _no_autocast(depths.device):
-            points = frustum_points(batch, h, w, self.image_stride, depths)
+            points = frustum_points(batch, h, w, self.image_stride, depths, dtype=torch.float64)
             hook = self._point_to_index or self.grid.coord_to_index
             idx = hook(points)
             _, y, z = self.grid.shape

@@ -404,3 +404,33 @@ def test_a_point_1km_away_lands_in_the_outer_cell_of_a_contracted_grid() -> None
     far = FrustumSplatter(coarse, 8, bev=True).splat_points(feats, batch, torch.tensor([10.0, 1e3, 1e6]))[0, 0]
     assert far.shape == (100, 100) and far[56, 50] == 1.0 and far[99, 50] == 10.0 + 100.0 and far.sum() == 111.0
     assert FrustumSplatter(metric, 8).splat_points(feats, batch, depths)[0, 0].sum() == 11.0
+
+
+def test_voxel_assignment_does_not_depend_on_the_matmul_kernel() -> None:
+    """Cells equal an exact reference computed another way (float64, ``solve`` instead of an inverse).
+
+    Exported graphs run the same geometry on other kernels (onnxruntime, another CPU); in float32 a
+    point within an ulp of a voxel face changes side with the summation order, which moved logits
+    by ~5e-4 in an ONNX parity check. The splatter unprojects in float64, so no point lies that close.
+    """
+    batch = random_batch(4, 3, seed=11)
+    depths = torch.arange(1.0, 21.0, 0.125)  # 160 depths x every pixel x 12 cameras: ~3.9 M points
+    splatter = FrustumSplatter(GRID, 1)
+    got = splatter.cell_index(batch, H, W, depths)
+
+    b, n = batch.cam_to_ego.shape[:2]
+    k = (batch.img_aug.double() @ batch.intrinsics.double()).view(b, n, 1, 3, 3)
+    v, u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    uv1 = torch.stack([u, v, torch.ones_like(u)], -1).double().view(1, 1, -1, 3, 1)
+    rays = torch.linalg.solve(k, uv1)[..., 0]  # (B, N, hw, 3)
+    cam = rays[:, :, None] / rays[:, :, None, :, 2:] * depths.double().view(1, 1, -1, 1, 1)  # (B, N, D, hw, 3)
+    pose = batch.cam_to_ego.double().view(b, n, 1, 1, 4, 4)
+    ego = (pose[..., :3, :3] @ cam[..., None])[..., 0] + pose[..., :3, 3]
+    lower = torch.tensor(GRID.lower, dtype=torch.float64)
+    idx = torch.floor((ego - lower) / torch.tensor(GRID.voxel_size, dtype=torch.float64)).long()
+    shape = torch.tensor(GRID.shape)
+    inside = ((idx >= 0) & (idx < shape)).all(-1)
+    flat = (idx[..., 0] * shape[1] + idx[..., 1]) * shape[2] + idx[..., 2]
+    want = torch.where(inside, flat, torch.full_like(flat, -1)).view_as(got)
+    assert 0.05 < float(inside.double().mean()) < 0.95
+    assert int((got != want).sum()) == 0
