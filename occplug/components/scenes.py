@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
+import torch
 from torch import nn
 
 from occplug.constraints import NonNegative, Positive
@@ -55,4 +56,6 @@ class DenseVoxels(SceneRepresentation):
             raise ValueError(
                 f"dense_voxels: volume {tuple(volume.shape)} does not match its grid shape {lifted.grid.shape}"
             )
-        return DenseVoxelScene(self.blocks(self.stem(volume)), lifted.grid)
+        # channels-last: oneDNN's 3D convolutions (forward and backward) run ~20 % faster that way on CPU
+        features = self.blocks(self.stem(volume.contiguous(memory_format=torch.channels_last_3d)))
+        return DenseVoxelScene(features.contiguous(), lifted.grid)

@@ -373,6 +373,27 @@ def test_cache_hit_returns_identical_frames(tmp_path, monkeypatch):
     assert_frames_equal(ds[1], first)
 
 
+def test_parallel_pregeneration_writes_the_frames_serial_generation_makes(tmp_path, monkeypatch):
+    """Two spawned workers, one torch thread each: the cache holds exactly the serial frames."""
+    config = TINY.replace(train_scenes=3)
+    monkeypatch.setattr(dataset_module, "PARALLEL_MIN_FRAMES", 1)
+    ds = SyntheticDataset(config, "train", cache_dir=tmp_path)
+    assert ds.pregenerate(progress=False, workers=2) == 9
+    assert ds.pregenerate(progress=False, workers=2) == 0  # everything cached: nothing to do
+    files = sorted(p.name for p in ds.cache_root.iterdir())
+    assert files == [f"{s:04d}-{f:03d}.pt" for s in range(3) for f in range(3)]
+    serial = SyntheticDataset(config, "train", cache_dir=None)
+    for i in range(len(ds)):
+        assert_frames_equal(ds[i], serial[i])
+
+
+@pytest.mark.parametrize("value", ["0", "two", "-1"])
+def test_bad_world_workers_is_one_line(monkeypatch, value):
+    monkeypatch.setenv("OCCPLUG_WORLD_WORKERS", value)
+    with pytest.raises(ValueError, match=f"OCCPLUG_WORLD_WORKERS: expected a whole number >= 1, got '{value}'"):
+        dataset_module.generation_workers()
+
+
 def test_cache_key_ignores_selection_knobs_only():
     assert TINY.replace(train_scenes=9, adjacent_offsets=(-1,)).cache_key() == TINY.cache_key()
     assert TINY.replace(image_size=(16, 32)).cache_key() != TINY.cache_key()
@@ -406,8 +427,11 @@ def test_datamodule_resolves_knobs_and_serves_batches(tmp_path, monkeypatch):
     assert batch.images.shape == (2, 2, 3, 16, 32) and batch.voxel_labels.shape == (2, 20, 20, 8)
     assert dm.dataset("predict")[0].token == dm.dataset("val")[0].token
     assert len(list((tmp_path / "synthetic" / cfg.cache_key() / "train").glob("*.pt"))) == 2
-    dm.prepare_data()  # fills the rest of the cache
-    assert len(list((tmp_path / "synthetic" / cfg.cache_key()).rglob("*.pt"))) == 2 * 2 + 1 * 2 + 1 * 2
+    dm.prepare_data()  # fills the rest of the train and val cache; a fit never reads the test split
+    root = tmp_path / "synthetic" / cfg.cache_key()
+    assert len(list(root.rglob("*.pt"))) == 2 * 2 + 1 * 2 and not (root / "test").exists()
+    dm.setup("test")
+    assert len(list((root / "test").glob("*.pt"))) == 1 * 2
 
 
 def test_unknown_preset_names_the_valid_ones():

@@ -13,7 +13,7 @@ from occplug.data.frame import Frame
 from occplug.data.pipeline import PipelineDataset, ReaderDataModule
 from occplug.data.sequences import SceneIndex
 
-from .config import SPLITS, SyntheticWorldConfig
+from .config import SyntheticWorldConfig
 from .config import preset as get_preset
 from .dataset import SyntheticDataset, default_cache_dir
 
@@ -25,8 +25,8 @@ class SyntheticDataModule(ReaderDataModule):
 
     Every size knob defaults to ``None``, meaning the preset's value. The ``predict`` split reads
     the ``val`` scenes. Frames are generated on first use and cached on disk (see
-    :class:`~occplug.data.synthetic.SyntheticDataset`); :meth:`prepare_data` generates them all up
-    front with a progress bar.
+    :class:`~occplug.data.synthetic.SyntheticDataset`); :meth:`prepare_data` generates the training and
+    validation splits up front (in parallel processes, with a progress bar); ``setup("test")`` the test split.
 
     Args:
         preset: ``tiny`` (tests), ``default`` (a CPU run of minutes), ``occ3d`` (Occ3D size) or
@@ -144,15 +144,27 @@ class SyntheticDataModule(ReaderDataModule):
         return super().sampler(split, dataset)
 
     def prepare_data(self) -> None:
-        """Generate and cache every frame of every split that is not cached yet (no-op without cache)."""
+        """Generate and cache the train and val frames not cached yet (no-op without cache).
+
+        The test split is left to ``setup("test")``: a ``fit`` never reads it.
+        """
+        for split in ("train", "val"):
+            self.pregenerate(split)
+
+    def setup(self, stage: str) -> None:
+        """Before ``test``, generate the test split the way :meth:`prepare_data` does the others."""
+        if stage == "test":
+            self.pregenerate("test")
+
+    def pregenerate(self, split: str) -> None:
+        """Generate and cache every frame of ``split`` not cached yet (no-op without cache)."""
         if self.cache_dir is None:
             return
-        for split in SPLITS:
-            dataset = self.dataset(split)
-            if isinstance(dataset, PipelineDataset):
-                dataset = dataset.base
-            assert isinstance(dataset, SyntheticDataset)
-            dataset.pregenerate(progress=True)
+        dataset = self.dataset(split)
+        if isinstance(dataset, PipelineDataset):
+            dataset = dataset.base
+        assert isinstance(dataset, SyntheticDataset)
+        dataset.pregenerate(progress=True)
 
 
 def _realism(spec: object, config: SyntheticWorldConfig) -> object:
