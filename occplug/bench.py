@@ -453,7 +453,7 @@ def _serve(job: dict[str, Any], answer: Callable[[dict[str, Any]], None]) -> Non
     if job["ckpt"]:
         dm, model = runner._restore(cfg, runner.load_checkpoint(Path(job["ckpt"])), Path(job["ckpt"]))
     else:
-        dm, model = runner._build(cfg)
+        dm, model = runner.build_run(cfg)
     dataset = dm.dataset("val")
     count = min(int(job["batch_size"]), len(dataset))
     batch = dm.collate([dataset[i] for i in range(count)]).to(device)

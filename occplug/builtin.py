@@ -24,6 +24,7 @@ def occplug_register_components(registry: Registry) -> None:
     from .data.nuscenes.reader import Occ3DNuScenesDataModule
     from .data.semantickitti.reader import SemanticKITTIDataModule
     from .data.synthetic import SyntheticDataModule
+    from .data.teacher_labels import TeacherPseudoLabels
     from .metrics import Occ3DMIoU, RayIoU, SSCMetrics
     from .model import OccModel
     from .viz.callback import BevPanelLogger
@@ -48,6 +49,7 @@ def occplug_register_components(registry: Registry) -> None:
     registry.add("metric", "ssc", SSCMetrics)
     registry.add("model", "occ_model", OccModel)
     registry.add("callback", "bev_panel_logger", BevPanelLogger)
+    registry.add("label_source", "teacher_pseudo_labels", TeacherPseudoLabels)
 
 
 @hookimpl

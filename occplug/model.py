@@ -245,27 +245,39 @@ class OccModel(OccupancyModel):
         return outputs
 
     def occupancy_from(self, outputs: I.ModelOutputs) -> Tensor:
-        """``(B, X, Y, Z)`` int64 class ids on the evaluation grid from a forward pass's outputs.
+        """``(B, X, Y, Z)`` int64 class ids on the evaluation grid from a forward pass's outputs
+        (the occupancy head's :meth:`logits_on_grid`)."""
+        return self.logits_on_grid(outputs, self.occupancy_head).argmax(dim=1)
 
-        An occupancy head's forward ``logits`` live on the scene's grid: where that is the
-        evaluation grid they are used as they are (no second pass, and a head that reads other
-        heads is evaluated exactly as it trained); otherwise the head answers
-        ``occupancy_logits`` at the evaluation grid's voxel centres.
+    def logits_on_grid(self, outputs: I.ModelOutputs, head_name: str) -> Tensor:
+        """``(B, K, X, Y, Z)`` logits of head ``head_name`` on the evaluation grid from a forward pass's outputs.
+
+        A head's forward ``logits`` live on the scene's grid: where that is the evaluation grid they
+        are used as they are (no second pass, and a head that reads other heads is evaluated exactly as
+        it trained); otherwise an occupancy head answers ``occupancy_logits`` at the evaluation grid's
+        voxel centres.
         """
-        head = self.heads[self.occupancy_head]
-        logits = outputs.heads[self.occupancy_head].get("logits")
+        if head_name not in self.heads:
+            raise ValueError(f"model.heads has no head '{head_name}' (heads: {', '.join(self.heads)})")
+        head = self.heads[head_name]
+        logits = outputs.heads[head_name].get("logits")
         if (
             logits is not None
             and getattr(outputs.scene, "grid", None) == self.grid
             and tuple(logits.shape[2:]) == self.grid.shape
         ):
-            return logits.argmax(dim=1)
-        if getattr(head, "reads", ()) or getattr(head, "reads_outputs", False):
+            return logits
+        if getattr(head, "reads", ()) or getattr(head, "reads_outputs", False) or not isinstance(head, I.OccupancyHead):
             raise ValueError(
-                f"model.heads.{self.occupancy_head} reads other outputs, so it is evaluated from its forward logits, "
-                f"which must lie on the evaluation grid {self.grid.shape}; got {tuple(logits.shape[2:]) if logits is not None else 'none'}"
+                f"model.heads.{head_name} is evaluated from its forward logits, which must lie on the evaluation grid "
+                f"{self.grid.shape}; got {tuple(logits.shape[2:]) if logits is not None else 'none'}"
             )
-        return head.occupancy_logits(outputs.scene, self.grid).argmax(dim=1)
+        return head.occupancy_logits(outputs.scene, self.grid)
+
+    @torch.no_grad()
+    def head_logits(self, batch: Batch, head: str) -> Tensor:
+        """``(B, K, X, Y, Z)`` logits of head ``head`` on the evaluation grid (teacher pseudo labels read this)."""
+        return self.logits_on_grid(self(batch), head)
 
     @torch.no_grad()
     def predict_occupancy(self, batch: Batch) -> Tensor:
@@ -369,7 +381,8 @@ class OccModel(OccupancyModel):
             notice = batch_notice(spec, self.effective_batch)
             if notice:
                 print(notice, file=sys.stderr)
-        optimizer = build_optimizer(self.parameters(), spec, self.effective_batch)
+        trainable = [p for p in self.parameters() if p.requires_grad]  # frozen phases leave some out
+        optimizer = build_optimizer(trainable, spec, self.effective_batch)
         total = int(self.trainer.estimated_stepping_batches) if self.trainer is not None else 1
         scheduler = build_scheduler(optimizer, self.hparams.get("scheduler"), max(total, 1))
         if scheduler is None:

@@ -24,7 +24,7 @@ import math
 import os
 import tempfile
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -50,6 +50,7 @@ __all__ = [
     "AtomicCheckpointIO",
     "build_datamodule",
     "build_model",
+    "build_run",
     "Evaluation",
     "evaluate",
     "fit",
@@ -185,6 +186,7 @@ def run_info(cfg: dict[str, Any], model: OccupancyModel, dm: OccDataModule) -> d
         "class_names": list(dm.class_names),
         "grid": dm.grid.to_dict() if cfg.get("grid") is None else dict(cfg["grid"]),
         "masks": mask_settings(cfg, model),
+        "labels": dm.label_cut.describe(),
         "plugins": versions,
         "components": [
             {
@@ -382,13 +384,32 @@ def default_run_dir(refs: Sequence[str]) -> Path:
     return Path("runs") / f"{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{stem}"
 
 
-def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, float]:
+def fit(
+    cfg: dict[str, Any],
+    run_dir: Path,
+    resume: bool = False,
+    setup: Callable[[OccupancyModel], None] | None = None,
+    callbacks: Sequence[Callback] = (),
+) -> dict[str, float]:
     """Train per ``cfg`` into ``run_dir``; return the final validation metrics.
 
     Everything is built before anything is written, so a configuration mistake leaves no
     half-made run directory. Under a multi-process strategy (e.g. ``trainer.strategy=ddp``) every
-    rank runs this function; only global rank 0 checks and writes ``run_dir``.
+    rank runs this function; only global rank 0 checks and writes ``run_dir``. A config with
+    ``phases:`` runs them in order (:func:`occplug.phases.fit_phases`).
+
+    Args:
+        cfg: the resolved config.
+        run_dir: the run directory.
+        resume: continue from ``run_dir/checkpoints/last.ckpt``.
+        setup: called with the built model before anything runs (a phase loads earlier weights and
+            freezes parameters here).
+        callbacks: further Lightning callbacks.
     """
+    if cfg.get("phases") is not None:
+        from occplug.phases import fit_phases
+
+        return fit_phases(cfg, Path(run_dir), resume=resume)
     run_dir = Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
     last = ckpt_dir / "last.ckpt"
@@ -401,8 +422,10 @@ def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, f
             )
         os.environ[RUN_DIR_ENV] = str(run_dir.absolute())  # inherited by the ranks a DDP launcher starts
     L.seed_everything(int(cfg.get("seed", 0)), workers=True, verbose=False)
-    dm, model = _build(cfg)
+    dm, model = build_run(cfg)
     check_trainable(model)
+    if setup is not None:
+        setup(model)
     first_batch_check(model, dm)
     info = _RunInfoCallback(run_info(cfg, model, dm))
     steps = step_checkpoint(cfg, ckpt_dir)
@@ -412,8 +435,7 @@ def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, f
         logger = build_loggers((cfg.get("trainer") or {}).get("loggers"), run_dir)
     except UserError as exc:
         raise RunError(str(exc)) from None
-    callbacks = [checkpoint, *steps, info]
-    trainer = _trainer(cfg, run_dir, callbacks, logger, train_batches=train_batches_per_epoch(cfg, dm))
+    trainer = _trainer(cfg, run_dir, [checkpoint, *steps, info, *callbacks], logger, train_batches=train_batches_per_epoch(cfg, dm))
     if trainer.is_global_zero:
         run_dir.mkdir(parents=True, exist_ok=True)
         write_text_atomic(
@@ -442,6 +464,7 @@ def fit(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, f
             if batch is None
             else {"devices": batch.devices, "per_device": batch.per_device, "accumulation": batch.accumulation},
             "lr": model.effective_lr,
+            **dm.label_cut.describe(),
         }
         write_json(run_dir / "metrics.json", payload)
         print_tables(model.last_tables, masks)
@@ -536,7 +559,7 @@ def check_checkpoint_plugins(info: dict[str, Any], path: Path) -> None:
             )
 
 
-def _build(cfg: dict[str, Any]) -> tuple[OccDataModule, OccupancyModel]:
+def build_run(cfg: dict[str, Any]) -> tuple[OccDataModule, OccupancyModel]:
     """Data module and model, the data module told which optional fields the model reads.
 
     A component rejecting its arguments, or a data file the model needs being missing, is a
@@ -625,7 +648,7 @@ def callback_requirements(cfg: dict[str, Any]) -> set[str]:
 
 
 def _restore(cfg: dict[str, Any], ckpt: dict[str, Any], path: Path) -> tuple[OccDataModule, OccupancyModel]:
-    dm, model = _build(cfg)
+    dm, model = build_run(cfg)
     try:
         model.load_state_dict(ckpt["state_dict"])
     except (KeyError, RuntimeError) as exc:

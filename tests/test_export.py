@@ -151,7 +151,7 @@ def test_stateful_model_is_refused():
         [str(ROOT / "configs" / "baseline.yaml"), "occplug/trainer/debug"],
         ["data.preset=tiny", "data.sequential=true", "model.scene.type=dense_voxels_history"],
     )
-    _, model = runner._build(cfg)
+    _, model = runner.build_run(cfg)
     with pytest.raises(ex.ExportError) as err:
         ex.check_exportable(model)
     assert str(err.value) == (

@@ -236,7 +236,7 @@ def test_stateful_model_needs_sequential_data(tmp_path, capsys):
 def test_sanity_check_and_mid_epoch_validation_leave_the_training_stream_alone():
     import lightning as L
 
-    from occplug.runner import _build, load_config
+    from occplug.runner import build_run, load_config
 
     cfg = load_config(
         [BASELINE],
@@ -249,7 +249,7 @@ def test_sanity_check_and_mid_epoch_validation_leave_the_training_stream_alone()
             "data.batch_size=1",
         ],
     )
-    dm, model = _build(cfg)
+    dm, model = build_run(cfg)
     state = model.scene.history
     seen = []
     original = state.get

@@ -7,6 +7,7 @@ import argparse
 import yaml
 
 from occplug.config import compose, validate
+from occplug.config.phases import PHASE_KEYS, phase_specs
 from occplug.plugins import get_registry
 
 from . import add_config_args
@@ -46,6 +47,11 @@ def cmd_show(args: argparse.Namespace) -> int:
             print(f"{k}: set by {origin}")
         return 0
     print(yaml.safe_dump(resolved, sort_keys=False, default_flow_style=None), end="")
+    specs = phase_specs(resolved)
+    for i, spec in enumerate(specs, 1):  # each phase's whole config, as fit runs it
+        own = {k: spec.overlay[k] for k in PHASE_KEYS if k in spec.overlay}
+        print(f"---\n# phase {i}/{len(specs)}: {spec.name}" + (f" ({yaml.safe_dump(own, default_flow_style=True).strip()})" if own else ""))
+        print(yaml.safe_dump(spec.config, sort_keys=False, default_flow_style=None), end="")
     return 0
 
 

@@ -288,6 +288,8 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
 
     if not isinstance(config, dict):
         raise ConfigError("a config must be a mapping")
+    if config.get("phases") is not None:
+        return _validate_phases(config, registry)
     for key in config:
         if key not in TOP_LEVEL:
             hint = closest(str(key), list(TOP_LEVEL))
@@ -337,6 +339,19 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
 
         check_query_config(config["model"], registry)
     return v.used
+
+
+def _validate_phases(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
+    """Validate the run's config without its phases, then each phase's config (errors name the phase)."""
+    from .phases import phase_specs
+
+    used = validate({k: v for k, v in config.items() if k != "phases"}, registry)
+    for spec in phase_specs(config):
+        try:
+            validate(spec.config, registry)
+        except ConfigError as exc:
+            raise ConfigError(f"phases.{spec.name}: {exc}") from None
+    return used
 
 
 def _validate_lr_scaling(args: dict[str, Any]) -> None:

@@ -17,6 +17,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 from occplug.geometry import GridSpec
 
 from .frame import Batch, FieldRule, Frame, FrameCollator
+from .label_fraction import LabelCut, SubsetDataset
 from .sequences import SceneEvalSampler, StreamDataset, StreamRunSampler, _dist_defaults
 
 __all__ = ["EvalShardSampler", "OccDataModule", "ResumableLoader"]
@@ -41,6 +42,8 @@ class OccDataModule(L.LightningDataModule):
             through :meth:`require_fields` (None until then = unknown: every field is loaded).
         field_rules: collate rules of extra per-sample fields (``Frame.extras``), used by the loaders
             and :meth:`collate`.
+        label_cut: the training split's label fraction and subset (:mod:`occplug.data.label_fraction`);
+            a subclass that takes ``label_fraction`` / ``subset`` sets it.
     """
 
     def __init__(
@@ -65,6 +68,7 @@ class OccDataModule(L.LightningDataModule):
         self.field_rules: dict[str, FieldRule] = {}
         self._train_loader: ResumableLoader | None = None
         self._train_resume: dict[str, Any] | None = None
+        self.label_cut = LabelCut()
 
     def state_dict(self) -> dict[str, Any]:
         """The training loader's :meth:`~ResumableLoader.position` when a checkpoint is taken inside an
@@ -104,10 +108,25 @@ class OccDataModule(L.LightningDataModule):
         raise NotImplementedError
 
     def dataset(self, split: str) -> Dataset[Frame]:
-        """The (cached) dataset of ``split``."""
+        """The (cached) dataset of ``split``; the training split cut by :attr:`label_cut`."""
         if split not in self._datasets:
-            self._datasets[split] = self.build_dataset(split)
+            dataset = self.build_dataset(split)
+            if split == "train" and self.label_cut.active:
+                dataset = self._cut(dataset)
+            self._datasets[split] = dataset
         return self._datasets[split]
+
+    def _cut(self, dataset: Dataset[Frame]) -> Dataset[Frame]:
+        if not hasattr(dataset, "unlabelled"):
+            raise ValueError(
+                f"data.label_fraction: {type(self).__name__}'s training set ({type(dataset).__name__}) cannot hide "
+                "voxel labels (it has no 'unlabelled' attribute; see occplug.data.pipeline.PipelineDataset)"
+            )
+        n = len(dataset)  # type: ignore[arg-type]
+        dataset.unlabelled = self.label_cut.unlabelled(n)  # type: ignore[attr-defined]
+        if self.label_cut.subset == "all":
+            return dataset
+        return SubsetDataset(dataset, self.label_cut.selected(n))
 
     #: Copy batches into pinned (page-locked) memory in the loader, for faster host-to-GPU copies.
     pin_memory: bool = False

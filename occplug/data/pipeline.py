@@ -36,6 +36,7 @@ from .augment import Augmentation, ImageTransform, apply_image_transforms
 from .datamodule import OccDataModule
 from .extensions import DataExtensions
 from .frame import Frame
+from .label_fraction import LabelCut, strip_voxel_labels
 from .pseudo_labels import PseudoLabelSource
 from .records import read_frame, save_frame
 from .sequences import SceneIndex, stream_sampler
@@ -99,11 +100,14 @@ class FramePipeline:
         augment: training augmentation, or None.
         label_sources: further labelers (``attach(frame) -> frame``), run after ``pseudo`` in order.
         transforms: callables ``frame -> frame`` run last, in order.
+        strip_fill: with a label fraction, the ignore label that first overwrites the voxel labels of
+            every frame marked ``has_voxel_labels = False`` (before any label source), else None.
     """
 
     def __init__(self, image_size: Sequence[int] | None = None, pseudo: PseudoLabeler | None = None,
                  augment: Augmentation | None = None, label_sources: Sequence[PseudoLabeler] = (),
-                 transforms: Sequence[Callable[[Frame], Frame]] = ()) -> None:
+                 transforms: Sequence[Callable[[Frame], Frame]] = (), strip_fill: int | None = None) -> None:
+        self.strip_fill = strip_fill
         self.image_size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
         self.pseudo = pseudo
         self.augment = augment if augment is not None and augment.active else None
@@ -114,10 +118,12 @@ class FramePipeline:
     def active(self) -> bool:
         """Whether the pipeline changes frames at all."""
         return (self.image_size is not None or self.pseudo is not None or self.augment is not None
-                or bool(self.label_sources) or bool(self.transforms))
+                or bool(self.label_sources) or bool(self.transforms) or self.strip_fill is not None)
 
     def prepare(self, frame: Frame) -> Frame:
         """Steps 1-2 on one frame (not its adjacent frames)."""
+        if self.strip_fill is not None and not frame.has_voxel_labels:
+            frame = strip_voxel_labels(frame, self.strip_fill)
         if self.pseudo is not None:
             frame = self.pseudo.attach(frame)
         for source in self.label_sources:
@@ -159,6 +165,7 @@ class ReaderDataset(Dataset[Frame]):
         self.scenes = scenes
         self.offsets = tuple(int(k) for k in offsets)
         self.pipeline = pipeline
+        self.unlabelled: frozenset[int] = frozenset()  # set by data.label_fraction (OccDataModule.dataset)
         self.cache_root: Path | None = None
         if cache_dir is not None:
             digest = hashlib.sha256(json.dumps(cache_key or {}, sort_keys=True, default=str).encode()).hexdigest()[:16]
@@ -197,7 +204,17 @@ class ReaderDataset(Dataset[Frame]):
         frame = self.frame(index)
         for k in self.offsets:
             frame.adjacent[k] = self.frame(self.scenes.neighbour(index, k))
+        mark_labelled(frame, index, self.scenes, self.unlabelled)
         return self.pipeline(frame) if self.pipeline is not None and self.pipeline.active else frame
+
+
+def mark_labelled(frame: Frame, index: int, scenes: SceneIndex, unlabelled: frozenset[int]) -> None:
+    """Set ``has_voxel_labels`` of item ``index`` and of its adjacent frames from the hidden items."""
+    if not unlabelled:
+        return
+    frame.has_voxel_labels = index not in unlabelled
+    for k, adjacent in frame.adjacent.items():
+        adjacent.has_voxel_labels = scenes.neighbour(index, k) not in unlabelled
 
 
 class PipelineDataset(Dataset[Frame]):
@@ -213,12 +230,15 @@ class PipelineDataset(Dataset[Frame]):
         self.base = base
         self.scenes = scenes
         self.pipeline = pipeline
+        self.unlabelled: frozenset[int] = frozenset()  # set by data.label_fraction (OccDataModule.dataset)
 
     def __len__(self) -> int:
         return len(self.base)  # type: ignore[arg-type]
 
     def __getitem__(self, index: int) -> Frame:
-        return self.pipeline(self.base[index])
+        frame = self.base[index]
+        mark_labelled(frame, index, self.scenes, self.unlabelled)
+        return self.pipeline(frame)
 
 
 def check_image_size(image_size: Sequence[int] | None) -> tuple[int, int] | None:
@@ -260,6 +280,9 @@ class ReaderDataModule(OccDataModule):
         transforms: plugins' frame transforms, a list of ``{type: <transform>, splits: [...], ...}``.
         fields: collate rules of extra per-sample fields, name -> ``stack`` | ``list`` | ``pad``
             (or ``{collate, pad_value}``); the label sources' and transforms' own rules are added.
+        label_fraction: the share of training frames that keep their voxel labels, in (0, 1]
+            (:mod:`occplug.data.label_fraction`).
+        subset: ``all``, ``labelled`` or ``unlabelled``: the training frames used.
     """
 
     def __init__(self, *, grid: GridSpec | dict, class_names: Sequence[str], free_label: int, ignore_label: int | None,
@@ -267,16 +290,20 @@ class ReaderDataModule(OccDataModule):
                  image_size: Sequence[int] | None = None, adjacent_offsets: Sequence[int] | None = None,
                  sequential: bool | dict = False, augment: str | dict | None = None, pseudo_labels: dict | None = None,
                  cache_dir: str | None = None, pseudo: PseudoLabeler | None = None,
-                 label_sources: dict | None = None, transforms: list | None = None, fields: dict | None = None) -> None:
+                 label_sources: dict | None = None, transforms: list | None = None, fields: dict | None = None,
+                 label_fraction: float = 1.0, subset: str = "all") -> None:
         super().__init__(grid=grid, batch_size=batch_size, num_workers=num_workers, class_names=class_names,
                          free_label=free_label, ignore_label=ignore_label)
+        self.label_cut = LabelCut(label_fraction, subset)
         if batch_size < 1 or num_workers < 0:
             raise ValueError(f"batch_size must be >= 1 and num_workers >= 0, got {batch_size} and {num_workers}")
         self.pin_memory = bool(pin_memory)
         self.image_size = check_image_size(image_size)
         self.adjacent_offsets = check_offsets(adjacent_offsets)
         self.sequential, self.stream_run_length = sequential_settings(sequential)
-        fill = ignore_label if ignore_label is not None else free_label
+        if self.sequential and self.label_cut.subset != "all":
+            raise ValueError(f"data.subset: '{self.label_cut.subset}' breaks scenes apart; it needs data.sequential: false")
+        fill = fill_label(ignore_label, free_label)
         self.augmentation = Augmentation(augment, self.grid, fill_label=fill)
         self.pseudo: PseudoLabeler | None = pseudo or PseudoLabelSource.from_config(pseudo_labels, self.class_names)
         self.cache_dir = cache_dir
@@ -286,8 +313,10 @@ class ReaderDataModule(OccDataModule):
 
     def pipeline(self, split: str) -> FramePipeline:
         """The pipeline of ``split`` (augmentation in ``train`` only; the transforms of ``split``)."""
+        strip = fill_label(self.ignore_label, self.free_label) if split == "train" and self.label_cut.active else None
         return FramePipeline(self.image_size, self.pseudo, self.augmentation if split == "train" else None,
-                             tuple(self.extensions.label_sources.values()), self.extensions.transforms_for(split))
+                             tuple(self.extensions.label_sources.values()), self.extensions.transforms_for(split),
+                             strip_fill=strip)
 
     def sampler(self, split: str, dataset: Dataset[Frame]) -> Sampler | None:
         """The sequential sampler when ``sequential`` is on (scene order shuffled per epoch in ``train``)."""
@@ -303,6 +332,11 @@ class ReaderDataModule(OccDataModule):
         seed = int(torch.initial_seed()) % (1 << 31) if split == "train" else 0
         return stream_sampler(split, scenes, self.batch_size, run_length=self.stream_run_length, num_replicas=replicas,
                               rank=rank, seed=seed)
+
+
+def fill_label(ignore_label: int | None, free_label: int) -> int:
+    """The label written where nothing is known: the ignore label, else ``free``."""
+    return ignore_label if ignore_label is not None else free_label
 
 
 def sequential_settings(value: bool | dict | None) -> tuple[bool, int | None]:

@@ -58,6 +58,14 @@ class OccupancyModel(L.LightningModule, ABC):
     def predict_occupancy(self, batch: Batch) -> Tensor:
         """``(B, X, Y, Z)`` int64 class ids on :attr:`grid`; every metric and ``predict`` use this."""
 
+    def head_logits(self, batch: Batch, head: str) -> Tensor:
+        """``(B, K, X, Y, Z)`` logits of the named head on :attr:`grid`, in eval mode without gradients.
+
+        Teacher pseudo labels (``phases.<name>.pseudo_labels_from``) read this; a model that cannot
+        answer leaves the default, which says so in one line.
+        """
+        raise ValueError(f"{type(self).__name__} does not give the logits of head '{head}' (no head_logits)")
+
     def required_fields(self) -> frozenset[str]:
         """Optional Frame fields some submodule reads (the union of their ``requires``), so the
         data module loads exactly those (a camera-only model opens no LiDAR file)."""

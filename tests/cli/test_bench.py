@@ -49,7 +49,7 @@ def test_one_row_per_model_with_every_column(measured):
     }  # fmt: skip
     assert report.device.startswith("cpu") and "torch" in report.versions and "lightning" in report.versions
     # both rows are the same architecture: the same parameter count, the baseline's own
-    dm, model = runner._build(cfg)
+    dm, model = runner.build_run(cfg)
     assert [r.params for r in report.rows] == [sum(p.numel() for p in model.parameters())] * 2
     for r in report.rows:
         assert r.latency_ms > 0 and r.train_step_ms > 0

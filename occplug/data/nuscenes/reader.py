@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from occplug.constraints import Length, NonNegative, Positive
+from occplug.constraints import Fraction, Length, NonNegative, Positive
 from occplug.geometry import GridSpec
 
 from ..classes import OCC3D_CLASSES, OCC3D_FREE, nuscenes_to_occ3d
@@ -306,6 +306,8 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
         label_sources: dict | None = None,
         transforms: list | None = None,
         fields: dict | None = None,
+        label_fraction: Annotated[float, Fraction] = 1.0,
+        subset: str = "all",
     ) -> None:
         super().__init__(
             grid=grid if grid is not None else OCC3D_GRID,
@@ -324,6 +326,8 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
             label_sources=label_sources,
             transforms=transforms,
             fields=fields,
+            label_fraction=label_fraction,
+            subset=subset,
         )
         self.root = Path(root)
         if not self.root.is_dir():

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from occplug.constraints import Length, NonNegative, Positive
+from occplug.constraints import Fraction, Length, NonNegative, Positive
 from occplug.geometry import GridSpec
 
 from ..classes import SEMANTIC_KITTI_CLASSES
@@ -341,6 +341,8 @@ class SemanticKITTIDataModule(ReaderDataModule):
         label_sources: dict | None = None,
         transforms: list | None = None,
         fields: dict | None = None,
+        label_fraction: Annotated[float, Fraction] = 1.0,
+        subset: str = "all",
     ) -> None:
         super().__init__(
             grid=grid if grid is not None else SSC_GRID,
@@ -359,6 +361,8 @@ class SemanticKITTIDataModule(ReaderDataModule):
             label_sources=label_sources,
             transforms=transforms,
             fields=fields,
+            label_fraction=label_fraction,
+            subset=subset,
         )
         self.root = Path(root)
         if not (self.root / "sequences").is_dir():

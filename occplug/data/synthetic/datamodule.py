@@ -7,7 +7,7 @@ from typing import Annotated
 
 from torch.utils.data import Dataset, Sampler
 
-from occplug.constraints import Length, NonNegative, Positive, Range
+from occplug.constraints import Fraction, Length, NonNegative, Positive, Range
 from occplug.data.classes import OCC3D_CLASSES, OCC3D_FREE
 from occplug.data.frame import Frame
 from occplug.data.pipeline import PipelineDataset, ReaderDataModule
@@ -54,6 +54,9 @@ class SyntheticDataModule(ReaderDataModule):
             reader (:mod:`occplug.data.pseudo_labels`).
         label_sources, transforms, fields: plugins' label sources, frame transforms and field collate
             rules (:mod:`occplug.data.extensions`).
+        label_fraction, subset: label-efficient training: the share of training frames that keep their
+            voxel labels (interval sampling) and which side of that cut trains (``all``, ``labelled``,
+            ``unlabelled``); see :mod:`occplug.data.label_fraction`.
 
     Attributes:
         world_config: the resolved :class:`~occplug.data.synthetic.SyntheticWorldConfig`.
@@ -84,6 +87,8 @@ class SyntheticDataModule(ReaderDataModule):
         label_sources: dict | None = None,
         transforms: list | None = None,
         fields: dict | None = None,
+        label_fraction: Annotated[float, Fraction] = 1.0,
+        subset: str = "all",
     ) -> None:
         knobs = {
             "grid": grid,
@@ -125,6 +130,8 @@ class SyntheticDataModule(ReaderDataModule):
             label_sources=label_sources,
             transforms=transforms,
             fields=fields,
+            label_fraction=label_fraction,
+            subset=subset,
         )
         self.preset = preset
         self.world_config: SyntheticWorldConfig = config
@@ -161,9 +168,8 @@ class SyntheticDataModule(ReaderDataModule):
         if self.cache_dir is None:
             return
         dataset = self.dataset(split)
-        if isinstance(dataset, PipelineDataset):
-            dataset = dataset.base
-        assert isinstance(dataset, SyntheticDataset)
+        while not isinstance(dataset, SyntheticDataset):  # through the pipeline and a data.subset
+            dataset = dataset.base  # type: ignore[attr-defined]
         dataset.pregenerate(progress=True)
 
 
