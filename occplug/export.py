@@ -15,9 +15,27 @@ tensor code on the inputs. The parity check runs the eager model with its own (c
 the original frames and on frames with perturbed intrinsics, extrinsics and image augmentation,
 so an export that baked one rig's geometry in would fail it.
 
-A component that carries state from frame to frame (``stateful = True``, see
-:mod:`occplug.streams`) is refused with one line naming it; streaming export (state as explicit
-inputs and outputs) is not implemented yet.
+A **streaming** model (a component holding a :class:`occplug.streams.StreamState`) exports as
+:class:`StreamingWrapper`: one step of the stream, its state an explicit input and output. Besides
+:data:`INPUTS` the graph takes :data:`STREAM_INPUTS` (this frame's and the previous frame's pose,
+timestamp and frame index, and ``is_start``) and the previous state (``prev_state.<name>``), and
+returns the new state (``state.<name>``) after ``class_ids`` and ``logits``; feed the outputs of one
+frame back as the inputs of the next (:func:`stream_inputs`). The reset rules of
+:class:`~occplug.streams.StreamState` are in the graph (a frame-index step outside
+``1..max_frame_step``, a time step outside ``(0, max_gap_s]``), except the one on strings: the
+caller says ``is_start`` at the first frame and wherever the scene changes. Poses come in as
+``ego_to_global`` float64, as the eager state keeps them, and the relative motion is computed in
+float64 inside the graph as eager computes it (float32 global poses, hundreds of metres off the
+origin, would round the translation before the subtraction; both exporters and onnxruntime take
+float64 matmuls). While exporting, every ``StreamState`` is replaced by an :class:`ExplicitStream`
+reading those inputs, and a component whose forward branches on the reset mask (``if reset.any()``,
+boolean-mask indexing: data-dependent, untraceable) runs a branch-free equivalent (its own
+``export_forward``, as the core's ``dense_voxels_history`` does). The parity check runs the frames as a
+sequence in order (each also perturbed, as a second sequence), feeding the exported state back, and
+compares the state too.
+
+A component that declares ``stateful = True`` but keeps its state outside a ``StreamState`` is
+refused with one line naming it.
 """
 
 from __future__ import annotations
@@ -42,23 +60,31 @@ from torch import Tensor, nn
 
 from occplug.data.frame import Batch
 from occplug.errors import UserError
+from occplug.geometry import relative_pose
 from occplug.interfaces.model import OccupancyModel
 from occplug.ops.splat import FrustumSplatter
-from occplug.streams import is_stateful
+from occplug.streams import StreamRead, StreamState, _leaves, _map, is_stateful, set_stream_stage
 
 __all__ = [
     "FORMATS",
     "INPUTS",
+    "STREAM_INPUTS",
+    "ExplicitStream",
     "ExportError",
     "InferenceWrapper",
+    "StreamingWrapper",
+    "example_inputs",
     "export_checkpoint",
     "export_model",
     "export_ready",
+    "is_streaming",
     "load_exported",
     "occupancy_logits",
     "parity",
     "perturb",
     "report_path",
+    "stream_inputs",
+    "stream_parity",
 ]
 
 #: ``--format`` values and the artefact each writes.
@@ -71,6 +97,15 @@ INPUTS = ("images", "intrinsics", "cam_to_ego", "img_aug")
 
 #: Graph outputs: ``class_ids (B, X, Y, Z)`` int64 and ``logits (B, K, X, Y, Z)`` float32, ego frame, evaluation grid.
 OUTPUTS = ("class_ids", "logits")
+
+#: Extra graph inputs of a streaming model, after :data:`INPUTS` and before one ``prev_state.<name>`` per state
+#: tensor (``B`` frames): ``ego_to_global (B, 4, 4)`` float64, ``timestamp (B,)`` float64 seconds, ``frame_index
+#: (B,)`` int64, ``is_start (B,)`` bool (the first frame of a stream: no previous frame, another scene), then the
+#: previous frame's ``prev_ego_to_global``, ``prev_timestamp``, ``prev_frame_index`` (any values where
+#: ``is_start``). Extra outputs, after :data:`OUTPUTS`: ``state.<name>``, the next frame's ``prev_state.<name>``.
+STREAM_INPUTS = (
+    "ego_to_global", "timestamp", "frame_index", "is_start", "prev_ego_to_global", "prev_timestamp", "prev_frame_index"
+)
 
 #: Fields of a batch the exported graph takes as inputs; a model reading any other optional field is refused.
 _SUPPORTED_FIELDS = frozenset(INPUTS)
@@ -135,6 +170,215 @@ def inputs_of(batch: Batch) -> tuple[Tensor, ...]:
     return tuple(getattr(batch, name).float().contiguous() for name in INPUTS)
 
 
+# ---------------------------------------------------------------------------------------------- streaming
+@dataclasses.dataclass
+class _Previous:
+    """The previous frame as graph inputs, shared by the :class:`ExplicitStream` of one model."""
+
+    is_start: Tensor | None = None
+    ego_to_global: Tensor | None = None
+    timestamp: Tensor | None = None
+    frame_index: Tensor | None = None
+
+
+class ExplicitStream:
+    """Stand-in for a :class:`~occplug.streams.StreamState` while exporting: state in and out as tensors.
+
+    :meth:`get` returns what ``StreamState.get`` would, computed from tensors: the previous value
+    (:attr:`prev`, graph inputs) where the stream continues, ``on_reset(current)`` where it restarts,
+    and the previous -> current ego motion from the two poses (float64, as eager). A slot restarts
+    where ``is_start`` or where the frame-index or time step breaks the state's own rules
+    (``max_frame_step``, ``max_gap_s``); the scene-name rule is the caller's ``is_start``. Branch-free
+    (``torch.where``), so it traces. :meth:`update` keeps the new value for the graph's outputs.
+
+    With :attr:`prev` None (the probe that finds the state's structure) every slot restarts.
+    """
+
+    def __init__(self, state: StreamState, previous: _Previous) -> None:
+        self.state = state
+        self.previous = previous
+        self.prev: list[Tensor] | None = None
+        self.new: list[Tensor] | None = None
+
+    def get(self, batch: Batch, current: Any) -> StreamRead:
+        init = self.state.on_reset(current)
+        cur_pose = batch.ego_to_global.to(torch.float64)
+        size = cur_pose.shape[0]
+        eye = torch.eye(4, dtype=torch.float64, device=cur_pose.device).expand(size, 4, 4)
+        p = self.previous
+        if self.prev is None or p.is_start is None:
+            reset = torch.ones(size, dtype=torch.bool, device=cur_pose.device)
+            return StreamRead(init, reset, eye.clone(), torch.zeros(size, dtype=torch.float64, device=cur_pose.device))
+        reset = p.is_start.to(torch.bool)
+        if self.state.max_frame_step is not None:
+            step = batch.frame_index.to(torch.int64) - p.frame_index.to(torch.int64)
+            reset = reset | (step < 1) | (step > self.state.max_frame_step)
+        dt = batch.timestamp.to(torch.float64) - p.timestamp.to(torch.float64)
+        if self.state.max_gap_s is not None:
+            reset = reset | (dt <= 0) | (dt > self.state.max_gap_s)
+        leaves = iter(self.prev)
+
+        def pick(new: Tensor) -> Tensor:
+            return torch.where(reset.view(-1, *[1] * (new.dim() - 1)), new, next(leaves).to(new.dtype))
+
+        value = _map(pick, init)
+        motion = torch.where(reset.view(-1, 1, 1), eye, relative_pose(p.ego_to_global.to(torch.float64), cur_pose))
+        return StreamRead(value, reset, motion, torch.where(reset, torch.zeros_like(dt), dt))
+
+    def update(self, batch: Batch, value: Any) -> None:
+        self.new = _leaves(value)
+
+
+def _traceable_forward(holder: nn.Module) -> Callable[..., Any] | None:
+    """The branch-free forward ``holder`` runs while exporting: its own ``export_forward``, or None (its
+    forward traces as it is)."""
+    return getattr(holder, "export_forward", None)
+
+
+def _stream_holders(model: nn.Module) -> list[tuple[str, nn.Module, str, StreamState]]:
+    """``(qualified name, holder, attribute, state)`` of every StreamState in ``model`` (as :func:`find_streams`)."""
+    out = []
+    for name, sub in model.named_modules():
+        for attr, value in list(vars(sub).items()):
+            if isinstance(value, StreamState):
+                out.append((f"{name}.{attr}" if name else attr, sub, attr, value))
+    return out
+
+
+def is_streaming(model: nn.Module) -> bool:
+    """Whether ``model`` holds a :class:`~occplug.streams.StreamState` (its export is a stream step)."""
+    return bool(_stream_holders(model))
+
+
+@contextlib.contextmanager
+def _explicit_streams(model: nn.Module) -> Iterator[list[tuple[str, ExplicitStream]]]:
+    """Inside: every StreamState of ``model`` replaced by an :class:`ExplicitStream` (sharing one
+    :class:`_Previous`), and every holder whose forward is not traceable running its equivalent."""
+    holders = _stream_holders(model)
+    previous = _Previous()
+    streams = [(name, ExplicitStream(state, previous)) for name, _, _, state in holders]
+    patched: list[nn.Module] = []
+    try:
+        for (_, holder, attr, _), (_, stream) in zip(holders, streams, strict=True):
+            setattr(holder, attr, stream)
+            forward = None if holder in patched else _traceable_forward(holder)
+            if forward is not None:
+                holder.forward = forward
+                patched.append(holder)
+        yield streams
+    finally:
+        for _, holder, attr, state in holders:
+            setattr(holder, attr, state)
+        for holder in patched:
+            del holder.forward
+
+
+class StreamingWrapper(nn.Module):
+    """The exported function of a streaming model: one step, the state an explicit input and output.
+
+    Forward: :data:`INPUTS`, :data:`STREAM_INPUTS`, then the previous state tensors (``prev_state.<name>``)
+    -> ``(class_ids, logits, *state)``: the new state tensors (``state.<name>``) in the same order.
+    Built inside :func:`_explicit_streams` (``streams`` are its stand-ins).
+    """
+
+    def __init__(self, model: nn.Module, template: Batch, streams: list[ExplicitStream], sizes: list[int]) -> None:
+        super().__init__()
+        self.model = model
+        self.template = template
+        self.streams = streams
+        self.sizes = sizes
+
+    def forward(self, *args: Tensor) -> tuple[Tensor, ...]:
+        n, m = len(INPUTS), len(STREAM_INPUTS)
+        images, intrinsics, cam_to_ego, img_aug = args[:n]
+        ego, timestamp, frame_index, is_start, prev_ego, prev_timestamp, prev_frame_index = args[n : n + m]
+        state = list(args[n + m :])
+        previous = self.streams[0].previous
+        previous.is_start, previous.ego_to_global = is_start, prev_ego
+        previous.timestamp, previous.frame_index = prev_timestamp, prev_frame_index
+        for stream, size in zip(self.streams, self.sizes, strict=True):
+            stream.prev, state = state[:size], state[size:]
+        batch = dataclasses.replace(
+            self.template, images=images, intrinsics=intrinsics, cam_to_ego=cam_to_ego, img_aug=img_aug,
+            ego_to_global=ego, timestamp=timestamp, frame_index=frame_index, is_sequence_start=is_start,
+        )
+        logits = occupancy_logits(self.model, self.model(batch))
+        new = [t for stream in self.streams for t in (stream.new or [])]
+        return (logits.argmax(dim=1), logits, *new)
+
+
+def stream_inputs(batch: Batch, previous: Batch | None) -> tuple[Tensor, ...]:
+    """The :data:`STREAM_INPUTS` of ``batch`` following ``previous`` (None: the first frame).
+
+    ``is_start`` is the batch's ``is_sequence_start``, or no previous frame, or another scene than
+    the previous frame's (strings are no graph input); the graph applies the time and frame rules.
+    """
+    size = batch.ego_to_global.shape[0]
+    start = batch.is_sequence_start.to(torch.bool).clone()
+    if previous is None:
+        start[:] = True
+        prev = (torch.eye(4, dtype=torch.float64).repeat(size, 1, 1), torch.zeros(size, dtype=torch.float64),
+                torch.zeros(size, dtype=torch.int64))
+    else:
+        start |= torch.tensor([a != b for a, b in zip(batch.scene, previous.scene, strict=True)])
+        prev = (previous.ego_to_global, previous.timestamp, previous.frame_index)
+    pose, time_s, index = (batch.ego_to_global, batch.timestamp, batch.frame_index)
+    return tuple(
+        t.to(dtype).contiguous()
+        for t, dtype in zip(
+            (pose, time_s, index, start, *prev),
+            (torch.float64, torch.float64, torch.int64, torch.bool, torch.float64, torch.float64, torch.int64),
+            strict=True,
+        )
+    )
+
+
+def example_inputs(model: nn.Module, batch: Batch) -> tuple[Tensor, ...]:
+    """Every graph input for ``batch`` as a stream's first frame: :func:`inputs_of`; for a streaming model
+    also :func:`stream_inputs` (``is_start``) and a zero state (runs the model once to find its shapes)."""
+    with _graph(model, batch) as graph:
+        return graph.args
+
+
+@dataclasses.dataclass
+class _Graph:
+    """What is exported: the wrapper, example inputs and the inputs' and outputs' names."""
+
+    wrapper: nn.Module
+    args: tuple[Tensor, ...]
+    input_names: list[str]
+    output_names: list[str]
+    state_names: list[str] = dataclasses.field(default_factory=list)
+    initial_state: list[Tensor] = dataclasses.field(default_factory=list)
+
+
+@contextlib.contextmanager
+def _graph(model: nn.Module, template: Batch) -> Iterator[_Graph]:
+    """The :class:`_Graph` of ``model`` on ``template``'s shapes, ready to trace inside (raises ExportError)."""
+    check_exportable(model)
+    with export_ready(model), _explicit_streams(model) as named:
+        if not named:
+            yield _Graph(InferenceWrapper(model, template).eval(), inputs_of(template), list(INPUTS), list(OUTPUTS))
+            return
+        streams = [s for _, s in named]
+        with torch.no_grad(), _quiet():  # the probe: one restarting step gives each state's structure
+            model(template)
+        names, initial, sizes = [], [], []
+        for (name, stream) in named:
+            if stream.new is None:
+                raise ExportError(f"export: model.{name.rsplit('.', 1)[0]} never stores its stream state")
+            sizes.append(len(stream.new))
+            names += [name if len(stream.new) == 1 else f"{name}.{i}" for i in range(len(stream.new))]
+            initial += [torch.zeros_like(t) for t in stream.new]
+            stream.new = None
+        wrapper = StreamingWrapper(model, template, streams, sizes).eval()
+        yield _Graph(
+            wrapper, (*inputs_of(template), *stream_inputs(template, None), *initial),
+            [*INPUTS, *STREAM_INPUTS, *(f"prev_state.{n}" for n in names)],
+            [*OUTPUTS, *(f"state.{n}" for n in names)], names, initial,
+        )
+
+
 @contextlib.contextmanager
 def export_ready(model: nn.Module) -> Iterator[None]:
     """Run every :class:`~occplug.ops.FrustumSplatter` of ``model`` on its traceable ``reference`` path inside.
@@ -157,14 +401,16 @@ def check_exportable(model: nn.Module) -> None:
     """Refuse, in one line, a model the exported graph cannot represent.
 
     Raises:
-        ExportError: a stateful component (streaming export is not implemented), or an inference
+        ExportError: a stateful component keeping its state outside a :class:`~occplug.streams.StreamState`
+            (the graph's state inputs and outputs are those of the stream states), or an inference
             component reading a batch field that is no graph input (e.g. LiDAR ``points``).
     """
+    holders = [holder for _, holder, _, _ in _stream_holders(model)]
     for name, sub in model.named_modules():
-        if name and is_stateful(sub):
+        if name and is_stateful(sub) and not set(sub.modules()).intersection(holders):
             raise ExportError(
-                f"model.{name} ({type(sub).__name__}) is stateful (it carries features from frame to frame); "
-                "export of streaming models (state as explicit inputs and outputs) is not supported yet"
+                f"model.{name} ({type(sub).__name__}) is stateful but keeps its state outside an "
+                "occplug.streams.StreamState; export takes a stream's state only through StreamState"
             )
     supervision = {id(m) for s in (getattr(model, "supervision", None) or {}).values() for m in s.modules()}
     for name, sub in model.named_modules():
@@ -276,12 +522,16 @@ def _onnx_decompositions() -> dict[Any, Callable[..., Any]]:
 
 
 def trace(model: OccupancyModel, template: Batch) -> torch.export.ExportedProgram:
-    """``torch.export`` of :class:`InferenceWrapper` on ``template``'s shapes (raises :class:`ExportError`)."""
-    check_exportable(model)
-    wrapper = InferenceWrapper(model, template).eval()
-    with export_ready(model), torch.no_grad(), _quiet():
+    """``torch.export`` of :class:`InferenceWrapper` (a streaming model: :class:`StreamingWrapper`) on
+    ``template``'s shapes (raises :class:`ExportError`)."""
+    with _graph(model, template) as graph:
+        return _trace(graph, model)
+
+
+def _trace(graph: _Graph, model: nn.Module) -> torch.export.ExportedProgram:
+    with torch.no_grad(), _quiet():
         try:
-            return torch.export.export(wrapper, inputs_of(template))
+            return torch.export.export(graph.wrapper, graph.args)
         except ExportError:
             raise
         except Exception as exc:  # torch.export raises many types; all mean "this code cannot be traced"
@@ -309,25 +559,27 @@ def export_model(model: OccupancyModel, template: Batch, fmt: str, out: Path) ->
     """
     if fmt not in FORMATS:
         raise ExportError(f"--format: {fmt!r} is not one of {', '.join(FORMATS)}")
-    program = trace(model, template)
     out = Path(out)
     tmp = out.with_name(f".{out.stem}.tmp{out.suffix}")  # keeps the suffix torch.export.save checks
     try:
-        if fmt == "torch_export":
-            torch.export.save(program, str(tmp))
-        else:
-            _require("onnx", "onnxscript")
-            with _quiet():
-                try:
-                    onnx_program = torch.onnx.export(
-                        program.run_decompositions(_onnx_decompositions()), inputs_of(template),
-                        input_names=list(INPUTS), output_names=list(OUTPUTS), dynamo=True, verbose=False,
-                    )
-                except ExportError:
-                    raise
-                except Exception as exc:
-                    raise _onnx_failure(exc, program, model) from None
-                onnx_program.save(str(tmp), external_data=False)  # one self-contained file
+        with _graph(model, template) as graph:
+            program = _trace(graph, model)
+            if fmt == "torch_export":
+                torch.export.save(program, str(tmp))
+            else:
+                _require("onnx", "onnxscript")
+                with _quiet():
+                    try:
+                        onnx_program = torch.onnx.export(
+                            program.run_decompositions(_onnx_decompositions()), graph.args,
+                            input_names=graph.input_names, output_names=graph.output_names, dynamo=True,
+                            verbose=False,
+                        )
+                    except ExportError:
+                        raise
+                    except Exception as exc:
+                        raise _onnx_failure(exc, program, model) from None
+                    onnx_program.save(str(tmp), external_data=False)  # one self-contained file
         os.replace(tmp, out)
     finally:
         tmp.unlink(missing_ok=True)
@@ -344,18 +596,18 @@ def _require(*modules: str) -> None:
         )
 
 
-def load_exported(path: Path, fmt: str) -> Callable[..., tuple[Tensor, Tensor]]:
-    """The artefact at ``path`` as a function of :data:`INPUTS` -> ``(class_ids, logits)`` torch tensors.
+def load_exported(path: Path, fmt: str) -> Callable[..., tuple[Tensor, ...]]:
+    """The artefact at ``path`` as a function of its inputs (:data:`INPUTS`; a streaming model's also
+    :data:`STREAM_INPUTS` and its state) -> its outputs as torch tensors (``class_ids, logits[, *state]``).
 
     ``torch_export``: ``torch.export.load(...).module()``; ``onnx``: an onnxruntime CPU session.
     """
     if fmt == "torch_export":
         module = torch.export.load(str(path)).module()
 
-        def run_program(*args: Tensor) -> tuple[Tensor, Tensor]:
+        def run_program(*args: Tensor) -> tuple[Tensor, ...]:
             with torch.no_grad():
-                ids, logits = module(*args)
-            return ids, logits
+                return tuple(module(*args))
 
         return run_program
     _require("onnxruntime")
@@ -369,9 +621,9 @@ def load_exported(path: Path, fmt: str) -> Callable[..., tuple[Tensor, Tensor]]:
     session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
     names = [i.name for i in session.get_inputs()]
 
-    def run_session(*args: Tensor) -> tuple[Tensor, Tensor]:
-        ids, logits = session.run(list(OUTPUTS), {n: a.numpy() for n, a in zip(names, args, strict=True)})
-        return torch.from_numpy(ids), torch.from_numpy(logits)
+    def run_session(*args: Tensor) -> tuple[Tensor, ...]:
+        outputs = session.run(None, {n: a.numpy() for n, a in zip(names, args, strict=True)})
+        return tuple(torch.from_numpy(o) for o in outputs)
 
     return run_session
 
@@ -445,8 +697,10 @@ def parity(
     Returns:
         ``{"format", "frames", "frames_perturbed", "voxels", "max_abs_logit_diff", "class_agreement"
         (share of voxels whose class ids agree, in [0, 1]), "eager_latency_ms", "exported_latency_ms",
-        "versions"}``.
+        "versions"}``; a streaming model's (:func:`stream_parity`) also ``"stream"``.
     """
+    if is_streaming(model):
+        return stream_parity(model, exported, batches, fmt, repeats)
     model.eval()
     frames = [f for i, batch in enumerate(batches) for f in (batch, perturb(batch, seed=i))]
     max_diff, agree, voxels = 0.0, 0, 0
@@ -489,6 +743,104 @@ def parity(
     }
 
 
+def _eager_outputs(model: OccupancyModel, batch: Batch) -> tuple[Tensor, Tensor]:
+    outputs = model(batch)
+    logits = occupancy_logits(model, outputs)
+    ids = model.occupancy_from(outputs) if hasattr(model, "occupancy_from") else logits.argmax(dim=1)
+    return ids, logits
+
+
+def _stored(states: Sequence[StreamState], stage: str) -> list[Tensor]:
+    """The values ``states`` hold for ``stage``, as the graph's state tensors (slots stacked, leaves in order)."""
+    out: list[Tensor] = []
+    for state in states:
+        store = state.state_dict().get(stage, {})
+        per_slot = [_leaves(store[b]["value"]) for b in sorted(store)]
+        out += [torch.stack(leaves) for leaves in zip(*per_slot, strict=True)]
+    return out
+
+
+def stream_parity(
+    model: OccupancyModel,
+    exported: Callable[..., tuple[Tensor, ...]],
+    batches: Sequence[Batch],
+    fmt: str,
+    repeats: int = 3,
+) -> dict[str, Any]:
+    """:func:`parity` of a streaming model: ``batches`` run in order as a sequence, then again perturbed.
+
+    The eager model keeps its state in its own :class:`~occplug.streams.StreamState` (the
+    ``predict`` store, emptied before each sequence); the exported one gets the previous frame's
+    state outputs back as inputs (the zero state and ``is_start`` at the first frame, see
+    :func:`stream_inputs`). Every frame compares logits, classes and the new state. Each timed
+    repeat of the eager step first restores the state it started from.
+
+    Returns:
+        :func:`parity`'s keys, plus ``"stream": {"states" (the state tensors' names), "sequence_starts"
+        (frames fed with ``is_start``), "max_abs_state_diff"}``.
+    """
+    model.eval()
+    states = [state for *_, state in _stream_holders(model)]
+    with _graph(model, batches[0]) as graph:  # the state tensors' names and zero initial values
+        names, initial = list(graph.state_names), list(graph.initial_state)
+    saved = [(state.stage, state.state_dict()) for state in states]
+    sequences = [list(batches), [perturb(batch, seed=i) for i, batch in enumerate(batches)]]
+    max_diff, state_diff, agree, voxels, starts = 0.0, 0.0, 0, 0, 0
+    eager_ms: list[float] = []
+    exported_ms: list[float] = []
+    start_at = len(INPUTS) + STREAM_INPUTS.index("is_start")
+    try:
+        set_stream_stage(model, "predict")
+        with torch.no_grad():
+            _eager_outputs(model, batches[0])  # warm-up (first calls allocate, build plans)
+            exported(*inputs_of(batches[0]), *stream_inputs(batches[0], None), *initial)
+            for sequence in sequences:
+                for state in states:
+                    state.clear("predict")
+                carried, previous = list(initial), None
+                for batch in sequence:
+                    args = (*inputs_of(batch), *stream_inputs(batch, previous), *carried)
+                    starts += int(args[start_at].sum())
+                    before = [state.state_dict() for state in states]
+                    eager_t, got_t = [], []
+                    for r in range(max(1, repeats)):
+                        if r:  # the same step again, from the same state
+                            for state, entries in zip(states, before, strict=True):
+                                state.load_state_dict(entries)
+                        t0 = time.perf_counter()
+                        eager_ids, eager_logits = _eager_outputs(model, batch)
+                        t1 = time.perf_counter()
+                        got = exported(*args)
+                        t2 = time.perf_counter()
+                        eager_t.append(t1 - t0)
+                        got_t.append(t2 - t1)
+                    eager_ms.append(min(eager_t) * 1e3)
+                    exported_ms.append(min(got_t) * 1e3)
+                    ids, logits, *carried = got
+                    max_diff = max(max_diff, float((logits.float() - eager_logits.float()).abs().max()))
+                    agree += int((ids.long() == eager_ids.long()).sum())
+                    voxels += int(eager_ids.numel())
+                    for mine, theirs in zip(carried, _stored(states, "predict"), strict=True):
+                        state_diff = max(state_diff, float((mine.float() - theirs.float()).abs().max()))
+                    previous = batch
+    finally:
+        for state, (stage, entries) in zip(states, saved, strict=True):
+            state.load_state_dict(entries)
+            state.set_stage(stage)
+    return {
+        "format": fmt,
+        "frames": len(batches),
+        "frames_perturbed": len(batches),
+        "voxels": voxels,
+        "max_abs_logit_diff": max_diff,
+        "class_agreement": agree / max(voxels, 1),
+        "eager_latency_ms": statistics.median(eager_ms),
+        "exported_latency_ms": statistics.median(exported_ms),
+        "versions": _versions(fmt),
+        "stream": {"states": names, "sequence_starts": starts, "max_abs_state_diff": state_diff},
+    }
+
+
 #: What the baseline reaches (README, Export); ``occplug export`` fails a report outside them.
 MIN_CLASS_AGREEMENT = 0.9999
 MAX_LOGIT_DIFF = 1e-4
@@ -502,8 +854,14 @@ def passes(report: dict[str, Any]) -> bool:
 def one_line(report: dict[str, Any]) -> str:
     """The report as the one line ``occplug export`` prints."""
     versions = " ".join(f"{k}={v}" for k, v in report["versions"].items())
+    stream = report.get("stream")
+    order = (
+        f" (in order, state fed back, {stream['sequence_starts']} stream starts, max |state diff| "
+        f"{stream['max_abs_state_diff']:.3g})"
+        if stream else ""
+    )
     return (
-        f"parity {report['format']}: {report['frames']} frames + {report['frames_perturbed']} perturbed, "
+        f"parity {report['format']}: {report['frames']} frames + {report['frames_perturbed']} perturbed{order}, "
         f"classes agree on {100 * report['class_agreement']:.4f} % of {report['voxels']} voxels, "
         f"max |logit diff| {report['max_abs_logit_diff']:.3g}, latency eager {report['eager_latency_ms']:.1f} ms "
         f"vs exported {report['exported_latency_ms']:.1f} ms ({versions})"
@@ -515,7 +873,8 @@ def export_checkpoint(ckpt: Path, fmt: str, out: Path, samples: int = 4) -> dict
 
     The first ``samples`` frames of the checkpoint's validation split (then of its training split,
     where the validation split is shorter), batch size 1, are the parity frames; the first fixes the
-    exported shapes (batch size 1, camera count, image size). Writes the report (:func:`parity`, plus
+    exported shapes (batch size 1, camera count, image size). A streaming model's frames run in that
+    order, as a sequence (:func:`stream_parity`). Writes the report (:func:`parity`, plus
     ``checkpoint``, ``artefact`` and ``passed``) to :func:`report_path` and returns it.
 
     Raises:

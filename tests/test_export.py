@@ -6,8 +6,13 @@ Adding a plugin's model is one line: a ``pytest.param`` in :data:`RECIPES` (its 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import importlib
 import importlib.util
 import json
+import sys
+from collections.abc import Iterator
+from importlib import metadata
 from pathlib import Path
 
 import pytest
@@ -16,33 +21,73 @@ import torch
 from occplug import export as ex
 from occplug import runner
 from occplug.cli import main
-from occplug.plugins import get_registry
+from occplug.plugins import ENTRY_POINT_GROUP, isolated
 from occplug.testing import run_config
 
 ROOT = Path(__file__).resolve().parents[1]
+BASELINE = str(ROOT / "configs" / "baseline.yaml")
 TINY = ["data.preset=tiny", "trainer.max_steps=2"]
+STREAMING = ("data.sequential=true", "model.scene.type=dense_voxels_history")
+#: A plugin by (entry point name, source folder, hook module): loaded from its source tree when not installed.
+EXAMPLE = ("example", ROOT / "plugins" / "example" / "src", "occplug_example.plugin")
 
-
-def _example_installed() -> bool:
-    return importlib.util.find_spec("occplug_example") is not None and get_registry().has("head", "tiny_mlp")
-
-
-#: (config refs, overrides) of every model whose export is checked; one line per model.
+#: (config refs, overrides, plugin or None) of every model whose export is checked; one line per model.
 RECIPES = [
-    pytest.param(((str(ROOT / "configs" / "baseline.yaml"),), ()), id="baseline"),
-    pytest.param(
-        (("example/tiny",), ()), id="example",
-        marks=pytest.mark.skipif(not _example_installed(), reason="the example plugin is not installed"),
-    ),
+    pytest.param(((BASELINE,), (), None), id="baseline"),
+    pytest.param(((BASELINE,), STREAMING, None), id="streaming"),
+    pytest.param((("example/tiny",), (), EXAMPLE), id="example"),
 ]
 
 
+@contextlib.contextmanager
+def plugin_from_source(plugin: tuple[str, Path, str] | None) -> Iterator[None]:
+    """The plugin registered through its hook module, as its entry point would (the installed one if there is).
+
+    Not installed, its source folder goes on ``sys.path`` and its hook module is registered beside
+    the installed plugins (:func:`occplug.plugins.isolated`) until the block ends; then no trace is left.
+    """
+    if plugin is None:
+        yield
+        return
+    name, src, module = plugin
+    package = module.split(".")[0]
+    if importlib.util.find_spec(package) is not None:  # installed: its entry point loads it
+        yield
+        return
+    installed = sorted({ep.name for ep in metadata.entry_points(group=ENTRY_POINT_GROUP)})
+    sys.path.insert(0, str(src))
+    try:
+        with isolated(installed, [(name, importlib.import_module(module))]):
+            yield
+    finally:
+        sys.path.remove(str(src))
+        for loaded in [m for m in sys.modules if m == package or m.startswith(f"{package}.")]:
+            del sys.modules[loaded]
+
+
+_FITTED: dict[tuple, Path] = {}
+
+
+def _fitted(recipe: tuple, factory) -> Path:
+    """The checkpoint of ``recipe`` after a 2-step fit on the tiny preset (one fit per recipe and session)."""
+    refs, overrides, _ = recipe
+    key = (tuple(refs), tuple(overrides))
+    if key not in _FITTED:
+        run = factory.mktemp("export") / "run"
+        run_config(*refs, run_dir=run, overrides=[*TINY, *overrides])
+        _FITTED[key] = run / "checkpoints" / "last.ckpt"
+    return _FITTED[key]
+
+
 @pytest.fixture(scope="module", params=RECIPES)
-def checkpoint(request, tmp_path_factory) -> Path:
-    refs, overrides = request.param
-    run = tmp_path_factory.mktemp("export") / "run"
-    run_config(*refs, run_dir=run, overrides=[*TINY, *overrides])
-    return run / "checkpoints" / "last.ckpt"
+def checkpoint(request, tmp_path_factory) -> Iterator[Path]:
+    with plugin_from_source(request.param[2]):
+        yield _fitted(request.param, tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def streaming_checkpoint(tmp_path_factory) -> Path:
+    return _fitted(((BASELINE,), STREAMING, None), tmp_path_factory)
 
 
 def _restored(ckpt: Path, frames: int = 2):
@@ -81,8 +126,9 @@ def test_exported_graph_takes_the_calibration(checkpoint, tmp_path):
     ex.export_model(model, batch, "torch_export", out)
     run = ex.load_exported(out, "torch_export")
     other = ex.perturb(batch, seed=3)
-    _, same = run(*ex.inputs_of(batch))
-    _, moved = run(*ex.inputs_of(other))
+    args = ex.example_inputs(model, batch)  # a streaming model: the first frame of a stream
+    same = run(*args)[1]
+    moved = run(*ex.inputs_of(other), *args[len(ex.INPUTS) :])[1]
     with torch.no_grad():
         eager = ex.occupancy_logits(model, model(other))
     change, error = float((moved - same).abs().max()), float((moved - eager).abs().max())
@@ -146,17 +192,63 @@ def test_operation_without_onnx_translation_is_named(checkpoint, monkeypatch, tm
     assert list(tmp_path.iterdir()) == []  # nothing half-written
 
 
-def test_stateful_model_is_refused():
-    cfg = runner.load_config(
-        [str(ROOT / "configs" / "baseline.yaml"), "occplug/trainer/debug"],
-        ["data.preset=tiny", "data.sequential=true", "model.scene.type=dense_voxels_history"],
-    )
+def test_streaming_graph_takes_and_returns_its_state(streaming_checkpoint, tmp_path):
+    """State, poses, timestamps and frame indices are graph inputs; the state comes back as an output."""
+    pytest.importorskip("onnxruntime")
+    onnx = pytest.importorskip("onnx")
+
+    model, (first, second) = _restored(streaming_checkpoint)
+    assert ex.is_streaming(model)
+    out = tmp_path / "model.onnx"
+    ex.export_model(model, first, "onnx", out)
+    graph = onnx.load(str(out)).graph
+    assert [i.name for i in graph.input] == [*ex.INPUTS, *ex.STREAM_INPUTS, "prev_state.scene.history"]
+    assert [o.name for o in graph.output] == [*ex.OUTPUTS, "state.scene.history"]
+    run = ex.load_exported(out, "onnx")
+    ids, logits, state = run(*ex.example_inputs(model, first))
+    assert state.shape == (1, model.scene.out_channels, *model.grid.shape)  # the fused volume F_t
+    step = (*ex.inputs_of(second), *ex.stream_inputs(second, first))
+    continued = run(*step, state)[1]
+    other_state = run(*step, torch.zeros_like(state))[1]
+    assert float((continued - other_state).abs().max()) > 1e-3  # the state input is read
+
+
+def test_streaming_export_resets_as_the_eager_stream_does(streaming_checkpoint, tmp_path):
+    """A time gap and a frame jump restart the exported stream as they restart the eager StreamState."""
+    model, (first, second) = _restored(streaming_checkpoint)
+    assert model.scene.history.max_gap_s == 2.0 and model.scene.history.max_frame_step == 1
+    out = tmp_path / "model.pt2"
+    ex.export_model(model, first, "torch_export", out)
+    run = ex.load_exported(out, "torch_export")
+    state = run(*ex.example_inputs(model, first))[2]
+    fresh = run(*ex.inputs_of(second), *ex.stream_inputs(second, None), state)[1]  # is_start
+    continued = run(*ex.inputs_of(second), *ex.stream_inputs(second, first), state)[1]
+    assert float((continued - fresh).abs().max()) > 1e-3
+    gap = dataclasses.replace(second, timestamp=second.timestamp + 10.0)  # beyond max_gap_s
+    jump = dataclasses.replace(second, frame_index=second.frame_index + 1)  # a skipped frame
+    back = dataclasses.replace(second, timestamp=first.timestamp)  # time does not advance
+    for broken in (gap, jump, back):
+        got = run(*ex.inputs_of(broken), *ex.stream_inputs(broken, first), state)[1]
+        assert torch.allclose(got, fresh, atol=1e-6)
+        report = ex.parity(model, run, [first, broken], "torch_export", repeats=1)  # eager resets too
+        assert ex.passes(report) and report["stream"]["sequence_starts"] == 2, report
+        assert report["stream"]["max_abs_state_diff"] <= 1e-4
+    report = ex.parity(model, run, [first, second], "torch_export", repeats=2)  # the stream continues
+    assert ex.passes(report) and report["stream"]["sequence_starts"] == 2 and report["frames_perturbed"] == 2
+    assert report["stream"]["states"] == ["scene.history"]
+    assert model.scene.history.slots("predict") == {}  # the eager state is left as it was
+
+
+def test_state_outside_a_stream_state_is_refused():
+    cfg = runner.load_config([BASELINE, "occplug/trainer/debug"], ["data.preset=tiny", *STREAMING])
     _, model = runner.build_run(cfg)
+    ex.check_exportable(model)  # a StreamState is exportable
+    model.scene.history = {}  # state kept some other way
     with pytest.raises(ex.ExportError) as err:
         ex.check_exportable(model)
     assert str(err.value) == (
-        "model.scene (DenseVoxelsHistory) is stateful (it carries features from frame to frame); export of "
-        "streaming models (state as explicit inputs and outputs) is not supported yet"
+        "model.scene (DenseVoxelsHistory) is stateful but keeps its state outside an occplug.streams.StreamState; "
+        "export takes a stream's state only through StreamState"
     )
 
 
@@ -189,19 +281,24 @@ def test_perturb_flips_and_scales_about_the_centre():
 
 
 def test_cli_user_mistakes(tmp_path, capsys):
+    """Every path is checked before the checkpoint is read (tests/cli/test_bad_paths.py has the whole table)."""
     missing = tmp_path / "none.ckpt"
     assert main(["export", "--ckpt", str(missing), "--format", "onnx", "--out", str(tmp_path / "m.onnx")]) == 2
-    assert capsys.readouterr().err.strip() == f"error: checkpoint {missing} does not exist"
-    assert main(["export", "--ckpt", str(missing), "--format", "onnx", "--out", str(tmp_path)]) == 2
-    assert capsys.readouterr().err.strip().startswith(f"error: --out {tmp_path}: is a folder")
+    assert capsys.readouterr().err.strip() == f"error: --ckpt {missing}: no such file (it does not exist)"
+    ckpt = tmp_path / "some.ckpt"
+    ckpt.write_text("never read\n")
+    assert main(["export", "--ckpt", str(ckpt), "--format", "onnx", "--out", str(tmp_path)]) == 2
+    assert capsys.readouterr().err.strip() == f"error: --out {tmp_path}: is a folder; expected a file"
     deep = tmp_path / "no" / "m.onnx"
-    assert main(["export", "--ckpt", str(missing), "--format", "onnx", "--out", str(deep)]) == 2
-    assert capsys.readouterr().err.strip() == f"error: --out {deep}: folder {deep.parent} does not exist"
+    assert main(["export", "--ckpt", str(ckpt), "--format", "onnx", "--out", str(deep)]) == 2
+    assert capsys.readouterr().err.strip() == f"error: --out {deep}: its folder {deep.parent} does not exist"
     (tmp_path / "file").write_text("x")
     below = tmp_path / "file" / "m.onnx"
-    assert main(["export", "--ckpt", str(missing), "--format", "onnx", "--out", str(below)]) == 2
-    assert capsys.readouterr().err.strip() == f"error: --out {below}: {below.parent} is not a folder"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+    assert main(["export", "--ckpt", str(ckpt), "--format", "onnx", "--out", str(below)]) == 2
+    assert capsys.readouterr().err.strip() == f"error: --out {below}: {below.parent} is a file, not a folder"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "some.ckpt"]
+    with pytest.raises(ex.ExportError, match="is not a folder"):  # the library's own check says it too
+        ex.export_checkpoint(ckpt, "onnx", below)
 
 
 def test_parity_outside_the_thresholds_exits_1(checkpoint, tmp_path, monkeypatch, capsys):

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
+from . import paths as check
 from .errors import UsageError
 
 
@@ -37,6 +39,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
             raise UsageError(f"--{flag.replace('_', '-')}: expected an int >= 1, got {getattr(args, flag)}")
     if args.warmup < 0:
         raise UsageError(f"--warmup: expected an int >= 0, got {args.warmup}")
+    if args.out:
+        check.output_file("--out", args.out)  # before measuring: a bad path must not cost the whole run
     settings = BenchSettings(
         repeats=args.repeats,
         warmup=args.warmup,
@@ -49,9 +53,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
     report = run_bench(targets, settings, progress=lambda msg: print(msg, file=sys.stderr))
     text = report.to_json() if args.json else report.to_csv() if args.csv else report.to_markdown()
     if args.out:
+        from occplug.runner import write_text_atomic
+
         try:
-            with open(args.out, "w") as f:
-                f.write(text)
+            write_text_atomic(Path(args.out), text)  # a reader never sees half a table
         except OSError as exc:
             raise UsageError(f"--out {args.out}: cannot write ({exc.strerror})") from None
     sys.stdout.write(text)

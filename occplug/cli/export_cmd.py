@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from occplug import runner
 
+from . import paths as check
 from .errors import UsageError
 
 
@@ -32,9 +32,10 @@ def cmd_export(args: argparse.Namespace) -> int:
     """Exit 0: exported and within the parity thresholds; 1: exported, outside them; 2: a user mistake."""
     from occplug.export import MAX_LOGIT_DIFF, MIN_CLASS_AGREEMENT, export_checkpoint, one_line, report_path
 
-    out = Path(args.out)
+    ckpt = check.input_file("--ckpt", args.ckpt)  # every path checked before anything is read or written
+    out = check.output_file("--out", args.out)
     try:
-        report = export_checkpoint(Path(args.ckpt), args.format, out, samples=args.samples)
+        report = export_checkpoint(ckpt, args.format, out, samples=args.samples)
     except runner.RunError as exc:
         raise UsageError(str(exc)) from None
     print(one_line(report))

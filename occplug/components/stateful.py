@@ -94,3 +94,14 @@ class DenseVoxelsHistory(DenseVoxels):
         fused = torch.lerp(current, previous, self.history_weight.to(current.dtype))
         self.history.update(batch, fused)
         return DenseVoxelScene(fused, grid)
+
+    def export_forward(self, lifted: Lifted, batch: Batch) -> DenseVoxelScene:
+        """:meth:`forward` without its branch on the reset mask, for ``occplug export`` (traceable): every
+        slot is warped, then the reset ones take their unwarped value back (what forward computes for them)."""
+        current = super().forward(lifted, batch).features
+        read = self.history.get(batch, current)
+        moved = warp_volume(read.value, lifted.grid, read.prev_to_current.to(current.dtype))
+        previous = torch.where(read.reset.view(-1, 1, 1, 1, 1), read.value, moved)
+        fused = torch.lerp(current, previous, self.history_weight.to(current.dtype))
+        self.history.update(batch, fused)
+        return DenseVoxelScene(fused, lifted.grid)

@@ -61,6 +61,9 @@ ARGUMENTS: list[tuple[str, str]] = [
     ("viz sample -c BASELINE --out {DIR} --rerun {P}", OUT_FILE),
     ("viz run {P}", IN_DIR),
     ("viz run {DIR} --out {P}", OUT_DIR),
+    ("export --ckpt {P} --format onnx --out {DIR}/model.onnx", IN_FILE),
+    ("export --ckpt {FILE} --format onnx --out {P}", OUT_FILE),
+    ("bench BASELINE --preset tiny -o {P}", OUT_FILE),
 ]
 
 #: The bad paths each expectation meets.

@@ -139,3 +139,30 @@ def test_bad_inputs_are_one_error_line_exit_2(case, tmp_path, capsys):
         "bad_repeats": "--repeats: expected an int >= 1, got 0",
     }[case]
     assert err == f"error: {expected}"
+
+
+def test_out_is_checked_before_measuring_and_written_whole(tmp_path, monkeypatch, capsys):
+    """``-o`` below a file stops before any model is built; a good one is replaced atomically."""
+    import occplug.bench as bench
+
+    row = BenchRow("m", "cfg.yaml", 1_234_567, 12.345, 100.4, 56.78, 200.6)
+    report = BenchReport(
+        "host: cpu", "cpu (2 torch threads)", {"torch": "2"},
+        {"repeats": 5, "warmup": 1, "train_repeats": 2, "batch_size": 1, "preset": None}, [row],
+    )  # fmt: skip
+    resolved: list[str] = []
+    monkeypatch.setattr(bench, "resolve_target", lambda ref, settings: resolved.append(ref) or ref)
+    monkeypatch.setattr(bench, "run_bench", lambda targets, settings, progress=None: report)
+    (tmp_path / "a_file").write_text("x\n")
+    below = tmp_path / "a_file" / "table.md"
+    assert main(["bench", BASELINE, "-o", str(below)]) == 2
+    assert capsys.readouterr().err.strip() == f"error: --out {below}: {below.parent} is a file, not a folder"
+    assert resolved == []  # nothing built, nothing measured
+    out = tmp_path / "table.md"
+    out.write_text("an older, longer table\n" * 50)
+    written = []
+    atomic = runner.write_text_atomic
+    monkeypatch.setattr(runner, "write_text_atomic", lambda path, text: (written.append(path), atomic(path, text)))
+    assert main(["bench", BASELINE, "-o", str(out)]) == 0
+    assert written == [out] and out.read_text() == report.to_markdown()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "table.md"]  # no temporary file left
