@@ -319,3 +319,48 @@ def test_unlabelled_voxel_labels_never_reach_a_loss(tmp_path, monkeypatch):
         _state(tmp_path / "dirty" / "checkpoints" / "last.ckpt"),
     )
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_a_phased_run_killed_mid_phase_resumes_that_phase_bit_identical(tmp_path, capsys):
+    """SIGKILL inside the student phase, ``fit --resume``: the finished teacher is not repeated, the student
+    continues from its last checkpoint, and the run ends as an uninterrupted one (run beside it) does."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from occplug.cli import main
+
+    killed, whole = tmp_path / "killed", tmp_path / "whole"
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    cmd = [sys.executable, "-c", "import sys; from occplug.cli import main; sys.exit(main())", "fit", "-c", SEMI]
+    args = [*SMALL, "trainer.checkpoint_every_n_steps=1"]
+    quiet = {"env": env, "stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    proc = subprocess.Popen([*cmd, *args, "--run-dir", str(killed)], **quiet)
+    reference = subprocess.Popen([*cmd, *args, "--run-dir", str(whole)], **quiet)
+    first = killed / "student" / "checkpoints" / "last.ckpt"
+    try:
+        deadline = time.monotonic() + 400
+        while not first.exists():
+            assert proc.poll() is None, "the run ended before the student's first checkpoint"
+            assert time.monotonic() < deadline, "no student checkpoint after 400 s"
+            time.sleep(0.02)
+        os.kill(proc.pid, signal.SIGKILL)
+        assert proc.wait() == -signal.SIGKILL
+        assert (killed / "teacher" / "DONE").is_file() and not (killed / "student" / "DONE").exists()
+        assert main(["fit", "--resume", str(killed)]) == 0
+        capsys.readouterr()
+        assert reference.wait(timeout=600) == 0
+    finally:
+        for p in (proc, reference):
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    assert not (killed / "teacher" / "logs" / "version_1").exists()  # the finished phase did not run again
+    assert (killed / "student" / "logs" / "version_1").is_dir()  # the student resumed beside its first log
+    for phase in ("student", "finetune"):
+        a = _state(killed / phase / "checkpoints" / "last.ckpt")
+        b = _state(whole / phase / "checkpoints" / "last.ckpt")
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in b), phase
+    assert json.loads((killed / "metrics.json").read_text()) == json.loads((whole / "metrics.json").read_text())
