@@ -8,6 +8,7 @@ from __future__ import annotations
 from typing import Any
 
 from .data.frame import Batch, Frame
+from .errors import UserError
 from .geometry import GridSpec
 from .hookspecs import hookimpl
 from .interfaces import (
@@ -49,6 +50,7 @@ __all__ = [
     "SceneRepresentation",
     "Slot",
     "SupervisionSource",
+    "UserError",
     "ViewTransform",
     "__version__",
     "hookimpl",

@@ -362,9 +362,6 @@ class OccModel(OccupancyModel):
     def on_test_epoch_end(self) -> None:
         self._eval_epoch_end("test", self.test_metrics)
 
-    def predict_step(self, batch: Batch, batch_idx: int) -> dict[str, Any]:
-        return {"token": list(batch.token), "pred": self.predict_occupancy(batch)}
-
     # ---------------------------------------------------------------- optimisation
     def _effective_batch(self) -> EffectiveBatch | None:
         trainer = self._trainer

@@ -396,7 +396,7 @@ def fit(
     Everything is built before anything is written, so a configuration mistake leaves no
     half-made run directory. Under a multi-process strategy (e.g. ``trainer.strategy=ddp``) every
     rank runs this function; only global rank 0 checks and writes ``run_dir``. A config with
-    ``phases:`` runs them in order (:func:`occplug.phases.fit_phases`).
+    ``phases:`` runs through :func:`occplug.phases.fit_phases`, which calls this once per phase.
 
     Args:
         cfg: the resolved config.
@@ -407,9 +407,7 @@ def fit(
         callbacks: further Lightning callbacks.
     """
     if cfg.get("phases") is not None:
-        from occplug.phases import fit_phases
-
-        return fit_phases(cfg, Path(run_dir), resume=resume)
+        raise RunError("a config with phases runs through occplug.phases.fit_phases (as occplug fit does)")
     run_dir = Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
     last = ckpt_dir / "last.ckpt"

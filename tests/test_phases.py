@@ -17,7 +17,7 @@ from occplug.data.label_fraction import LabelCut, labelled_indices
 from occplug.data.synthetic.dataset import SyntheticDataset
 from occplug.data.teacher_labels import DONE, META, TeacherPseudoLabels, write_teacher_file
 from occplug.geometry import GridSpec
-from occplug.phases import freeze, init_from
+from occplug.phases import fit_phases, freeze, init_from
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = str(ROOT / "configs" / "baseline.yaml")
@@ -268,7 +268,7 @@ def _state(path: Path) -> dict[str, torch.Tensor]:
 def test_three_phase_run_layout_freezing_and_pseudo_labels(tmp_path):
     cfg = runner.load_config([SEMI], SMALL)
     run = tmp_path / "run"
-    results = runner.fit(cfg, run)
+    results = fit_phases(cfg, run)
     assert "mIoU" in results
     for phase in ("teacher", "student", "finetune"):
         assert (run / phase / "DONE").is_file() and (run / phase / "checkpoints" / "last.ckpt").is_file()

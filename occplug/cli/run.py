@@ -9,6 +9,7 @@ from pathlib import Path
 import yaml
 
 from occplug import runner
+from occplug.phases import fit_phases
 from occplug.plugins import broken_plugins_warning
 
 from . import add_config_args
@@ -62,7 +63,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 raise UsageError("fit needs -c CONFIG (or --resume RUN_DIR)")
             cfg = runner.load_config(args.config, args.overrides)
             run_dir = Path(args.run_dir) if args.run_dir else runner.default_run_dir(args.config)
-        results = runner.fit(cfg, run_dir, resume=bool(args.resume))
+        fit = fit_phases if cfg.get("phases") is not None else runner.fit
+        results = fit(cfg, run_dir, resume=bool(args.resume))
     except runner.RunError as exc:
         raise UsageError(str(exc)) from None
     if runner.is_rank_zero():  # DDP: every rank runs this command; one reports

@@ -52,13 +52,26 @@ def _hints(factory: Callable[..., Any]) -> dict[str, Any]:
 
 
 def component_params(factory: Callable[..., Any]) -> dict[str, tuple[inspect.Parameter, Any]]:
-    """Constructor parameters of a factory (minus ``self``/``*args``/``**kwargs``) with resolved annotations."""
-    hints = _hints(factory)
-    out = {}
-    for name, p in inspect.signature(factory).parameters.items():
-        if p.kind in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD):
-            continue
-        out[name] = (p, hints.get(name, p.annotation))
+    """Constructor parameters of a factory (minus ``self``/``*args``/``**kwargs``) with resolved annotations.
+
+    A class whose ``__init__`` takes ``**kwargs`` and hands them to its base (a plugin's subclass of
+    ``occ_model`` adding one argument) also accepts the base's parameters, found along the MRO.
+    """
+    out: dict[str, tuple[inspect.Parameter, Any]] = {}
+    owners = [c for c in factory.__mro__ if "__init__" in vars(c)] if inspect.isclass(factory) else [factory]
+    for owner in owners:
+        target = owner.__init__ if inspect.isclass(owner) else owner
+        try:
+            params = inspect.signature(target).parameters
+        except (TypeError, ValueError):
+            break
+        hints = _hints(owner)
+        for name, p in params.items():
+            if name == "self" or p.kind in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD):
+                continue
+            out.setdefault(name, (p, hints.get(name, p.annotation)))
+        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            break
     return out
 
 

@@ -53,10 +53,15 @@ SPLIT_NAMES = ("train", "val", "test", "predict")
 class LabelSource:
     """Base of a registered ``label_source``: attaches labels to a frame as decoded.
 
+    Contract:
+        given: ``class_names``, ``grid``, ``free_label``, ``ignore_label`` (the data module's), where
+        the constructor takes them.
+
     Attributes:
         fields: collate rules of the ``Frame.extras`` fields it writes (name -> :class:`FieldRule`).
     """
 
+    given: ClassVar[tuple[str, ...]] = ("class_names", "grid", "free_label", "ignore_label")
     fields: ClassVar[Mapping[str, FieldRule]] = {}
 
     def attach(self, frame: Frame) -> Frame:
@@ -67,10 +72,15 @@ class LabelSource:
 class FrameTransform:
     """Base of a registered ``transform``: changes a finished sample (after augmentation).
 
+    Contract:
+        given: ``class_names``, ``grid``, ``free_label``, ``ignore_label`` (the data module's), where
+        the constructor takes them.
+
     Attributes:
         fields: collate rules of the ``Frame.extras`` fields it writes (name -> :class:`FieldRule`).
     """
 
+    given: ClassVar[tuple[str, ...]] = ("class_names", "grid", "free_label", "ignore_label")
     fields: ClassVar[Mapping[str, FieldRule]] = {}
 
     def __call__(self, frame: Frame) -> Frame:

@@ -66,6 +66,10 @@ class OccupancyModel(L.LightningModule, ABC):
         """
         raise ValueError(f"{type(self).__name__} does not give the logits of head '{head}' (no head_logits)")
 
+    def predict_step(self, batch: Batch, batch_idx: int) -> dict[str, Any]:
+        """``{"token": [B sample tokens], "pred": (B, X, Y, Z) class ids}``: what ``occplug predict`` writes."""
+        return {"token": list(batch.token), "pred": self.predict_occupancy(batch)}
+
     def required_fields(self) -> frozenset[str]:
         """Optional Frame fields some submodule reads (the union of their ``requires``), so the
         data module loads exactly those (a camera-only model opens no LiDAR file)."""

@@ -17,4 +17,8 @@ def run_config(*refs: str, run_dir: Path | str, overrides: Sequence[str] = (), d
     """
     all_refs = [*refs, "occplug/trainer/debug"] if debug else list(refs)
     cfg = runner.load_config(all_refs, overrides)
+    if cfg.get("phases") is not None:
+        from occplug.phases import fit_phases
+
+        return fit_phases(cfg, Path(run_dir))
     return runner.fit(cfg, Path(run_dir))

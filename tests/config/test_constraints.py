@@ -107,3 +107,31 @@ def test_the_runs_own_numbers_are_checked(override, line):
     with pytest.raises(ConfigError) as err:  # load_config validates
         load_config(["configs/baseline.yaml"], [override])
     assert str(err.value) == line
+
+
+#: What a run-number key needs beside it to reach its check (its optimizer or scheduler type).
+_CONTEXT = {
+    "optimizer.momentum": ["optimizer={type: sgd, lr: 0.1}"],
+    "optimizer.dampening": ["optimizer={type: sgd, lr: 0.1}"],
+    "scheduler.step_size": ["scheduler={type: step}"],
+    "scheduler.gamma": ["scheduler={type: step}"],
+}
+
+
+def _run_number_cases():
+    from occplug.config.validate import RUN_CONSTRAINTS
+
+    for key, rule in RUN_CONSTRAINTS.items():
+        for bad in rule.violations():
+            value = [bad, 0.9] if key == "optimizer.betas" else bad
+            yield pytest.param(key, value, id=f"{key}={bad!r}")
+
+
+@pytest.mark.parametrize(("key", "value"), list(_run_number_cases()))
+def test_every_run_number_rule_is_one_line_naming_the_key(key, value):
+    """Generated from ``RUN_CONSTRAINTS``: each rule's violating values (NaN included where it applies)."""
+    shown = ".nan" if isinstance(value, float) and value != value else repr(value).replace("'", "")  # YAML NaN
+    with pytest.raises(ConfigError) as err:
+        load_config(["configs/baseline.yaml"], [*_CONTEXT.get(key, []), f"{key}={shown}"])
+    line = str(err.value)
+    assert line.startswith(f"{key}: expected ") and "\n" not in line, line

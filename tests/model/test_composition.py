@@ -21,7 +21,7 @@ from occplug.config import validate
 from occplug.geometry import GridSpec
 from occplug.interfaces import ModelOutputs, OccupancyHead, Scene, SupervisionSource
 from occplug.kinds import KINDS, given_arguments
-from occplug.model import head_order
+from occplug.model import OccModel, head_order
 from occplug.plugins import isolated
 from occplug.testing import make_tiny_batch
 
@@ -336,3 +336,41 @@ def test_parts_that_read_outputs_pass_the_conformance_check():
     with isolated(plugins=[("composed", ComposedPlugin())]):
         check_component("head", "toy_refine", {"lidar_channels": 8}, batch=make_tiny_batch())
         check_component("supervision", "toy_delta_penalty", batch=make_tiny_batch())
+
+
+# ------------------------------------------------------------------ a plugin's own model class
+
+
+class DoubledLogitsModel(OccModel):
+    """A plugin's model class (kind ``model``): the core model with a config argument of its own that scales
+    the occupancy logits; it writes no training, evaluation, prediction or checkpoint code."""
+
+    def __init__(self, *args, logit_scale: float = 2.0, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.logit_scale = logit_scale
+
+    def forward(self, batch):
+        out = super().forward(batch)
+        out.heads[self.occupancy_head]["logits"] = out.heads[self.occupancy_head]["logits"] * self.logit_scale
+        return out
+
+
+class ModelPlugin:
+    @occplug.hookimpl
+    def occplug_register_components(self, registry: occplug.Registry) -> None:
+        registry.add("model", "doubled_logits", DoubledLogitsModel)
+
+
+def test_a_plugins_model_class_fits_validates_and_predicts_through_the_core(tmp_path):
+    with isolated(plugins=[("models", ModelPlugin())]):
+        overrides = ["model.type=doubled_logits", "model.logit_scale=3.0", "trainer.max_steps=2", "trainer.limit_val_batches=2"]
+        cfg = runner.load_config(["configs/baseline.yaml", "occplug/trainer/debug"], overrides)
+        results = runner.fit(cfg, tmp_path / "run")
+        ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
+        restored = runner.resolve_run_config([], [], ckpt)
+        assert restored["model"]["type"] == "doubled_logits" and restored["model"]["logit_scale"] == 3.0
+        again = runner.evaluate(restored, ckpt)
+        assert again.results["mIoU"] == pytest.approx(results["mIoU"], abs=1e-6)
+        assert runner.predict(restored, ckpt, tmp_path / "preds") > 0
+        dm, model = runner.build_run(restored)
+        assert type(model) is DoubledLogitsModel and model.logit_scale == 3.0
