@@ -276,3 +276,16 @@ def test_sanity_check_and_mid_epoch_validation_leave_the_training_stream_alone()
     val = [(f, r) for stage, f, r in seen if stage == "val"]
     assert val[0] == (0, True) and len(val) == 1 + 3 * 3  # sanity check, then 3 validations of 3 frames
     assert val[1:4] == [(0, True), (1, False), (2, False)]
+
+
+def test_config_validate_names_a_stateful_component_without_sequential_data(capsys):
+    from occplug.cli import main
+
+    baseline = str(Path(__file__).resolve().parents[1] / "configs" / "baseline.yaml")
+    assert main(["config", "validate", "-c", baseline, "model.scene.type=dense_voxels_history"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        "error: data.sequential: model.scene (dense_voxels_history) is stateful (it carries features from frame to "
+        "frame) and needs data.sequential: true"
+    )
+    assert main(["config", "validate", "-c", baseline, "model.scene.type=dense_voxels_history", "data.sequential=true"]) == 0

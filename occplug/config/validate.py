@@ -338,7 +338,21 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
         from occplug.queries import check_query_config
 
         check_query_config(config["model"], registry)
+    _check_stateful_needs_sequential(config, v.used, registry)
     return v.used
+
+
+def _check_stateful_needs_sequential(config: dict[str, Any], used: list[UsedComponent], registry: Registry) -> None:
+    """A component declaring ``stateful = True`` needs ``data.sequential`` (as ``fit`` checks on the built model)."""
+    data = config.get("data")
+    if not isinstance(data, dict) or data.get("sequential"):
+        return
+    for u in used:
+        if u.path.startswith("model") and getattr(registry.get(u.kind, u.type).factory, "stateful", False):
+            raise ConfigError(
+                f"data.sequential: {u.path} ({u.type}) is stateful (it carries features from frame to frame) and needs "
+                "data.sequential: true"
+            )
 
 
 def _validate_phases(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
