@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from occplug.constraints import NonNegative, Positive
-from occplug.data.classes import SEMANTIC_KITTI_CLASSES
+from occplug.data.classes import SEMANTIC_KITTI_CLASSES, class_groups
 from occplug.data.frame import Batch
 
 from .base import OccMetric
@@ -96,6 +96,7 @@ class SSCMetrics(OccMetric):
         self.class_names = names
         self.free_label = free_label
         self.ignore_label = ignore_label
+        self.groups = {k: list(v) for k, v in (class_groups(self.class_names) or {}).items()}
         self.add_state("confmat", torch.zeros(num_classes, num_classes, dtype=torch.int64), dist_reduce_fx="sum")
 
     def update(self, pred: Tensor, batch: Batch) -> None:  # type: ignore[override]
@@ -112,9 +113,13 @@ class SSCMetrics(OccMetric):
         self.confmat += confusion_matrix(pred, target, self.num_classes, valid)
 
     def compute(self) -> dict[str, Tensor]:
-        """``IoU`` (completion), ``mIoU``, ``Precision``, ``Recall``, ``IoU_<class>``, in percent."""
+        """``IoU`` (completion), ``mIoU``, ``Precision``, ``Recall``, ``IoU_<class>`` and, for a taxonomy with
+        dynamic / static groups (SemanticKITTI's, :mod:`occplug.data.classes`), ``mIoU_dynamic`` / ``mIoU_static``
+        (the scorer's plain mean over each group), in percent."""
         scores = ssc_scores(self.confmat, self.free_label)
         out = {key: scores[key] * 100 for key in ("IoU", "mIoU", "Precision", "Recall")}
+        for key, ids in self.groups.items():
+            out[f"mIoU_{key}"] = scores["iou"][ids].mean() * 100
         for c in range(self.num_classes):
             if c != self.free_label:
                 out[f"IoU_{self.class_names[c]}"] = scores["iou"][c] * 100
@@ -137,6 +142,7 @@ class SSCMetrics(OccMetric):
             ("IoU", "IoU (completion)"),
             ("Precision", "Precision"),
             ("Recall", "Recall"),
+            *((f"mIoU_{g}", f"mIoU {g}") for g in self.groups),  # after the benchmark's own lines
         ):
             lines.append(f"{label:<24}{res[key].item():>8.2f}")
         return "\n".join(lines)

@@ -102,3 +102,20 @@ def test_table_is_the_benchmark_list_with_settings():
     assert lines[0].startswith("SemanticKITTI SSC (semantic-kitti-api scorer; empty = empty (0), ignore label 255")
     assert [line.split()[0] for line in lines[2:21]] == list(SEMANTIC_KITTI_CLASSES[1:])
     assert lines[21].startswith("mIoU (SSC)") and lines[22].startswith("IoU (completion)")
+
+
+def test_dynamic_and_static_mious_are_the_scorer_mean_over_the_core_groups():
+    from occplug.data.classes import class_groups
+
+    gen = torch.Generator().manual_seed(3)
+    gt = torch.randint(0, 20, (2, 8, 8, 4), generator=gen)
+    pred = torch.where(torch.rand(gt.shape, generator=gen) < 0.6, gt, torch.randint(0, 20, gt.shape, generator=gen))
+    m = SSCMetrics()
+    m.update(pred, make_batch(gt))
+    res = m.compute()
+    ref = scorer(pred.numpy(), gt.numpy(), np.zeros(gt.shape, dtype=np.int64))
+    groups = class_groups(SEMANTIC_KITTI_CLASSES)
+    for key in ("dynamic", "static"):
+        assert math.isclose(res[f"mIoU_{key}"].item(), ref["iou"][list(groups[key])].mean() * 100, rel_tol=1e-5)
+    assert "mIoU dynamic" in m.table() and "mIoU static" in m.table()
+    assert "mIoU_dynamic" not in SSCMetrics(num_classes=3, free_label=0).compute()  # no groups for an unknown taxonomy
