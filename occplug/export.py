@@ -670,6 +670,23 @@ def report_path(out: Path) -> Path:
     return out.with_name(out.name + ".parity.json")
 
 
+def _report(
+    fmt: str, frames: int, perturbed: int, voxels: int, max_diff: float, agree: int, eager_ms: list, exported_ms: list
+) -> dict[str, Any]:
+    """The parity report's common entries (see :func:`parity`)."""
+    return {
+        "format": fmt,
+        "frames": frames,
+        "frames_perturbed": perturbed,
+        "voxels": voxels,
+        "max_abs_logit_diff": max_diff,
+        "class_agreement": agree / max(voxels, 1),
+        "eager_latency_ms": statistics.median(eager_ms),
+        "exported_latency_ms": statistics.median(exported_ms),
+        "versions": _versions(fmt),
+    }
+
+
 def _versions(fmt: str) -> dict[str, str | None]:
     out: dict[str, str | None] = {"torch": torch.__version__}
     if fmt == "onnx":
@@ -730,17 +747,7 @@ def parity(
             max_diff = max(max_diff, float((logits.float() - eager_logits.float()).abs().max()))
             agree += int((ids.long() == eager_ids.long()).sum())
             voxels += int(eager_ids.numel())
-    return {
-        "format": fmt,
-        "frames": len(batches),
-        "frames_perturbed": len(frames) - len(batches),
-        "voxels": voxels,
-        "max_abs_logit_diff": max_diff,
-        "class_agreement": agree / max(voxels, 1),
-        "eager_latency_ms": statistics.median(eager_ms),
-        "exported_latency_ms": statistics.median(exported_ms),
-        "versions": _versions(fmt),
-    }
+    return _report(fmt, len(batches), len(frames) - len(batches), voxels, max_diff, agree, eager_ms, exported_ms)
 
 
 def _eager_outputs(model: OccupancyModel, batch: Batch) -> tuple[Tensor, Tensor]:
@@ -827,18 +834,9 @@ def stream_parity(
         for state, (stage, entries) in zip(states, saved, strict=True):
             state.load_state_dict(entries)
             state.set_stage(stage)
-    return {
-        "format": fmt,
-        "frames": len(batches),
-        "frames_perturbed": len(batches),
-        "voxels": voxels,
-        "max_abs_logit_diff": max_diff,
-        "class_agreement": agree / max(voxels, 1),
-        "eager_latency_ms": statistics.median(eager_ms),
-        "exported_latency_ms": statistics.median(exported_ms),
-        "versions": _versions(fmt),
-        "stream": {"states": names, "sequence_starts": starts, "max_abs_state_diff": state_diff},
-    }
+    report = _report(fmt, len(batches), len(batches), voxels, max_diff, agree, eager_ms, exported_ms)
+    report["stream"] = {"states": names, "sequence_starts": starts, "max_abs_state_diff": state_diff}
+    return report
 
 
 #: What the baseline reaches (README, Export); ``occplug export`` fails a report outside them.

@@ -51,10 +51,10 @@ def plugin_from_source(plugin: tuple[str, Path, str] | None) -> Iterator[None]:
         return
     name, src, module = plugin
     package = module.split(".")[0]
-    if importlib.util.find_spec(package) is not None:  # installed: its entry point loads it
-        yield
-        return
     installed = sorted({ep.name for ep in metadata.entry_points(group=ENTRY_POINT_GROUP)})
+    if name in installed:  # installed: its entry point loads it (importable alone is not enough: another
+        yield  # test may have left its source folder on sys.path)
+        return
     sys.path.insert(0, str(src))
     try:
         with isolated(installed, [(name, importlib.import_module(module))]):

@@ -28,8 +28,9 @@ def test_every_hookspec_is_documented_with_its_signature():
 def test_hook_register_components_via_builtin(isolated_registry):
     registry = isolated_registry()
     kinds = {e.kind for e in registry.entries()}
-    # the built-ins fill every kind except the data extensions, which only plugins (and tests) register
-    assert set(KINDS) - kinds == {"transform", "label_source"} and kinds <= set(KINDS)
+    # the built-ins fill every kind except frame transforms, which only plugins (and tests) register
+    # (the one built-in label source is teacher_pseudo_labels, which phases attach)
+    assert set(KINDS) - kinds == {"transform"} and kinds <= set(KINDS)
     assert all(e.plugin == "occplug" for e in registry.entries())
 
 

@@ -137,6 +137,7 @@ def test_class_iou_of_ssc_keys_in_semantickitti_colours():
     classes = list(SEMANTIC_KITTI_CLASSES[1:])
     values = {c: 3.0 * i for i, c in enumerate(classes)}  # SSC scores absent classes 0, not NaN
     summary = {"IoU": 40.0, "mIoU": float(np.mean(list(values.values()))), "Precision": 60.0, "Recall": 50.0}
+    summary |= {"mIoU_dynamic": 10.0, "mIoU_static": 20.0}  # headline values, not classes
     metrics = {k: summary[k] if k in summary else values[k.partition("_")[2]] for k in keys}
     fig = class_iou_figure(metrics)
     (ax,) = fig.axes
