@@ -41,6 +41,12 @@ from occplug.streams import find_streams
 __all__ = ["FrozenModulesEval", "fit_phases", "freeze", "init_from", "matching", "write_teacher_labels"]
 
 
+#: Entries of a phase's metrics.json that describe the run, not its validation metrics.
+RUN_RECORD = frozenset(
+    {"global_step", "epoch", "effective_batch", "effective_batch_parts", "lr", "label_fraction", "subset", "eval_mask"}
+)
+
+
 def _state_prefix(prefix: str) -> str:
     """``model.encoder`` -> ``encoder`` (state-dict keys have no ``model.``); ``model`` -> ``""``."""
     return "" if prefix == "model" else prefix[len("model.") :]
@@ -254,6 +260,7 @@ def fit_phases(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict
         )
         runner.write_text_atomic(run_dir / "plugins.json", json.dumps(runner.plugin_versions(), indent=2) + "\n")
     results: dict[str, dict[str, Any]] = {}
+    final: dict[str, float] | None = None
     for spec in specs:
         phase_dir = run_dir / spec.name
         if (phase_dir / DONE).is_file():
@@ -269,10 +276,12 @@ def fit_phases(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict
             shutil.rmtree(phase_dir)  # killed before its first checkpoint: start it again
         setup, frozen = _setup(spec, run_dir, fresh=not has_checkpoint)
         print(f"phase {spec.name} ({len(results) + 1}/{len(specs)})")
-        runner.fit(config, phase_dir, resume=has_checkpoint, setup=setup, callbacks=[FrozenModulesEval(frozen)])
+        final = runner.fit(config, phase_dir, resume=has_checkpoint, setup=setup, callbacks=[FrozenModulesEval(frozen)])
         if runner.is_rank_zero():
             results[spec.name] = json.loads((phase_dir / "metrics.json").read_text())
             runner.write_text_atomic(phase_dir / DONE, "finished\n")
-            final = results[spec.name]
-            runner.write_json(run_dir / "metrics.json", {**final, "final_phase": spec.name, "phases": results})
-    return {k: v for k, v in results.get(specs[-1].name, {}).items() if isinstance(v, (int, float))}
+            runner.write_json(run_dir / "metrics.json", {**results[spec.name], "final_phase": spec.name, "phases": results})
+    if final is None:  # every phase had finished before: the final phase's recorded metrics
+        recorded = results.get(specs[-1].name, {})
+        final = {k: v for k, v in recorded.items() if k not in RUN_RECORD and isinstance(v, (int, float))}
+    return final
