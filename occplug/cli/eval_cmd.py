@@ -268,8 +268,9 @@ def _split_members(layout: _Layout, args: argparse.Namespace) -> tuple[dict[str,
         if split_file is not None:
             lists, where = split_lists("v1.0-trainval", split_file)
         else:
-            lists, where = {**official_splits("v1.0-trainval"), **official_splits("v1.0-test")}, (
-                "the official nuScenes v1.0-trainval / v1.0-test split"
+            lists, where = (
+                {**official_splits("v1.0-trainval"), **official_splits("v1.0-test")},
+                ("the official nuScenes v1.0-trainval / v1.0-test split"),
             )
     except FormatError as exc:
         raise UsageError(str(exc)) from None
@@ -483,10 +484,12 @@ def _progress(tokens: list[str]):
 
 
 def _is_headline(key: str) -> bool:
-    """Summary keys: everything except per-class values (``IoU_<class>``, ``RayIoU_<class>``)."""
+    """Summary keys: everything except per-class values (``IoU_<class>``, ``RayIoU_<class>``); RayIoU's
+    per-threshold, group, class-agnostic and ``*_excl`` means are summaries."""
     if key.startswith("IoU_"):
         return False
-    return not key.startswith("RayIoU_") or re.fullmatch(r"RayIoU_[0-9.]+m", key) is not None
+    summary = r"RayIoU_([0-9.]+m|(dynamic|static|geometry)(_excl)?|excl)"
+    return not key.startswith("RayIoU_") or re.fullmatch(summary, key) is not None
 
 
 def cmd_eval(args: argparse.Namespace) -> int:

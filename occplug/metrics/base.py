@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 from abc import abstractmethod
+from collections.abc import Sequence
 from typing import ClassVar, Literal
 
 import torch
 from torch import Tensor
 from torchmetrics import Metric
 
+from occplug.data.classes import class_groups
 from occplug.data.frame import Batch
 
-__all__ = ["EvalMask", "OccMetric", "check_class_ids", "evaluation_mask"]
+__all__ = ["EvalMask", "OccMetric", "check_class_ids", "evaluation_mask", "excluded_class_ids", "group_class_ids"]
 
 EvalMask = Literal["none", "camera", "lidar", "camera_and_lidar"]
 
@@ -74,3 +76,44 @@ def check_class_ids(pred: Tensor, num_classes: int, who: str) -> None:
     if pred.numel() and (int(pred.min()) < 0 or int(pred.max()) >= num_classes):
         bad = int(pred.min()) if int(pred.min()) < 0 else int(pred.max())
         raise ValueError(f"{who}: the prediction holds class id {bad}, outside 0..{num_classes - 1}")
+
+
+def group_class_ids(
+    class_names: Sequence[str], dynamic: Sequence[str] | None, static: Sequence[str] | None, who: str
+) -> dict[str, list[int]]:
+    """``{"dynamic": ids, "static": ids}``: the class groups a metric reports its ``<mean>_dynamic`` /
+    ``<mean>_static`` keys over (``mIoU_dynamic``, ``RayIoU_static``, ...).
+
+    The taxonomy's groups (:func:`occplug.data.classes.class_groups`: Occ3D-nuScenes, SemanticKITTI)
+    unless ``dynamic`` / ``static`` name the classes of each group (both or neither); ``{}`` for
+    another taxonomy without explicit groups (the metric then reports no group keys).
+
+    Raises:
+        ValueError: only one group given, or a name that is not one of ``class_names``.
+    """
+    if (dynamic is None) != (static is None):
+        raise ValueError(f"{who}: give both dynamic_classes and static_classes, or neither")
+    if dynamic is None:
+        found = class_groups(list(class_names))
+        return {k: list(v) for k, v in found.items()} if found else {}
+    out: dict[str, list[int]] = {}
+    for key, names in (("dynamic", dynamic), ("static", static)):
+        for n in names:
+            if n not in class_names:
+                raise ValueError(f"{who}.{key}_classes: unknown class '{n}' (classes: {', '.join(class_names)})")
+        out[key] = [list(class_names).index(n) for n in names]
+    return out
+
+
+def excluded_class_ids(class_names: Sequence[str], exclude: Sequence[str], free_label: int, who: str) -> list[int]:
+    """The ids of ``exclude`` (a metric's ``exclude_classes``), which its ``<mean>_excl`` keys leave out.
+
+    Raises:
+        ValueError: a name that is not a semantic class (every class but ``free_label``), naming the
+            valid ones.
+    """
+    semantic = [n for i, n in enumerate(class_names) if i != free_label]
+    for n in exclude:
+        if n not in semantic:
+            raise ValueError(f"{who}.exclude_classes: unknown class '{n}' (semantic classes: {', '.join(semantic)})")
+    return sorted({list(class_names).index(n) for n in exclude})

@@ -9,10 +9,9 @@ import torch
 from torch import Tensor
 
 from occplug.constraints import NonNegative, Positive
-from occplug.data.classes import class_groups
 from occplug.data.frame import Batch
 
-from .base import EvalMask, OccMetric, check_class_ids, evaluation_mask
+from .base import EvalMask, OccMetric, check_class_ids, evaluation_mask, excluded_class_ids, group_class_ids
 
 __all__ = ["Occ3DMIoU", "confusion_matrix", "iou_from_confusion"]
 
@@ -57,6 +56,10 @@ class Occ3DMIoU(OccMetric):
     Occ3D-nuScenes and SemanticKITTI taxonomies (Occ3D: ``others`` is in neither); other taxonomies
     report them only when ``dynamic_classes`` / ``static_classes`` are given.
 
+    ``exclude_classes`` adds ``mIoU_excl`` (and ``mIoU_dynamic_excl`` / ``mIoU_static_excl`` where the
+    groups are known): the same NaN-means leaving those classes out, e.g. the classes a method's
+    pseudo-label taxonomy cannot express. The per-class keys and geometric ``IoU`` are unchanged.
+
     Args:
         num_classes: ``K``, ids ``0..K-1`` including ``free_label``.
         class_names: names for the per-class keys ``IoU_<name>`` (defaults to ``class_<id>``).
@@ -65,6 +68,7 @@ class Occ3DMIoU(OccMetric):
             ``camera_and_lidar``.
         dynamic_classes, static_classes: class names of the two groups, replacing the taxonomy's
             (both or neither).
+        exclude_classes: semantic class names the ``*_excl`` keys leave out (none: no such keys).
     """
 
     def __init__(
@@ -76,6 +80,7 @@ class Occ3DMIoU(OccMetric):
         ignore_label: int | None = 255,
         dynamic_classes: Sequence[str] | None = None,
         static_classes: Sequence[str] | None = None,
+        exclude_classes: Sequence[str] = (),
     ) -> None:
         super().__init__()
         self.num_classes = num_classes
@@ -84,24 +89,9 @@ class Occ3DMIoU(OccMetric):
             raise ValueError(f"class_names has {len(self.class_names)} names for {num_classes} classes")
         self.free_label = free_label
         self.mask = mask
-        self.groups = self._groups(dynamic_classes, static_classes)
+        self.groups = group_class_ids(self.class_names, dynamic_classes, static_classes, "occ3d_miou")
+        self.excluded = excluded_class_ids(self.class_names, exclude_classes, free_label, "occ3d_miou")
         self.add_state("confmat", torch.zeros(num_classes, num_classes, dtype=torch.int64), dist_reduce_fx="sum")
-
-    def _groups(self, dynamic: Sequence[str] | None, static: Sequence[str] | None) -> dict[str, list[int]]:
-        if (dynamic is None) != (static is None):
-            raise ValueError("occ3d_miou: give both dynamic_classes and static_classes, or neither")
-        if dynamic is None:
-            found = class_groups(self.class_names)
-            return {k: list(v) for k, v in found.items()} if found else {}
-        out: dict[str, list[int]] = {}
-        for key, names in (("dynamic", dynamic), ("static", static)):
-            for n in names:
-                if n not in self.class_names:
-                    raise ValueError(
-                        f"occ3d_miou.{key}_classes: unknown class '{n}' (classes: {', '.join(self.class_names)})"
-                    )
-            out[key] = [self.class_names.index(n) for n in names]
-        return out
 
     def update(self, pred: Tensor, batch: Batch) -> None:  # type: ignore[override]
         """Add ``pred`` ``(B, X, Y, Z)`` against ``batch.voxel_labels`` inside the evaluation mask."""
@@ -117,12 +107,15 @@ class Occ3DMIoU(OccMetric):
 
     def compute(self) -> dict[str, Tensor]:
         """``mIoU``, ``IoU`` (geometric), ``IoU_<class>`` for each semantic class and, where the taxonomy
-        has groups, ``mIoU_dynamic`` / ``mIoU_static``; in percent."""
+        has groups, ``mIoU_dynamic`` / ``mIoU_static``; with ``exclude_classes``, each mean again without
+        those classes as ``<key>_excl``; in percent."""
         iou = self.per_class_iou()
         semantic = [c for c in range(self.num_classes) if c != self.free_label]
-        out = {"mIoU": torch.nanmean(iou[semantic]) * 100}
-        for key, ids in self.groups.items():
-            out[f"mIoU_{key}"] = torch.nanmean(iou[ids]) * 100
+        means = {"mIoU": semantic, **{f"mIoU_{key}": ids for key, ids in self.groups.items()}}
+        out = {key: torch.nanmean(iou[ids]) * 100 for key, ids in means.items()}
+        if self.excluded:
+            for key, ids in means.items():
+                out[f"{key}_excl"] = torch.nanmean(iou[[c for c in ids if c not in self.excluded]]) * 100
         cm = self.confmat.to(torch.float64)
         occ = torch.ones(self.num_classes, dtype=torch.bool, device=cm.device)
         occ[self.free_label] = False
@@ -147,4 +140,8 @@ class Occ3DMIoU(OccMetric):
         for key in self.groups:
             lines.append(f"{'mIoU ' + key:<24}{res[f'mIoU_{key}'].item():>8.2f}")
         lines.append(f"{'IoU (geometry)':<24}{res['IoU'].item():>8.2f}")
+        if self.excluded:
+            lines.append(f"without {', '.join(self.class_names[c] for c in self.excluded)}:")
+            for key in ("mIoU", *(f"mIoU_{g}" for g in self.groups)):
+                lines.append(f"{key.replace('_', ' ') + ' excl.':<24}{res[f'{key}_excl'].item():>8.2f}")
         return "\n".join(lines)

@@ -23,6 +23,23 @@ leaderboard and the CVPR 2024 occupancy challenge use:
    absent from both (NaN-mean, as the reference's ``np.nanmean``); ``RayIoU`` is the mean of the
    three.
 
+Beyond the reference
+--------------------
+Summaries that the reference code does not print, for methods that report them (e.g. QueryOcc's
+table "Sem. RayIoU, Dyn. RayIoU, Occ. RayIoU"):
+
+* ``RayIoU_dynamic`` / ``RayIoU_static``: the same NaN-mean as ``RayIoU`` over the dynamic / static
+  class groups only (:func:`occplug.metrics.base.group_class_ids`, as ``occ3d_miou``'s ``mIoU_dynamic``).
+* ``RayIoU_geometry`` (QueryOcc's "Occ. RayIoU"): the **class-agnostic** RayIoU. Every non-free
+  label (an ignore label too) is one "occupied" class; the evaluated rays are the same (ground-truth
+  class not free), ``N_gt`` is their number, ``N_pred`` the number of them whose predicted ray hits
+  something, ``TP(tau)`` those that hit with ``|d_pred - d_gt| < tau`` whatever the two classes;
+  ``IoU(tau) = TP / (N_gt + N_pred - TP)``, averaged over the thresholds. A prediction with the right
+  depths and wrong classes scores 100 here and 0 in ``RayIoU``.
+* ``<key>_excl`` with ``exclude_classes``: ``RayIoU``, ``RayIoU_dynamic`` and ``RayIoU_static`` again
+  without the named classes (e.g. those a pseudo-label taxonomy cannot express). The per-threshold
+  and class-agnostic keys have no ``_excl`` variant.
+
 Details where this follows the reference code rather than a plain reading of the definition:
 
 * **Depth** is the distance at which the ray *leaves* the first occupied voxel (its far face), not
@@ -65,12 +82,13 @@ from occplug.data.nuscenes.format import OCC3D_GRID
 from occplug.geometry import GridSpec
 from occplug.geometry.raycast import first_hits
 
-from .base import OccMetric, check_class_ids
+from .base import OccMetric, check_class_ids, excluded_class_ids, group_class_ids
 
 __all__ = [
     "QueryRays",
     "RayIoU",
     "cast_query_rays",
+    "geometry_counts",
     "iou_from_counts",
     "query_ray_directions",
     "rayiou_counts",
@@ -186,9 +204,25 @@ def rayiou_counts(
     return count(gt_class), count(pred_class), tp
 
 
+def geometry_counts(rays: QueryRays, free_label: int, thresholds: Sequence[float]) -> tuple[Tensor, Tensor, Tensor]:
+    """Sum-reducible counts of the class-agnostic RayIoU (every non-free class is "occupied").
+
+    Returns:
+        ``gt_count`` ``()`` evaluated rays (ground-truth class not free), ``pred_count`` ``()`` those
+        whose predicted ray hits an occupied voxel and ``tp`` ``(len(thresholds),)`` those that hit
+        within ``tau`` of the ground-truth depth, whatever the classes; int64.
+    """
+    keep = rays.gt_class != free_label
+    hit = rays.pred_class[keep] != free_label
+    error = (rays.pred_depth[keep] - rays.gt_depth[keep]).abs()
+    tp = torch.stack([(hit & (error < tau)).sum() for tau in thresholds])
+    return keep.sum(), hit.sum(), tp
+
+
 def iou_from_counts(gt_count: Tensor, pred_count: Tensor, tp: Tensor) -> Tensor:
     """``(T, K)`` float64 ``TP / (N_gt + N_pred - TP)`` per threshold and class; NaN where a class
-    has no ground-truth and no predicted ray (the reference's 0 / 0)."""
+    has no ground-truth and no predicted ray (the reference's 0 / 0). Broadcasts: ``()`` counts and
+    ``(T,)`` true positives give the ``(T,)`` IoU of one class."""
     tp = tp.to(torch.float64)
     denom = gt_count.to(torch.float64) + pred_count.to(torch.float64) - tp
     return torch.where(denom > 0, tp / denom.clamp_min(1), torch.full_like(tp, math.nan))
@@ -197,10 +231,13 @@ def iou_from_counts(gt_count: Tensor, pred_count: Tensor, tp: Tensor) -> Tensor:
 class RayIoU(OccMetric):
     """RayIoU as SparseOcc and the Occ3D-nuScenes leaderboard define it (see the module docstring).
 
-    ``compute()`` returns ``RayIoU``, ``RayIoU_<tau>m`` (``RayIoU_1m``, ``RayIoU_2m``, ``RayIoU_4m``)
-    and ``RayIoU_<class>`` (the class's IoU averaged over the thresholds), in percent. States are
-    the counts ``gt_count`` ``(K,)``, ``pred_count`` ``(K,)`` and ``tp`` ``(len(thresholds), K)``,
-    summed over ranks.
+    ``compute()`` returns ``RayIoU``, ``RayIoU_<tau>m`` (``RayIoU_1m``, ``RayIoU_2m``, ``RayIoU_4m``),
+    ``RayIoU_<class>`` (the class's IoU averaged over the thresholds), ``RayIoU_geometry`` (class-agnostic),
+    ``RayIoU_dynamic`` / ``RayIoU_static`` where the class groups are known and, with ``exclude_classes``,
+    ``RayIoU_excl`` / ``RayIoU_dynamic_excl`` / ``RayIoU_static_excl``; in percent (see the module
+    docstring). States are the counts ``gt_count`` ``(K,)``, ``pred_count`` ``(K,)``, ``tp``
+    ``(len(thresholds), K)`` and their class-agnostic ``geo_gt_count`` ``()``, ``geo_pred_count`` ``()``,
+    ``geo_tp`` ``(len(thresholds),)``, summed over ranks.
 
     ``update(pred, batch)`` reads ``batch.voxel_labels`` and the origins from
     ``batch.sequence_lidar_origins`` (else ``batch.lidar_to_ego``, else the ego origin).
@@ -215,6 +252,9 @@ class RayIoU(OccMetric):
         thresholds: depth-error thresholds, metres.
         origin_limit: origins with ``|x|`` or ``|y|`` not below this (metres) are dropped.
         max_origins: at most this many origins per sample.
+        dynamic_classes, static_classes: class names of the two groups, replacing the taxonomy's
+            (both or neither; as ``occ3d_miou``).
+        exclude_classes: semantic class names the ``*_excl`` keys leave out (none: no such keys).
     """
 
     def __init__(
@@ -227,6 +267,9 @@ class RayIoU(OccMetric):
         thresholds: Annotated[Sequence[Annotated[float, Positive]], Length(min=1)] = (1.0, 2.0, 4.0),
         origin_limit: Annotated[float, Positive] = 39.0,
         max_origins: Annotated[int, Positive] = 8,
+        dynamic_classes: Sequence[str] | None = None,
+        static_classes: Sequence[str] | None = None,
+        exclude_classes: Sequence[str] = (),
     ) -> None:
         super().__init__()
         self.num_classes = num_classes
@@ -240,10 +283,20 @@ class RayIoU(OccMetric):
         self.thresholds = tuple(float(t) for t in thresholds)
         self.origin_limit = float(origin_limit)
         self.max_origins = int(max_origins)
+        self.groups = group_class_ids(self.class_names, dynamic_classes, static_classes, "rayiou")
+        self.excluded = excluded_class_ids(self.class_names, exclude_classes, free_label, "rayiou")
+        summaries = {f"{t:g}m" for t in self.thresholds} | {"geometry", "excl", *self.groups}
+        summaries |= {f"{g}_excl" for g in self.groups}
+        clash = [n for c, n in enumerate(self.class_names) if c != free_label and n in summaries]
+        if clash:
+            raise ValueError(f"rayiou: class '{clash[0]}' would share its key RayIoU_{clash[0]} with a summary")
         self._directions: Tensor | None = None
         self.add_state("gt_count", torch.zeros(num_classes, dtype=torch.int64), dist_reduce_fx="sum")
         self.add_state("pred_count", torch.zeros(num_classes, dtype=torch.int64), dist_reduce_fx="sum")
         self.add_state("tp", torch.zeros(len(self.thresholds), num_classes, dtype=torch.int64), dist_reduce_fx="sum")
+        self.add_state("geo_gt_count", torch.zeros((), dtype=torch.int64), dist_reduce_fx="sum")
+        self.add_state("geo_pred_count", torch.zeros((), dtype=torch.int64), dist_reduce_fx="sum")
+        self.add_state("geo_tp", torch.zeros(len(self.thresholds), dtype=torch.int64), dist_reduce_fx="sum")
         # how many origins were cast from, over how many samples (the table reports the mean)
         self.add_state("origins_used", torch.zeros((), dtype=torch.int64), dist_reduce_fx="sum")
         self.add_state("samples", torch.zeros((), dtype=torch.int64), dist_reduce_fx="sum")
@@ -287,22 +340,42 @@ class RayIoU(OccMetric):
             self.gt_count += gt
             self.pred_count += pr
             self.tp += tp
+            gt, pr, tp = geometry_counts(rays, self.free_label, self.thresholds)
+            self.geo_gt_count += gt
+            self.geo_pred_count += pr
+            self.geo_tp += tp
 
     def per_class_iou(self) -> Tensor:
         """``(len(thresholds), K)`` float64 IoU in [0, 1]; NaN where a class is absent from both."""
         return iou_from_counts(self.gt_count, self.pred_count, self.tp)
 
+    def geometry_iou(self) -> Tensor:
+        """``(len(thresholds),)`` float64 class-agnostic IoU in [0, 1]; NaN without evaluated rays."""
+        return iou_from_counts(self.geo_gt_count, self.geo_pred_count, self.geo_tp)
+
     def _semantic(self) -> list[int]:
         return [c for c in range(self.num_classes) if c != self.free_label]
 
+    def _means(self) -> dict[str, list[int]]:
+        """The class-mean keys and their class ids: ``RayIoU`` and the group means."""
+        return {"RayIoU": self._semantic(), **{f"RayIoU_{key}": ids for key, ids in self.groups.items()}}
+
     def compute(self) -> dict[str, Tensor]:
-        """``RayIoU``, ``RayIoU_<tau>m`` per threshold and ``RayIoU_<class>``, in percent."""
-        iou = self.per_class_iou()[:, self._semantic()]
-        out = {"RayIoU": torch.nanmean(iou) * 100}
+        """``RayIoU``, ``RayIoU_<tau>m`` per threshold, ``RayIoU_<class>``, ``RayIoU_geometry``, the group
+        means and the ``*_excl`` means (see the class docstring), in percent."""
+        all_iou = self.per_class_iou()
+        iou = all_iou[:, self._semantic()]
+        # the NaN-mean over (threshold, class) is the mean over thresholds of the per-threshold means:
+        # a class is NaN at every threshold or at none (N_gt + N_pred - TP > 0 iff N_gt + N_pred > 0)
+        out = {key: torch.nanmean(all_iou[:, ids]) * 100 for key, ids in self._means().items()}
         for tau, row in zip(self.thresholds, iou, strict=True):
             out[f"RayIoU_{tau:g}m"] = torch.nanmean(row) * 100
         for c, column in zip(self._semantic(), iou.T, strict=True):
             out[f"RayIoU_{self.class_names[c]}"] = torch.nanmean(column) * 100
+        out["RayIoU_geometry"] = self.geometry_iou().mean() * 100
+        if self.excluded:
+            for key, ids in self._means().items():
+                out[f"{key}_excl"] = torch.nanmean(all_iou[:, [c for c in ids if c not in self.excluded]]) * 100
         return {k: v.to(torch.float32) for k, v in out.items()}
 
     def describe(self) -> str:
@@ -335,4 +408,13 @@ class RayIoU(OccMetric):
             lines.append(f"{self.class_names[c]:<24}" + "".join(f"{v:>9.2f}" for v in iou[:, c].tolist()))
         lines.append(f"{'mean':<24}" + "".join(f"{res[f'RayIoU_{t:g}m'].item():>9.2f}" for t in self.thresholds))
         lines.append(f"{'RayIoU':<24}{res['RayIoU'].item():>9.2f}")
+        for key in self.groups:
+            lines.append(f"{'RayIoU ' + key:<24}{res[f'RayIoU_{key}'].item():>9.2f}")
+        geometry = "".join(f"{v:>9.2f}" for v in (self.geometry_iou() * 100).tolist())
+        lines.append(f"{'occupied (geometry)':<24}{geometry}")
+        lines.append(f"{'RayIoU geometry':<24}{res['RayIoU_geometry'].item():>9.2f}")
+        if self.excluded:
+            lines.append(f"without {', '.join(self.class_names[c] for c in self.excluded)}:")
+            for key in self._means():
+                lines.append(f"{key.replace('_', ' ') + ' excl.':<24}{res[f'{key}_excl'].item():>9.2f}")
         return "\n".join(lines)

@@ -28,7 +28,7 @@ from occplug.constraints import NonNegative, Positive
 from occplug.data.classes import SEMANTIC_KITTI_CLASSES, class_groups
 from occplug.data.frame import Batch
 
-from .base import OccMetric
+from .base import OccMetric, excluded_class_ids
 from .miou import confusion_matrix
 
 __all__ = ["SSCMetrics", "ssc_scores"]
@@ -67,11 +67,16 @@ class SSCMetrics(OccMetric):
     definition. The state is the confusion matrix ``confmat`` ``(K, K)`` (rows = ground truth),
     summed over ranks.
 
+    ``exclude_classes`` adds ``mIoU_excl`` (and ``mIoU_dynamic_excl`` / ``mIoU_static_excl`` where the
+    groups are known): the same plain means (the scorer's) leaving those classes out. The benchmark's
+    own keys are unchanged.
+
     Args:
         num_classes: ``K`` (SemanticKITTI: 20, ids 0..19 with 0 = empty).
         class_names: names for the per-class keys (default: SemanticKITTI's when ``K = 20``).
         free_label: the empty id (SemanticKITTI: 0).
         ignore_label: ground-truth id that is never evaluated (SemanticKITTI: 255).
+        exclude_classes: semantic class names the ``*_excl`` keys leave out (none: no such keys).
     """
 
     def __init__(
@@ -80,6 +85,7 @@ class SSCMetrics(OccMetric):
         class_names: Sequence[str] | None = None,
         free_label: Annotated[int, NonNegative] = 0,
         ignore_label: int | None = 255,
+        exclude_classes: Sequence[str] = (),
     ) -> None:
         super().__init__()
         if class_names:
@@ -97,6 +103,7 @@ class SSCMetrics(OccMetric):
         self.free_label = free_label
         self.ignore_label = ignore_label
         self.groups = {k: list(v) for k, v in (class_groups(self.class_names) or {}).items()}
+        self.excluded = excluded_class_ids(self.class_names, exclude_classes, free_label, "ssc")
         self.add_state("confmat", torch.zeros(num_classes, num_classes, dtype=torch.int64), dist_reduce_fx="sum")
 
     def update(self, pred: Tensor, batch: Batch) -> None:  # type: ignore[override]
@@ -115,15 +122,24 @@ class SSCMetrics(OccMetric):
     def compute(self) -> dict[str, Tensor]:
         """``IoU`` (completion), ``mIoU``, ``Precision``, ``Recall``, ``IoU_<class>`` and, for a taxonomy with
         dynamic / static groups (SemanticKITTI's, :mod:`occplug.data.classes`), ``mIoU_dynamic`` / ``mIoU_static``
-        (the scorer's plain mean over each group), in percent."""
+        (the scorer's plain mean over each group) and, with ``exclude_classes``, each mean again without those
+        classes as ``<key>_excl``; in percent."""
         scores = ssc_scores(self.confmat, self.free_label)
         out = {key: scores[key] * 100 for key in ("IoU", "mIoU", "Precision", "Recall")}
         for key, ids in self.groups.items():
             out[f"mIoU_{key}"] = scores["iou"][ids].mean() * 100
+        if self.excluded:
+            for key, ids in self._means().items():
+                out[f"{key}_excl"] = scores["iou"][[c for c in ids if c not in self.excluded]].mean() * 100
         for c in range(self.num_classes):
             if c != self.free_label:
                 out[f"IoU_{self.class_names[c]}"] = scores["iou"][c] * 100
         return {k: v.to(torch.float32) for k, v in out.items()}
+
+    def _means(self) -> dict[str, list[int]]:
+        """The class-mean keys and their class ids: ``mIoU`` and the group means."""
+        semantic = [c for c in range(self.num_classes) if c != self.free_label]
+        return {"mIoU": semantic, **{f"mIoU_{key}": ids for key, ids in self.groups.items()}}
 
     def table(self) -> str:
         """The benchmark's per-class table (percent), headed by the settings."""
@@ -145,4 +161,8 @@ class SSCMetrics(OccMetric):
             *((f"mIoU_{g}", f"mIoU {g}") for g in self.groups),  # after the benchmark's own lines
         ):
             lines.append(f"{label:<24}{res[key].item():>8.2f}")
+        if self.excluded:
+            lines.append(f"without {', '.join(self.class_names[c] for c in self.excluded)}:")
+            for key in self._means():
+                lines.append(f"{key.replace('_', ' ') + ' excl.':<24}{res[f'{key}_excl'].item():>8.2f}")
         return "\n".join(lines)

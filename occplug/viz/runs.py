@@ -10,8 +10,10 @@ final validation metrics, flat: ``{"mIoU": ..., "IoU_car": ..., ...}``).
 * :func:`class_iou_figure` draws the per-class values of ``metrics.json`` as bars in the classes'
   colours, one chart per key family ``<metric>_<class>``: ``IoU_<class>`` (metrics
   ``occ3d_miou`` and ``ssc``) and ``RayIoU_<class>`` (``rayiou``). RayIoU's threshold keys
-  (``RayIoU_1m``, ``RayIoU_2m``, ``RayIoU_4m``) are summaries over classes, not classes: they go
-  into the headline with ``mIoU``, ``IoU``, ``RayIoU``, ``Precision``, ``Recall``.
+  (``RayIoU_1m``, ``RayIoU_2m``, ``RayIoU_4m``), its group and class-agnostic means
+  (``RayIoU_dynamic``, ``RayIoU_static``, ``RayIoU_geometry``) and every ``*_excl`` mean are summaries
+  over classes, not classes: they go into the headline with ``mIoU``, ``IoU``, ``RayIoU``,
+  ``Precision``, ``Recall``.
 """
 
 from __future__ import annotations
@@ -44,6 +46,9 @@ __all__ = ["RunLogs", "class_iou_figure", "curves_figure", "plot_run", "read_log
 _VERSION = re.compile(r"version_(\d+)$")
 #: The suffix of a per-threshold summary key (``RayIoU_1m``, ``RayIoU_0.5m``: ``f"{tau:g}m"``).
 _THRESHOLD = re.compile(r"\d+(\.\d*)?(e[+-]?\d+)?m")
+#: The suffix of a RayIoU summary over a class group or over all classes (``RayIoU_dynamic``,
+#: ``RayIoU_geometry``, ``RayIoU_excl``, ``RayIoU_static_excl``: see :mod:`occplug.metrics.rayiou`).
+_GROUP_SUMMARY = re.compile(r"(dynamic|static|geometry)(_excl)?|excl")
 #: Bookkeeping entries of ``metrics.json``, neither metrics nor classes.
 _BOOKKEEPING = ("epoch", "global_step")
 
@@ -202,8 +207,10 @@ def _per_class(key: str) -> tuple[str, str] | None:
     """``(family, class)`` of a per-class key (``IoU_car`` -> ``("IoU", "car")``, class names may
     hold ``_``), None for a summary key (``mIoU``, ``RayIoU_1m``) or bookkeeping (``global_step``)."""
     family, sep, cls = key.partition("_")
-    # mIoU_dynamic / mIoU_static are means over class groups: summaries, not classes
-    if not (family and sep and cls) or key in _BOOKKEEPING or _THRESHOLD.fullmatch(cls) or family == "mIoU":
+    # mIoU_dynamic / mIoU_static / RayIoU_geometry / *_excl are means over class groups: summaries, not classes
+    if not (family and sep and cls) or key in _BOOKKEEPING or family == "mIoU":
+        return None
+    if _THRESHOLD.fullmatch(cls) or (family == "RayIoU" and _GROUP_SUMMARY.fullmatch(cls)):
         return None
     return family, cls
 

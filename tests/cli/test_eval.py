@@ -207,6 +207,9 @@ def test_eval_equals_the_metrics_on_the_same_batch(occ3d_tree, tmp_path, capsys)
         and "SemanticKITTI SSC" in printed
     )
     assert "evaluated 2 samples" in printed
+    summary = next(line for line in printed.splitlines() if line.startswith("evaluated 2 samples"))
+    # RayIoU's group and class-agnostic means are headline values, its per-class values are not
+    assert "RayIoU_geometry=" in summary and "RayIoU_dynamic=" in summary and "RayIoU_car=" not in summary
     scores = json.loads(out.read_text())
     assert scores["samples"] == 2 and set(scores["metrics"]) == {"miou", "rayiou", "ssc"}
     grid = {"range": [-16, -16, -1, 16, 16, 5.4], "voxel_size": 0.8}

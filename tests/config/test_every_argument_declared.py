@@ -51,6 +51,11 @@ ALLOWED: dict[tuple[str, str, str], str] = {
     # class names (strings), checked against the data set's classes when the metric is built
     ("metric", "occ3d_miou", "dynamic_classes"): "class names, checked against the data set's classes",
     ("metric", "occ3d_miou", "static_classes"): "class names, checked against the data set's classes",
+    ("metric", "occ3d_miou", "exclude_classes"): "class names, checked against the data set's classes",
+    ("metric", "rayiou", "dynamic_classes"): "class names, checked against the data set's classes",
+    ("metric", "rayiou", "static_classes"): "class names, checked against the data set's classes",
+    ("metric", "rayiou", "exclude_classes"): "class names, checked against the data set's classes",
+    ("metric", "ssc", "exclude_classes"): "class names, checked against the data set's classes",
     # indices into the validation set, Python style: negative counts from the end, out of range is skipped
     ("callback", "bev_panel_logger", "samples"): "validation-set indices; negative counts from the end",
 }

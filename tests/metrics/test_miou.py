@@ -127,8 +127,14 @@ def test_dynamic_and_static_miou_by_hand():
     assert math.isclose(res["mIoU"].item(), 100 * (0 + 1 / 3 + 1 + 0.5 + 0.5) / 5, rel_tol=1e-5)
     assert "mIoU dynamic" in m.table()
     # explicit groups for another taxonomy; no groups -> no keys
-    custom = Occ3DMIoU(num_classes=4, class_names=["a", "b", "c", "free"], free_label=3, mask="none",
-                       dynamic_classes=["a"], static_classes=["b", "c"])
+    custom = Occ3DMIoU(
+        num_classes=4,
+        class_names=["a", "b", "c", "free"],
+        free_label=3,
+        mask="none",
+        dynamic_classes=["a"],
+        static_classes=["b", "c"],
+    )
     g = torch.tensor([0, 0, 1, 1, 3, 3, 2, 3]).reshape(1, 2, 2, 2)
     p = torch.tensor([0, 1, 1, 1, 3, 0, 3, 3]).reshape(1, 2, 2, 2)
     custom.update(p, make_batch(g))
@@ -139,5 +145,44 @@ def test_dynamic_and_static_miou_by_hand():
     plain.update(p, make_batch(g))
     assert "mIoU_dynamic" not in plain.compute()
     with pytest.raises(ValueError, match="unknown class 'x'"):
-        Occ3DMIoU(num_classes=4, class_names=["a", "b", "c", "free"], free_label=3, dynamic_classes=["x"],
-                  static_classes=["a"])
+        Occ3DMIoU(
+            num_classes=4,
+            class_names=["a", "b", "c", "free"],
+            free_label=3,
+            dynamic_classes=["x"],
+            static_classes=["a"],
+        )
+
+
+def test_excluded_classes_leave_the_means_and_nothing_else():
+    from occplug.data.classes import OCC3D_CLASSES
+
+    # the voxels of test_dynamic_and_static_miou_by_hand: others 0, car 1/3, pedestrian 1, driveable 1/2, vegetation 1/2
+    gt = torch.tensor([0, 4, 4, 7, 11, 11, 16, 17]).reshape(1, 2, 2, 2)
+    pred = torch.tensor([4, 4, 17, 7, 11, 16, 16, 17]).reshape(1, 2, 2, 2)
+    m = Occ3DMIoU(class_names=OCC3D_CLASSES, mask="none", exclude_classes=["others", "car", "traffic_cone"])
+    m.update(pred, make_batch(gt))
+    res = m.compute()
+    assert math.isclose(res["mIoU_excl"].item(), 100 * (1 + 0.5 + 0.5) / 3, rel_tol=1e-5)
+    assert math.isclose(res["mIoU_dynamic_excl"].item(), 100.0, rel_tol=1e-5)  # pedestrian only
+    assert math.isclose(res["mIoU_static_excl"].item(), 50.0, rel_tol=1e-5)
+    # the same NaN-means recomputed from the per-class keys without the excluded classes
+    kept = [n for n in OCC3D_CLASSES[:17] if n not in ("others", "car", "traffic_cone")]
+    per_class = torch.tensor([res[f"IoU_{n}"].item() for n in kept])
+    assert math.isclose(res["mIoU_excl"].item(), torch.nanmean(per_class).item(), rel_tol=1e-5)
+    plain = Occ3DMIoU(class_names=OCC3D_CLASSES, mask="none")
+    plain.update(pred, make_batch(gt))
+    base = plain.compute()
+    for key, value in base.items():  # the other keys unchanged
+        torch.testing.assert_close(res[key], value, equal_nan=True)
+    assert not any(k.endswith("_excl") for k in base) and "excl." not in plain.table()
+    table = m.table()
+    assert "without others, car, traffic_cone:" in table
+    assert f"{'mIoU dynamic excl.':<24}{100.0:>8.2f}" in table
+
+
+def test_unknown_excluded_class_is_an_error_naming_the_valid_ones():
+    with pytest.raises(
+        ValueError, match=r"occ3d_miou.exclude_classes: unknown class 'cone' \(semantic classes: a, b, c\)"
+    ):
+        Occ3DMIoU(num_classes=4, class_names=["a", "b", "c", "free"], free_label=3, exclude_classes=["cone"])

@@ -9,7 +9,14 @@ from metric_batches import SMALL_GRID, make_batch, random_scene
 
 from occplug.geometry import GridSpec
 from occplug.metrics import RayIoU
-from occplug.metrics.rayiou import cast_query_rays, iou_from_counts, query_ray_directions, rayiou_counts, select_origins
+from occplug.metrics.rayiou import (
+    cast_query_rays,
+    geometry_counts,
+    iou_from_counts,
+    query_ray_directions,
+    rayiou_counts,
+    select_origins,
+)
 
 # ----------------------------------------------------------------------------------------------
 # A per-ray reference, independent of the DDA: every plane crossing of the ray inside the grid,
@@ -81,6 +88,13 @@ def test_vectorised_equals_per_ray_reference(seed):
     counts = rayiou_counts(rays, 5, 4, (1.0, 2.0, 4.0))
     assert torch.equal(counts[0], gt_count) and torch.equal(counts[1], pred_count) and torch.equal(counts[2], tp)
     assert 0 < tp[0].sum() < tp[2].sum() < gt_count.sum()  # not vacuous: all thresholds matter
+    # class-agnostic counts: evaluated rays, those the prediction hits, those hit within tau (any classes)
+    evaluated = [r for r in per_ray if r[0] != 4]
+    hit = [r for r in evaluated if r[2] != 4]
+    geo = geometry_counts(rays, 4, (1.0, 2.0, 4.0))
+    assert geo[0].item() == len(evaluated) and geo[1].item() == len(hit)
+    assert geo[2].tolist() == [sum(abs(r[3] - r[1]) < tau for r in hit) for tau in (1.0, 2.0, 4.0)]
+    assert (geo[2] > tp.sum(1)).all()  # some rays hit at the right depth with the wrong class
 
 
 def test_query_ray_directions_follow_sparseocc():
@@ -238,4 +252,143 @@ def test_grid_is_required_off_occ3d_and_the_table_names_the_settings():
     assert "one origin per sample: not comparable with leaderboard RayIoU" in one.table()
     with pytest.raises(ValueError, match="rayiou: the prediction holds class id 255, outside 0..4"):
         one.update(torch.full_like(labels, 255)[None], make_batch(labels[None]))
-    assert set(m.compute()) == {"RayIoU", "RayIoU_1m", "RayIoU_2m", "RayIoU_4m", *(f"RayIoU_{c}" for c in "abcd")}
+    # no dynamic / static groups for an unknown taxonomy, no _excl keys without exclude_classes
+    assert set(m.compute()) == {
+        "RayIoU",
+        "RayIoU_1m",
+        "RayIoU_2m",
+        "RayIoU_4m",
+        "RayIoU_geometry",
+        *(f"RayIoU_{c}" for c in "abcd"),
+    }
+    assert "RayIoU geometry" in table and "RayIoU dynamic" not in table and "excl." not in table
+
+
+# ----------------------------------------------------------------------------------------------
+# Beyond the reference: class-agnostic (geometry), dynamic / static and excluded-class summaries.
+
+
+def test_geometry_counts_of_hand_made_rays():
+    """Three rays from (0.5, 0.5, 0.5) on the unit grid: +x, +y and +z."""
+    directions = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    gt = torch.full(LINE.shape, FREE)
+    gt[5, 0, 0] = 1  # +x: class 1, leaves at x = 6 (depth 5.5)
+    gt[0, 3, 0] = 2  # +y: class 2, leaves at y = 4 (depth 3.5); +z: free, not evaluated
+    pred = torch.full(LINE.shape, FREE)
+    pred[5, 0, 0] = 2  # +x: right depth, wrong class
+    pred[0, 2, 0] = 2  # +y: right class, 1 m short (depth 2.5)
+    pred[0, 0, 2] = 1  # +z: a hit where the ground truth has none: not evaluated
+    rays = cast_query_rays(pred, gt, LINE, START, FREE, directions)
+    n_gt, n_pred, tp = geometry_counts(rays, FREE, (1.0, 2.0, 4.0))
+    assert (n_gt.item(), n_pred.item(), tp.tolist()) == (2, 2, [1, 2, 2])
+    geometry = iou_from_counts(n_gt, n_pred, tp)  # TP / (2 + 2 - TP): 1/3, 1, 1
+    assert torch.allclose(geometry, torch.tensor([1 / 3, 1.0, 1.0], dtype=torch.float64))
+    # semantic: class 1 never predicted (0); class 2: N_gt 1, N_pred 2, TP 0, 1, 1 -> 0, 1/2, 1/2
+    iou = iou_from_counts(*rayiou_counts(rays, 4, FREE, (1.0, 2.0, 4.0)))
+    assert iou[:, 1].tolist() == [0, 0, 0] and iou[:, 2].tolist() == [0, 0.5, 0.5]
+    m = RayIoU(num_classes=4, free_label=FREE, grid=LINE)  # the metric's summaries of the same counts
+    m.geo_gt_count += n_gt
+    m.geo_pred_count += n_pred
+    m.geo_tp += tp
+    semantic = rayiou_counts(rays, 4, FREE, (1.0, 2.0, 4.0))
+    m.gt_count += semantic[0]
+    m.pred_count += semantic[1]
+    m.tp += semantic[2]
+    with pytest.warns(UserWarning, match="The ``compute`` method"):  # states set by hand, not by update()
+        res = m.compute()
+    assert math.isclose(res["RayIoU_geometry"].item(), 100 * (1 / 3 + 1 + 1) / 3, rel_tol=1e-6)
+    assert math.isclose(res["RayIoU"].item(), 100 * (0 + 0 + 0 + 0 + 0.5 + 0.5) / 6, rel_tol=1e-6)
+
+
+def test_right_depths_with_wrong_classes_score_100_in_geometry_only():
+    labels, _, origins = random_scene(5)
+    relabelled = torch.where(labels == 4, 4, (labels + 1) % 4)  # every occupied voxel another class
+    batch = make_batch(labels[None], sequence_lidar_origins=[origins])
+    m = RayIoU(num_classes=5, free_label=4, grid=SMALL_GRID)
+    m.update(relabelled[None], batch)
+    res = m.compute()
+    assert res["RayIoU_geometry"].item() == 100 and m.geo_gt_count == m.gt_count.sum() > 0
+    assert res["RayIoU"].item() == 0  # no ray has its class right
+    m.reset()
+    m.update(torch.full_like(labels, 4)[None], batch)  # nothing predicted
+    assert m.compute()["RayIoU_geometry"].item() == 0
+    m.reset()
+    m.update(torch.roll(labels, 1, 0)[None], batch)  # shifted: geometry at least as good as the classes
+    res = m.compute()
+    assert res["RayIoU"] <= res["RayIoU_geometry"] < 100
+    iou = iou_from_counts(m.geo_gt_count, m.geo_pred_count, m.geo_tp)
+    assert math.isclose(res["RayIoU_geometry"].item(), iou.mean().item() * 100, rel_tol=1e-6)
+
+
+@pytest.mark.filterwarnings("ignore:The ``compute`` method")  # states set by hand, not by update()
+def test_dynamic_static_and_excluded_means_by_hand():
+    from occplug.data.classes import OCC3D_CLASSES
+
+    m = RayIoU(class_names=OCC3D_CLASSES, exclude_classes=["traffic_cone", "others"])
+    ids = {name: OCC3D_CLASSES.index(name) for name in OCC3D_CLASSES}
+    # (N_gt, N_pred, TP at 1, 2, 4 m) of the classes present; every other class is absent (NaN, skipped)
+    counts = {
+        "others": (2, 0, (0, 0, 0)),  # 0, 0, 0
+        "car": (4, 4, (2, 4, 4)),  # 1/3, 1, 1 -> 7/9
+        "pedestrian": (1, 1, (1, 1, 1)),  # 1
+        "traffic_cone": (1, 3, (0, 0, 1)),  # 0, 0, 1/3 -> 1/9
+        "driveable_surface": (6, 3, (3, 3, 3)),  # 1/2
+        "vegetation": (2, 2, (0, 1, 2)),  # 0, 1/3, 1 -> 4/9
+    }
+    for name, (n_gt, n_pred, tp) in counts.items():
+        m.gt_count[ids[name]] = n_gt
+        m.pred_count[ids[name]] = n_pred
+        m.tp[:, ids[name]] = torch.tensor(tp)
+    per_class = {"others": 0, "car": 7 / 9, "pedestrian": 1, "traffic_cone": 1 / 9, "driveable_surface": 1 / 2,
+                 "vegetation": 4 / 9}  # fmt: skip
+    res = m.compute()
+    for name, value in per_class.items():
+        assert math.isclose(res[f"RayIoU_{name}"].item(), 100 * value, rel_tol=1e-6, abs_tol=1e-6)
+    assert math.isnan(res["RayIoU_bus"].item())
+    assert math.isclose(res["RayIoU"].item(), 100 * sum(per_class.values()) / 6, rel_tol=1e-6)
+    # dynamic (Occ3D's ten object classes): car, pedestrian, traffic_cone present; static: driveable, vegetation
+    assert math.isclose(res["RayIoU_dynamic"].item(), 100 * (7 / 9 + 1 + 1 / 9) / 3, rel_tol=1e-6)
+    assert math.isclose(res["RayIoU_static"].item(), 100 * (1 / 2 + 4 / 9) / 2, rel_tol=1e-6)
+    # without traffic_cone and others
+    assert math.isclose(res["RayIoU_excl"].item(), 100 * (7 / 9 + 1 + 1 / 2 + 4 / 9) / 4, rel_tol=1e-6)
+    assert math.isclose(res["RayIoU_dynamic_excl"].item(), 100 * (7 / 9 + 1) / 2, rel_tol=1e-6)
+    assert math.isclose(res["RayIoU_static_excl"].item(), res["RayIoU_static"].item(), rel_tol=1e-6)
+    table = m.table()
+    for line in ("RayIoU dynamic", "RayIoU static", "RayIoU geometry", "without others, traffic_cone:",
+                 "RayIoU excl.", "RayIoU dynamic excl.", "RayIoU static excl."):  # fmt: skip
+        assert line in table
+    assert f"{'RayIoU dynamic':<24}{res['RayIoU_dynamic'].item():>9.2f}" in table
+
+
+def test_groups_follow_the_taxonomy_or_the_arguments_and_match_the_per_class_keys():
+    labels, pred, origins = random_scene(2)
+    batch = make_batch(labels[None], sequence_lidar_origins=[origins])
+    names = ["a", "b", "c", "d", "free"]
+    m = RayIoU(num_classes=5, class_names=names, free_label=4, grid=SMALL_GRID, dynamic_classes=["a", "b"],
+               static_classes=["c"], exclude_classes=["b"])  # fmt: skip
+    m.update(pred[None], batch)
+    res = m.compute()
+    per_class = {n: res[f"RayIoU_{n}"].item() for n in "abcd"}
+    assert all(0 < v < 100 for v in per_class.values())
+    assert math.isclose(res["RayIoU_dynamic"].item(), (per_class["a"] + per_class["b"]) / 2, rel_tol=1e-5)
+    assert math.isclose(res["RayIoU_static"].item(), per_class["c"], rel_tol=1e-5)
+    assert math.isclose(res["RayIoU_excl"].item(), (per_class["a"] + per_class["c"] + per_class["d"]) / 3, rel_tol=1e-5)
+    assert math.isclose(res["RayIoU_dynamic_excl"].item(), per_class["a"], rel_tol=1e-5)
+    assert math.isclose(res["RayIoU_static_excl"].item(), per_class["c"], rel_tol=1e-5)
+    plain = RayIoU(num_classes=5, class_names=names, free_label=4, grid=SMALL_GRID)
+    plain.update(pred[None], batch)
+    assert not any(k.endswith(("_dynamic", "_static", "_excl")) for k in plain.compute())
+
+
+def test_bad_group_exclude_and_class_names_are_clear_errors():
+    names = ["a", "b", "c", "free"]
+    with pytest.raises(ValueError, match=r"rayiou.exclude_classes: unknown class 'x' \(semantic classes: a, b, c\)"):
+        RayIoU(num_classes=4, class_names=names, free_label=3, exclude_classes=["a", "x"])
+    with pytest.raises(ValueError, match="rayiou.exclude_classes: unknown class 'free'"):
+        RayIoU(num_classes=4, class_names=names, free_label=3, exclude_classes=["free"])
+    with pytest.raises(ValueError, match="rayiou.static_classes: unknown class 'y'"):
+        RayIoU(num_classes=4, class_names=names, free_label=3, dynamic_classes=["a"], static_classes=["y"])
+    with pytest.raises(ValueError, match="rayiou: give both dynamic_classes and static_classes, or neither"):
+        RayIoU(num_classes=4, class_names=names, free_label=3, dynamic_classes=["a"])
+    with pytest.raises(ValueError, match="rayiou: class 'geometry' would share its key RayIoU_geometry"):
+        RayIoU(num_classes=3, class_names=["geometry", "b", "free"], free_label=2)

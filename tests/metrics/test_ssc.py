@@ -119,3 +119,24 @@ def test_dynamic_and_static_mious_are_the_scorer_mean_over_the_core_groups():
         assert math.isclose(res[f"mIoU_{key}"].item(), ref["iou"][list(groups[key])].mean() * 100, rel_tol=1e-5)
     assert "mIoU dynamic" in m.table() and "mIoU static" in m.table()
     assert "mIoU_dynamic" not in SSCMetrics(num_classes=3, free_label=0).compute()  # no groups for an unknown taxonomy
+
+
+def test_excluded_classes_are_left_out_of_the_plain_means():
+    import pytest
+
+    gen = torch.Generator().manual_seed(3)
+    gt = torch.randint(0, 20, (1, 8, 8, 4), generator=gen)
+    pred = torch.where(torch.rand(gt.shape, generator=gen) < 0.7, gt, torch.randint(0, 20, gt.shape, generator=gen))
+    m = SSCMetrics(exclude_classes=["person", "road"])
+    m.update(pred, make_batch(gt))
+    res = m.compute()
+    iou = {n: res[f"IoU_{n}"].item() for n in SEMANTIC_KITTI_CLASSES[1:]}
+    kept = [n for n in iou if n not in ("person", "road")]
+    assert math.isclose(res["mIoU_excl"].item(), float(np.mean([iou[n] for n in kept])), rel_tol=1e-5)
+    dynamic = [n for n in kept if SEMANTIC_KITTI_CLASSES.index(n) <= 8]
+    static = [n for n in kept if SEMANTIC_KITTI_CLASSES.index(n) > 8]
+    assert math.isclose(res["mIoU_dynamic_excl"].item(), float(np.mean([iou[n] for n in dynamic])), rel_tol=1e-5)
+    assert math.isclose(res["mIoU_static_excl"].item(), float(np.mean([iou[n] for n in static])), rel_tol=1e-5)
+    assert res["mIoU_excl"] != res["mIoU"] and "without person, road:" in m.table()
+    with pytest.raises(ValueError, match="ssc.exclude_classes: unknown class 'empty'"):
+        SSCMetrics(exclude_classes=["empty"])

@@ -103,13 +103,36 @@ def test_class_iou_takes_per_class_keys_not_rayiou_thresholds():
     from occplug.metrics import Occ3DMIoU, RayIoU
 
     classes = [c for i, c in enumerate(OCC3D_CLASSES) if i != OCC3D_FREE]
-    keys = _metric_keys(Occ3DMIoU(class_names=OCC3D_CLASSES)) + _metric_keys(RayIoU(class_names=OCC3D_CLASSES))
+    excl = ["traffic_cone", "others"]
+    keys = _metric_keys(Occ3DMIoU(class_names=OCC3D_CLASSES, exclude_classes=excl))
+    keys += _metric_keys(RayIoU(class_names=OCC3D_CLASSES, exclude_classes=excl))
     assert {"RayIoU_1m", "RayIoU_2m", "RayIoU_4m", "RayIoU_car", "IoU_car", "mIoU", "IoU", "RayIoU"} <= set(keys)
+    groups = {
+        "RayIoU_dynamic": 30.0,
+        "RayIoU_static": 36.0,
+        "RayIoU_geometry": 60.0,
+        "RayIoU_excl": 34.0,
+        "RayIoU_dynamic_excl": 31.0,
+        "RayIoU_static_excl": 37.0,
+        "mIoU_excl": 19.0,
+        "mIoU_dynamic_excl": 16.0,
+        "mIoU_static_excl": 24.0,
+    }
+    assert set(groups) <= set(keys)
     iou = {c: 10.0 + i for i, c in enumerate(classes)}
     ray = {c: 50.0 - 2 * i for i, c in enumerate(classes)}
     ray["bus"] = float("nan")  # absent from truth and prediction: skipped by the mean, as RayIoU does
-    summary = {"mIoU": 18.0, "IoU": 55.0, "RayIoU": 33.0, "RayIoU_1m": 21.0, "RayIoU_2m": 31.0, "RayIoU_4m": 47.0,
-               "mIoU_dynamic": 15.0, "mIoU_static": 23.0}
+    summary = {
+        "mIoU": 18.0,
+        "IoU": 55.0,
+        "RayIoU": 33.0,
+        "RayIoU_1m": 21.0,
+        "RayIoU_2m": 31.0,
+        "RayIoU_4m": 47.0,
+        "mIoU_dynamic": 15.0,
+        "mIoU_static": 23.0,
+        **groups,
+    }
     metrics = {"global_step": 10, "epoch": 1}
     for key in keys:
         family, _, cls = key.partition("_")
@@ -119,13 +142,21 @@ def test_class_iou_takes_per_class_keys_not_rayiou_thresholds():
     assert titles == ["per-class IoU", "per-class RayIoU (mean over 1m, 2m, 4m)"]
     iou_ax, ray_ax = fig.axes
     assert _bars(iou_ax) == iou  # exactly the 17 semantic classes, in id order
-    assert list(_bars(ray_ax)) == classes  # no 1m / 2m / 4m bars
+    assert list(_bars(ray_ax)) == classes  # no 1m / 2m / 4m, group, geometry or _excl bars
     assert math.isclose(_mean_line(iou_ax), float(np.mean(list(iou.values()))), abs_tol=0.01)
     assert math.isclose(_mean_line(ray_ax), float(np.nanmean(list(ray.values()))), abs_tol=0.01)
     headline = fig._suptitle.get_text()
-    for key in ("mIoU = 18.00", "RayIoU = 33.00", "RayIoU_1m = 21.00", "RayIoU_2m = 31.00", "RayIoU_4m = 47.00",
-                "mIoU_dynamic = 15.00", "mIoU_static = 23.00"):  # group means are headline values, not bars
+    for key in (
+        "mIoU = 18.00",
+        "RayIoU = 33.00",
+        "RayIoU_1m = 21.00",
+        "RayIoU_2m = 31.00",
+        "RayIoU_4m = 47.00",
+        "mIoU_dynamic = 15.00",
+        "mIoU_static = 23.00",
+    ):  # group means are headline values, not bars
         assert key in headline
+    assert all(f"{k} = {v:.2f}" in headline for k, v in groups.items())
     assert "global_step" not in headline and "epoch" not in headline
 
 
