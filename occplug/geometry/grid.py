@@ -215,6 +215,13 @@ class GridSpec:
         upper = torch.tensor(self.upper, dtype=coord.dtype, device=coord.device)
         return (self.contract_coords(coord) - lower) / (upper - lower) * 2.0 - 1.0
 
+    def denormalize(self, norm: Tensor) -> Tensor:
+        """Inverse of :meth:`normalize`: ``[-1, 1]`` grid coordinates back to ego-frame points (on a contracted
+        grid x and y must lie strictly inside ``(-1, 1)``: the faces are at infinity)."""
+        lower = torch.tensor(self.lower, dtype=norm.dtype, device=norm.device)
+        upper = torch.tensor(self.upper, dtype=norm.dtype, device=norm.device)
+        return self.uncontract_coords((norm + 1.0) / 2.0 * (upper - lower) + lower)
+
 
 def range_axes() -> range:
     """The three spatial axes, 0..2 (named for readability at call sites)."""

@@ -4,11 +4,12 @@ from .depth_net import DepthAndContext, DepthNet
 from .encoder import ImageEncoder, PointEncoder, feature_levels
 from .head import DEFAULT_QUERY_CHUNK, Head, OccupancyHead
 from .query import QueryResult
-from .scene import DenseVoxelScene, Scene, SceneRepresentation
+from .scene import BevScene, DenseVoxelScene, Scene, SceneRepresentation
 from .supervision import ModelOutputs, SupervisionSource
 from .view_transform import Lifted, ViewTransform
 
 __all__ = [
+    "BevScene",
     "DenseVoxelScene",
     "DepthAndContext",
     "DepthNet",

@@ -93,6 +93,9 @@ class OccupancyHead(Head):
 
     num_classes: int
     free_label: int | None = None
+    #: Occupancy probability below which a query with an occupancy logit predicts ``free``
+    #: (:meth:`QueryResult.logits`); a head may take it as a constructor argument.
+    occupancy_threshold: float = 0.5
 
     def query(self, scene: Scene, points: Tensor, times: Tensor | None = None) -> QueryResult:
         """The head's answer at continuous 4D points.
@@ -132,9 +135,9 @@ class OccupancyHead(Head):
         """``(B, K, X, Y, Z)`` logits at the centres of ``grid``'s voxels (the evaluation grid).
 
         The default queries the centres at ``t = 0``, ``chunk_size`` points at a time, and writes each
-        chunk's :meth:`QueryResult.logits` (``free``'s logit from the occupancy logit where the head
-        returns one) into the output, so the memory beyond the output is bounded by the chunk, not the
-        grid. ``argmax`` over ``K`` gives the class ids (:meth:`OccModel.predict_occupancy`).
+        chunk's :meth:`QueryResult.logits` (``free``'s logit from the occupancy logit and
+        :attr:`occupancy_threshold` where the head returns one) into the output, so the memory beyond
+        the output is bounded by the chunk, not the grid. ``argmax`` over ``K`` gives the class ids (:meth:`OccModel.predict_occupancy`).
 
         Args:
             scene: the scene of the current frame.
@@ -153,7 +156,7 @@ class OccupancyHead(Head):
             flat = torch.arange(start, min(start + chunk_size, n), device=device)
             index = torch.stack((flat // (ny * nz), flat // nz % ny, flat % nz), dim=-1)
             points = grid.index_to_coord(index).to(device).unsqueeze(0).expand(b, -1, -1)
-            logits = self.query(scene, points).logits(self.free_label)  # (B, p, K)
+            logits = self.query(scene, points).logits(self.free_label, self.occupancy_threshold)  # (B, p, K)
             if out is None:
                 out = logits.new_empty(b, logits.shape[-1], n)
             out[:, :, start : start + len(flat)] = logits.transpose(1, 2)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -42,20 +43,26 @@ class QueryResult:
                 f"QueryResult.features must be (B, P, F) with (B, P) = {bp}, got {tuple(self.features.shape)}"
             )
 
-    def logits(self, free_label: int | None = None) -> Tensor:
+    def logits(self, free_label: int | None = None, threshold: float = 0.5) -> Tensor:
         """``(B, P, K)`` logits whose ``argmax`` over ``K`` is the class id (see the class docstring).
 
         Without an occupancy logit these are ``class_logits``. With one, ``free``'s column becomes
-        ``max_{c != free} class_logits_c - o``: the best occupied class beats ``free`` exactly where
-        ``o > 0`` (at ``o == 0`` they tie and ``argmax`` takes the lower label id), its margin over
-        ``free`` is ``o``, and the other columns are ``class_logits`` unchanged.
+        ``max_{c != free} class_logits_c - (o - logit(threshold))``: the best occupied class beats ``free``
+        exactly where ``sigmoid(o) > threshold`` (at equality they tie and ``argmax`` takes the lower label
+        id), its margin over ``free`` is ``o - logit(threshold)`` (``o`` at the default 0.5), and the other
+        columns are ``class_logits`` unchanged.
 
         Args:
             free_label: label id of ``free``; required when there is an occupancy logit.
+            threshold: occupancy probability below which a point is ``free``, in ``(0, 1)``.
         """
         o = self.occupancy_logit
         if o is None:
             return self.class_logits
+        if not 0.0 < threshold < 1.0:
+            raise ValueError(f"occupancy threshold must lie in (0, 1), got {threshold}")
+        if threshold != 0.5:
+            o = o - math.log(threshold / (1.0 - threshold))
         k = self.class_logits.shape[-1]
         if free_label is None or not 0 <= free_label < k or k < 2:
             raise ValueError(

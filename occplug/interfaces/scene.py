@@ -13,7 +13,7 @@ from occplug.geometry import GridSpec, sample_volume
 
 from .view_transform import Lifted
 
-__all__ = ["DenseVoxelScene", "Scene", "SceneRepresentation"]
+__all__ = ["BevScene", "DenseVoxelScene", "Scene", "SceneRepresentation"]
 
 
 class Scene(ABC):
@@ -72,6 +72,33 @@ class DenseVoxelScene(Scene):
 
         Exactly the voxel's feature at a voxel centre (:func:`occplug.geometry.sample_volume`).
         """
+        return sample_volume(self.features, self.grid, points)
+
+
+class BevScene(Scene):
+    """A bird's-eye-view feature plane, read bilinearly in x and y at continuous points (z is not resolved).
+
+    On a contracted grid the plane covers the unbounded scene: far points read its border band
+    (:func:`occplug.geometry.sample_volume` contracts them first). A head that needs height decodes it
+    from the query point itself (e.g. an MLP over the sampled feature and ``z``).
+
+    Attributes:
+        features: ``(B, C, X, Y)`` features on ``grid``'s x-y cells (cell ``[i, j]``'s value at its centre).
+        grid: the grid of ``features`` (its z range is what the plane was pooled over), ego frame.
+        channels: ``C``.
+    """
+
+    def __init__(self, features: Tensor, grid: GridSpec) -> None:
+        if features.dim() != 4 or tuple(features.shape[2:]) != grid.shape[:2]:
+            raise ValueError(
+                f"BevScene: features {tuple(features.shape)} do not match the grid's x-y shape {grid.shape[:2]}"
+            )
+        self.features = features
+        self.grid = grid
+        self.channels = int(features.shape[1])
+
+    def sample(self, points: Tensor) -> Tensor:
+        """``(B, P, C)`` bilinear reads at ``(B, P, 3)`` ego-frame points (z ignored); zero outside a metric grid."""
         return sample_volume(self.features, self.grid, points)
 
 

@@ -19,13 +19,24 @@ __all__ = ["hand_batch", "isolated_registry", "label_batch", "make_tiny_batch", 
 _TINY_CACHE: dict[tuple, Batch] = {}
 
 
-def make_tiny_batch(batch_size: int = 2, split: str = "train", adjacent_offsets: Sequence[int] = ()) -> Batch:
-    """A batch of the first frames of the tiny synthetic world (seeded, CPU, cached per process)."""
-    key = (batch_size, split, tuple(adjacent_offsets))
+def make_tiny_batch(
+    batch_size: int = 2, split: str = "train", adjacent_offsets: Sequence[int] = (), pseudo_labels: str | None = None
+) -> Batch:
+    """A batch of the first frames of the tiny synthetic world (seeded, CPU, cached per process).
+
+    ``pseudo_labels``: a synthetic realism (``perfect``, ``default``, ``noisy``) to fill ``pseudo_depth``,
+    ``pseudo_semantics`` and ``pseudo_features``; ``None``: none.
+    """
+    key = (batch_size, split, tuple(adjacent_offsets), pseudo_labels)
     if key not in _TINY_CACHE:
         from occplug.data.synthetic import SyntheticDataModule
 
-        dm = SyntheticDataModule(preset="tiny", adjacent_offsets=list(adjacent_offsets), batch_size=batch_size)
+        dm = SyntheticDataModule(
+            preset="tiny",
+            adjacent_offsets=list(adjacent_offsets),
+            batch_size=batch_size,
+            pseudo_labels=None if pseudo_labels is None else {"synthetic": pseudo_labels},
+        )
         ds = dm.dataset(split)
         _TINY_CACHE[key] = collate_frames([ds[i] for i in range(batch_size)])
     return _TINY_CACHE[key]

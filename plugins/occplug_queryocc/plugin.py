@@ -1,0 +1,28 @@
+"""QueryOcc's hook implementations (the only module that uses ``@occplug.hookimpl``)."""
+
+from __future__ import annotations
+
+from importlib.resources import files
+from importlib.resources.abc import Traversable
+
+import occplug
+
+
+@occplug.hookimpl
+def occplug_register_components(registry: occplug.Registry) -> None:
+    from .bev import QueryOccBev
+    from .decoder import QueryDecoder
+    from .query_supervision import QuerySupervision
+    from .render_supervision import RenderSupervision
+    from .view_transform import LiftContractSplat
+
+    registry.add("view_transform", "lift_contract_splat", LiftContractSplat)
+    registry.add("scene", "queryocc_bev", QueryOccBev)
+    registry.add("head", "query_decoder", QueryDecoder)
+    registry.add("supervision", "query_points", QuerySupervision)
+    registry.add("supervision", "render_points", RenderSupervision)
+
+
+@occplug.hookimpl
+def occplug_config_dir() -> Traversable:
+    return files("occplug_queryocc") / "configs"

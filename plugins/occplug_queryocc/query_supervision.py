@@ -1,0 +1,285 @@
+"""Supervision source ``query_points``: QueryOcc's 4D query self-supervision (§3.1).
+
+From each labelled point ``p`` seen from ``o`` (pseudo points from depth maps, LiDAR returns, or both;
+:mod:`occplug.data.labelled_points`), in the current frame or an adjacent one moved into the current
+ego frame with the poses (the query keeps its own time ``t``):
+
+* **negatives** ``o + r (p - o)``, ``r ~ U(0, 1)``: the ray crossed them, so they are free;
+* **positives** ``p + r (p - o) / |p - o|``, ``r ~ U(0, zeta)``: just behind the surface, occupied, with
+  the point's class (and feature).
+
+Negatives train the occupancy loss only; positives train occupancy, semantics and (with features)
+the L1 feature loss: ``L = l_occ BCE(o, occ) + l_sem CE(s, class) + l_vfm L1(v, feature)``.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from occplug.constraints import Length, NonNegative, Positive, Range
+from occplug.data.frame import Batch
+from occplug.data.labelled_points import LabelledPoints, lidar_points, pseudo_depth_points, to_frame
+from occplug.interfaces import ModelOutputs, SupervisionSource
+
+__all__ = ["QuerySet", "QuerySupervision", "sample_queries", "supervision_points"]
+
+
+def supervision_points(
+    batch: Batch,
+    source: str,
+    offsets: list[int],
+    ignore_label: int,
+    pixel_stride: int = 1,
+    with_features: bool = False,
+    max_depth: float = float("inf"),
+) -> list[tuple[LabelledPoints, Tensor]]:
+    """Per sample: the labelled points of every frame offset in ``offsets``, in the current ego frame, with
+    ``(P,)`` times (seconds relative to the current frame).
+
+    Args:
+        source: ``pseudo`` (pseudo depth + pseudo semantics), ``lidar`` (returns labelled through the 2D
+            pseudo semantics) or ``union``.
+        offsets: frame offsets (0: the current frame; others must be in ``batch.adjacent``).
+    """
+    per_sample: list[list[tuple[LabelledPoints, Tensor]]] = [[] for _ in range(len(batch))]
+    for k in offsets:
+        frame = batch if k == 0 else batch.adjacent.get(k)
+        if frame is None:
+            raise ValueError(f"query_points: frame offset {k} is not loaded (set data.adjacent_offsets to include {k})")
+        sets: list[list[LabelledPoints]] = []
+        if source in ("pseudo", "union"):
+            sets.append(pseudo_depth_points(frame, pixel_stride, max_depth, ignore_label, with_features))
+        if source in ("lidar", "union"):
+            sets.append(lidar_points(frame, ignore_label))
+        for i in range(len(batch)):
+            parts = [s[i] for s in sets]
+            if with_features and source == "union":  # LiDAR points carry no features: drop them from the L1 term
+                parts = [p if p.features is not None else _zero_features(p, parts[0]) for p in parts]
+            pts = LabelledPoints.cat(parts)
+            if k != 0:
+                pts = to_frame(pts, frame.ego_to_global[i], batch.ego_to_global[i])
+            dt = float(frame.timestamp[i] - batch.timestamp[i]) if k != 0 else 0.0
+            per_sample[i].append((pts, torch.full((len(pts),), dt, device=pts.points.device)))
+    out = []
+    for parts in per_sample:
+        out.append((LabelledPoints.cat([p for p, _ in parts]), torch.cat([t for _, t in parts])))
+    return out
+
+
+def _zero_features(points: LabelledPoints, like: LabelledPoints) -> LabelledPoints:
+    dim = like.features.shape[1] if like.features is not None else 0
+    nan = torch.full((len(points), dim), float("nan"), device=points.points.device)
+    return LabelledPoints(points.points, points.origins, points.labels, nan)
+
+
+class QuerySet:
+    """Sampled queries of one batch: ``points`` ``(B, Q, 3)``, ``times`` ``(B, Q)``, ``occupied`` ``(B, Q)`` bool,
+    ``labels`` ``(B, Q)`` int64 (``ignore`` for negatives), ``features`` ``(B, Q, F)`` or ``None`` (NaN: no target)."""
+
+    def __init__(self, points: Tensor, times: Tensor, occupied: Tensor, labels: Tensor, features: Tensor | None):
+        self.points, self.times, self.occupied, self.labels, self.features = points, times, occupied, labels, features
+
+
+def sample_queries(
+    sets: list[tuple[LabelledPoints, Tensor]],
+    points_per_sample: int,
+    negatives: int,
+    positives: int,
+    zeta: float,
+    ignore_label: int,
+    generator: torch.Generator | None = None,
+) -> QuerySet:
+    """Draw ``points_per_sample`` points per sample (with replacement) and ``negatives`` + ``positives`` queries
+    from each (see the module docstring). A sample without points gets queries at the origin with no target
+    weight (``occupied`` False, label ``ignore``; the caller masks them with ``valid``)."""
+    qs, ts, occ, labels, feats = [], [], [], [], []
+    has_features = all(s.features is not None for s, _ in sets)
+    device = sets[0][0].points.device
+    for pts, times in sets:
+        n = len(pts)
+        if n == 0:
+            pts = LabelledPoints(
+                torch.zeros(1, 3, device=device),
+                torch.zeros(1, 3, device=device),
+                torch.full((1,), ignore_label, dtype=torch.int64, device=device),
+                None
+                if not has_features
+                else torch.full((1, sets[0][0].features.shape[1]), float("nan"), device=device),
+            )
+            times, n = torch.zeros(1, device=device), 1
+        pick = torch.randint(0, n, (points_per_sample,), generator=generator).to(device)
+        p, o = pts.points[pick], pts.origins[pick]
+        ray = p - o
+        r_neg = torch.rand(points_per_sample, negatives, generator=generator).to(device)
+        r_pos = torch.rand(points_per_sample, positives, generator=generator).to(device) * zeta
+        neg = o[:, None] + r_neg[..., None] * ray[:, None]
+        unit = ray / ray.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        pos = p[:, None] + r_pos[..., None] * unit[:, None]
+        qs.append(torch.cat([neg.reshape(-1, 3), pos.reshape(-1, 3)]))
+        t = times[pick]
+        ts.append(torch.cat([t.repeat_interleave(negatives), t.repeat_interleave(positives)]))
+        occ.append(
+            torch.cat(
+                [
+                    torch.zeros(points_per_sample * negatives, dtype=torch.bool, device=device),
+                    torch.ones(points_per_sample * positives, dtype=torch.bool, device=device),
+                ]
+            )
+        )
+        lab = pts.labels[pick]
+        labels.append(
+            torch.cat(
+                [
+                    torch.full((points_per_sample * negatives,), ignore_label, device=device, dtype=torch.int64),
+                    lab.repeat_interleave(positives),
+                ]
+            )
+        )
+        if has_features:
+            f = pts.features[pick]
+            feats.append(
+                torch.cat(
+                    [
+                        torch.full((points_per_sample * negatives, f.shape[1]), float("nan"), device=device),
+                        f.repeat_interleave(positives, dim=0),
+                    ]
+                )
+            )
+    return QuerySet(
+        torch.stack(qs),
+        torch.stack(ts),
+        torch.stack(occ),
+        torch.stack(labels),
+        torch.stack(feats) if has_features else None,
+    )
+
+
+class QuerySupervision(SupervisionSource):
+    """QueryOcc's query supervision over any queryable (temporal, for a window) head.
+
+    Args:
+        weight: scale the model applies to every term.
+        query_head: config name of the head to query.
+        points: ``pseudo``, ``lidar`` or ``union`` (see :func:`supervision_points`).
+        frame_offsets: frames the points come from (``[0]``: the current frame only; ``[-1, 0, 1]`` the
+            paper's temporal window; the others must be in ``data.adjacent_offsets``).
+        points_per_sample: points drawn per sample and step; negatives, positives: queries per point.
+        zeta: depth of the occupied buffer behind each point, metres.
+        long_range: supervise with points beyond the near field too; near_range: its half-extent
+            in x and y (metres, current ego frame) when ``long_range`` is off.
+        pixel_stride: subsampling of the pseudo depth maps before drawing.
+        max_depth: pseudo points deeper than this are dropped (metres).
+        lambda_occ, lambda_sem, lambda_vfm: the loss weights; ``lambda_vfm > 0`` distils ``pseudo_features``
+            into the head's ``features`` output.
+
+    Returns ``{"occ": BCE, "sem": CE, "vfm": L1}`` (``vfm`` only when distilling), already times their lambdas.
+    """
+
+    needs_temporal_queries = False
+
+    def __init__(
+        self,
+        weight: Annotated[float, NonNegative] = 1.0,
+        query_head: str = "occupancy",
+        points: Literal["pseudo", "lidar", "union"] = "pseudo",
+        frame_offsets: Annotated[list[Annotated[int, Range(low=-8, high=8)]], Length(min=1)] = [0],  # noqa: B006 - read only
+        points_per_sample: Annotated[int, Positive] = 1024,
+        negatives: Annotated[int, NonNegative] = 4,
+        positives: Annotated[int, NonNegative] = 4,
+        zeta: Annotated[float, Positive] = 0.5,
+        long_range: bool = True,
+        near_range: Annotated[float, Positive] = 24.0,
+        pixel_stride: Annotated[int, Positive] = 1,
+        max_depth: Annotated[float, Positive] = 1000.0,
+        lambda_occ: Annotated[float, NonNegative] = 1.0,
+        lambda_sem: Annotated[float, NonNegative] = 1.0,
+        lambda_vfm: Annotated[float, NonNegative] = 0.0,
+        free_label: int | None = 17,
+        ignore_label: int | None = 255,
+    ) -> None:
+        super().__init__()
+        if points not in ("pseudo", "lidar", "union"):
+            raise ValueError(f"query_points points must be pseudo, lidar or union, got {points!r}")
+        if negatives + positives == 0:
+            raise ValueError("query_points needs negatives + positives > 0")
+        self.weight, self.query_head, self.source = float(weight), query_head, points
+        self.frame_offsets = sorted({int(k) for k in frame_offsets})
+        self.needs_temporal_queries = any(k != 0 for k in self.frame_offsets)
+        self.points_per_sample, self.negatives, self.positives = int(points_per_sample), int(negatives), int(positives)
+        self.zeta, self.long_range, self.near_range = float(zeta), bool(long_range), float(near_range)
+        self.pixel_stride, self.max_depth = int(pixel_stride), float(max_depth)
+        self.lambda_occ, self.lambda_sem, self.lambda_vfm = float(lambda_occ), float(lambda_sem), float(lambda_vfm)
+        self.ignore_label = 255 if ignore_label is None else int(ignore_label)
+        self.free_label = free_label
+        needs = {"lidar": {"points", "lidar_to_ego"}}.get(points, set()) | (
+            {"points", "lidar_to_ego"} if points == "union" else set()
+        )
+        self.requires = frozenset(
+            needs | ({"pseudo_depth", "pseudo_semantics"} | ({"pseudo_features"} if self.lambda_vfm > 0 else set()))
+        )
+
+    @classmethod
+    def conformance_outputs(cls, batch: Batch, grid, channels: int) -> ModelOutputs:
+        """A query decoder over a random BEV plane on ``grid`` (the conformance model's head cannot be queried in time)."""
+        from occplug.interfaces import BevScene
+
+        from .decoder import QueryDecoder
+
+        head = QueryDecoder(channels, hidden=16)
+        scene = BevScene(torch.randn(len(batch), channels, *grid.shape[:2], requires_grad=True), grid)
+        return ModelOutputs(
+            image_features=None,
+            lifted=None,
+            scene=scene,
+            heads={},
+            query=lambda name, points, times=None: head.query(scene, points, times),
+        )
+
+    def queries(self, batch: Batch) -> QuerySet:
+        """This step's sampled queries (uses the global RNG; seeded runs repeat)."""
+        sets = supervision_points(
+            batch,
+            self.source,
+            self.frame_offsets,
+            self.ignore_label,
+            self.pixel_stride,
+            self.lambda_vfm > 0,
+            self.max_depth,
+        )
+        if not self.long_range:
+            sets = [
+                (p.select(keep), t[keep])
+                for p, t in sets
+                for keep in [(p.points[:, :2].abs() <= self.near_range).all(-1)]
+            ]
+        return sample_queries(
+            sets, self.points_per_sample, self.negatives, self.positives, self.zeta, self.ignore_label
+        )
+
+    def forward(self, batch: Batch, outputs: ModelOutputs) -> dict[str, Tensor]:
+        q = self.queries(batch)
+        result = outputs.query(self.query_head, q.points, q.times if self.needs_temporal_queries else None)
+        out: dict[str, Tensor] = {}
+        if result.occupancy_logit is None:
+            raise ValueError(f"query_points: model.heads.{self.query_head} returns no occupancy logit")
+        out["occ"] = self.lambda_occ * F.binary_cross_entropy_with_logits(result.occupancy_logit, q.occupied.float())
+        labels = torch.where(q.occupied & (q.labels != self.ignore_label), q.labels, torch.full_like(q.labels, -100))
+        logits = result.class_logits.reshape(-1, result.class_logits.shape[-1])
+        if bool((labels >= 0).any()):
+            out["sem"] = self.lambda_sem * F.cross_entropy(logits, labels.reshape(-1), ignore_index=-100)
+        else:
+            out["sem"] = logits.sum() * 0.0
+        if self.lambda_vfm > 0:
+            if result.features is None or q.features is None:
+                raise ValueError(
+                    f"query_points: lambda_vfm > 0 needs model.heads.{self.query_head}.feature_dim > 0 "
+                    "and pseudo_features in the batch"
+                )
+            valid = ~torch.isnan(q.features).any(-1)
+            diff = (result.features - torch.nan_to_num(q.features)).abs().mean(-1)
+            out["vfm"] = self.lambda_vfm * (diff * valid).sum() / valid.sum().clamp_min(1)
+        return out
