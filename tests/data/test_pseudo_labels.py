@@ -275,3 +275,16 @@ def test_features_cluster_by_class_but_are_no_one_to_one_code():
     assert acc < 0.9  # but classes overlap: no one-to-one code of the true class
     noisy, _, _ = nearest_centroid_accuracy(SyntheticPseudoLabels("noisy", kinds=("features",)))
     assert noisy < acc
+
+
+def test_synthetic_pseudo_maps_are_cached_on_disk_and_read_back_equal(frame, tmp_path, monkeypatch):
+    fresh = SyntheticPseudoLabels("default").maps(frame)
+    cached = SyntheticPseudoLabels("default", cache_dir=tmp_path)
+    first = cached.maps(frame)
+    assert len(list(tmp_path.rglob("*.pt"))) == 1
+    monkeypatch.setattr(cached, "_make_maps", lambda f: pytest.fail("made again instead of read from the cache"))
+    second = cached.maps(frame)
+    for key in fresh:
+        assert torch.equal(first[key], fresh[key]) and torch.equal(second[key], fresh[key])
+    # other settings use another entry
+    assert SyntheticPseudoLabels("noisy", cache_dir=tmp_path).cache_key() != cached.cache_key()

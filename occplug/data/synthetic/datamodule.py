@@ -15,7 +15,7 @@ from occplug.data.sequences import SceneIndex
 
 from .config import SyntheticWorldConfig
 from .config import preset as get_preset
-from .dataset import SyntheticDataset, default_cache_dir
+from .dataset import SyntheticDataset, default_cache_dir, pregenerate
 
 __all__ = ["SyntheticDataModule"]
 
@@ -113,7 +113,12 @@ class SyntheticDataModule(ReaderDataModule):
             if extra:
                 raise ValueError(f"data.pseudo_labels.{extra[0]}: with 'synthetic' only 'kinds' may be given")
             kinds = tuple(pseudo_labels.get("kinds") or ("depth", "semantics", "features"))
-            generated = SyntheticPseudoLabels(_realism(pseudo_labels["synthetic"], config), kinds=kinds)
+            root = (Path(cache_dir) if cache_dir else default_cache_dir()) if cache else None
+            generated = SyntheticPseudoLabels(
+                _realism(pseudo_labels["synthetic"], config),
+                kinds=kinds,
+                cache_dir=None if root is None else root / "pseudo" / config.cache_key(),
+            )
             pseudo_labels = None
         super().__init__(
             grid=config.grid,
@@ -155,8 +160,8 @@ class SyntheticDataModule(ReaderDataModule):
 
         The test split is left to ``setup("test")``: a ``fit`` never reads it.
         """
-        for split in ("train", "val"):
-            self.pregenerate(split)
+        if self.cache_dir is not None:
+            pregenerate([self._world(split) for split in ("train", "val")], pseudo=self._cached_pseudo())
 
     def setup(self, stage: str) -> None:
         """Before ``test``, generate the test split the way :meth:`prepare_data` does the others."""
@@ -167,10 +172,18 @@ class SyntheticDataModule(ReaderDataModule):
         """Generate and cache every frame of ``split`` not cached yet (no-op without cache)."""
         if self.cache_dir is None:
             return
+        self._world(split).pregenerate(progress=True, pseudo=self._cached_pseudo())
+
+    def _world(self, split: str) -> SyntheticDataset:
         dataset = self.dataset(split)
         while not isinstance(dataset, SyntheticDataset):  # through the pipeline and a data.subset
             dataset = dataset.base  # type: ignore[attr-defined]
-        dataset.pregenerate(progress=True)
+        return dataset
+
+    def _cached_pseudo(self) -> object | None:
+        """The synthetic pseudo labeler when it caches its maps (then they are made with the world), else None."""
+        labeler = self.pseudo
+        return labeler if getattr(labeler, "cache_dir", None) is not None and hasattr(labeler, "is_cached") else None
 
 
 def _realism(spec: object, config: SyntheticWorldConfig) -> object:

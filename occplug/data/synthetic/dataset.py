@@ -16,10 +16,10 @@ from occplug.data.records import read_frame, save_frame
 from occplug.errors import UserError
 
 from .config import SyntheticWorldConfig
-from .frames import generate_frame
+from .frames import frame_token, generate_frame
 from .world import Scene, build_scene
 
-__all__ = ["SyntheticDataset", "default_cache_dir", "generation_workers"]
+__all__ = ["SyntheticDataset", "default_cache_dir", "generation_workers", "pregenerate"]
 
 #: Below this many missing frames the world is generated in this process (starting workers costs seconds).
 PARALLEL_MIN_FRAMES = 24
@@ -51,8 +51,9 @@ class SyntheticDataset(Dataset[Frame]):
         with_adjacent: False leaves ``Frame.adjacent`` empty whatever the config says.
     """
 
-    def __init__(self, config: SyntheticWorldConfig, split: str, cache_dir: str | Path | None = None,
-                 with_adjacent: bool = True) -> None:
+    def __init__(
+        self, config: SyntheticWorldConfig, split: str, cache_dir: str | Path | None = None, with_adjacent: bool = True
+    ) -> None:
         self.config = config
         self.split = "val" if split == "predict" else split
         self.num_scenes = config.scenes(self.split)
@@ -104,39 +105,74 @@ class SyntheticDataset(Dataset[Frame]):
             save_frame(frame, path)
         return frame
 
-    def pregenerate(self, progress: bool = True, workers: int | None = None) -> int:
+    def pregenerate(self, progress: bool = True, workers: int | None = None, pseudo: object | None = None) -> int:
         """Generate and cache every frame not cached yet (no-op without a cache); returns the count.
 
-        With ``workers > 1`` (default :func:`generation_workers`) whole scenes go to that many
-        processes, one torch thread each; a frame is a pure function of its key and comes out
-        bit-identical whatever the thread count, so the cache does not depend on ``workers``.
+        See :func:`pregenerate` (this is it for one split).
         """
-        if self.cache_root is None:
-            return 0
-        todo = [divmod(i, self.frames_per_scene) for i in range(len(self))]
-        todo = [(s, f) for s, f in todo if not self.cache_path(s, f).is_file()]  # type: ignore[union-attr]
-        workers = generation_workers() if workers is None else max(1, int(workers))
-        bar = tqdm(total=len(todo), desc=f"synthetic world ({self.split})", unit="frame",
-                   disable=not progress or not todo)
-        with bar:
-            if workers == 1 or len(todo) < PARALLEL_MIN_FRAMES:
-                for scene, frame_index in todo:
-                    self.frame(scene, frame_index)
-                    bar.update()
-                return len(todo)
-            by_scene: dict[int, list[int]] = {}
-            for scene, frame_index in todo:
-                by_scene.setdefault(scene, []).append(frame_index)
-            # spawn, not fork: a forked child of a process that has run torch's thread pool can hang
-            context = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=min(workers, len(by_scene)), mp_context=context) as pool:
-                jobs = [
-                    pool.submit(_generate_scene, self.config, self.split, self.cache_dir, scene, frames)
-                    for scene, frames in by_scene.items()
-                ]
-                for job in as_completed(jobs):
-                    bar.update(job.result())
-        return len(todo)
+        return pregenerate([self], progress=progress, workers=workers, pseudo=pseudo)
+
+
+def pregenerate(
+    datasets: list[SyntheticDataset], progress: bool = True, workers: int | None = None, pseudo: object | None = None
+) -> int:
+    """Generate and cache the missing frames of several splits in one pool; returns the number of frames done.
+
+    With ``workers > 1`` (default :func:`generation_workers`) whole scenes go to that many processes,
+    one torch thread each, largest first (one pool for every split: no second start-up, no idle
+    worker while the other finishes a split); a frame is a pure function of its key and comes out
+    bit-identical whatever the thread count, so the cache does not depend on ``workers``. ``pseudo``
+    (a :class:`~.pseudo.SyntheticPseudoLabels` with a ``cache_dir``) also makes and caches the frames'
+    pseudo-label maps, in the same pass.
+    """
+    todo: list[tuple[SyntheticDataset, int, int]] = []
+    for ds in datasets:
+        if ds.cache_root is None:
+            continue
+        for i in range(len(ds)):
+            scene, frame_index = divmod(i, ds.frames_per_scene)
+            if not ds.cache_path(scene, frame_index).is_file() or (  # type: ignore[union-attr]
+                pseudo is not None and not pseudo.is_cached(frame_token(ds.config, ds.split, scene, frame_index))
+            ):
+                todo.append((ds, scene, frame_index))
+    if not todo:
+        return 0
+    workers = generation_workers() if workers is None else max(1, int(workers))
+    splits = "/".join(dict.fromkeys(ds.split for ds, _, _ in todo))
+    with tqdm(total=len(todo), desc=f"synthetic world ({splits})", unit="frame", disable=not progress) as bar:
+        if workers == 1 or len(todo) < PARALLEL_MIN_FRAMES:
+            for ds, scene, frame_index in todo:
+                _make(ds, scene, frame_index, pseudo)
+                bar.update()
+            return len(todo)
+        jobs: dict[tuple[int, int], list[int]] = {}
+        for ds, scene, frame_index in todo:
+            jobs.setdefault((datasets.index(ds), scene), []).append(frame_index)
+        order = sorted(jobs, key=lambda key: -len(jobs[key]))
+        # spawn, not fork: a forked child of a process that has run torch's thread pool can hang
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=min(workers, len(order)), mp_context=context) as pool:
+            futures = [
+                pool.submit(
+                    _generate_scene,
+                    datasets[d].config,
+                    datasets[d].split,
+                    datasets[d].cache_dir,
+                    scene,
+                    jobs[(d, scene)],
+                    pseudo,
+                )
+                for d, scene in order
+            ]
+            for job in as_completed(futures):
+                bar.update(job.result())
+    return len(todo)
+
+
+def _make(ds: SyntheticDataset, scene: int, frame_index: int, pseudo: object | None) -> None:
+    frame = ds.frame(scene, frame_index)
+    if pseudo is not None:
+        pseudo.maps(frame)  # type: ignore[attr-defined]  (cached by the labeler)
 
 
 def generation_workers() -> int:
@@ -149,10 +185,17 @@ def generation_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
-def _generate_scene(config: SyntheticWorldConfig, split: str, cache_dir: Path, scene: int, frames: list[int]) -> int:
-    """Worker of :meth:`SyntheticDataset.pregenerate`: generate and cache ``frames`` of ``scene``."""
+def _generate_scene(
+    config: SyntheticWorldConfig,
+    split: str,
+    cache_dir: Path,
+    scene: int,
+    frames: list[int],
+    pseudo: object | None = None,
+) -> int:
+    """Worker of :func:`pregenerate`: generate and cache ``frames`` of ``scene`` (and their pseudo maps)."""
     torch.set_num_threads(1)
     dataset = SyntheticDataset(config, split, cache_dir=cache_dir, with_adjacent=False)
     for frame_index in frames:
-        dataset.frame(scene, frame_index)
+        _make(dataset, scene, frame_index, pseudo)
     return len(frames)

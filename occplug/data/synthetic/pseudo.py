@@ -43,6 +43,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import math
+import os
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -270,6 +271,10 @@ def _smooth_noise(h: int, w: int, g: torch.Generator, cell: int = 8) -> Tensor:
     return F.interpolate(low, size=(h, w), mode="bilinear", align_corners=False)[0, 0]
 
 
+#: Bump when the maps made for a frame change (invalidates cached maps).
+PSEUDO_CODE_VERSION = "synthetic-pseudo-1"
+
+
 class SyntheticPseudoLabels:
     """Makes (``attach``) or writes (``write``) the synthetic world's pseudo labels for a frame.
 
@@ -282,6 +287,7 @@ class SyntheticPseudoLabels:
         taxonomy: the target taxonomy (``occ3d`` or ``semantickitti``) that ``attach`` maps semantics
             to and, without the foreign taxonomy, that the maps are written in (Occ3D ground truth
             goes through :data:`~occplug.data.synthetic.export_semantickitti.OCC3D_TO_SSC`).
+        cache_dir: where made maps are kept between runs (``None``: made every time they are read).
     """
 
     def __init__(
@@ -289,7 +295,9 @@ class SyntheticPseudoLabels:
         realism: str | dict[str, Any] | PseudoRealism | None = None,
         kinds: tuple[str, ...] = ("depth", "semantics", "features"),
         taxonomy: str = "occ3d",
+        cache_dir: str | Path | None = None,
     ) -> None:
+        self.cache_dir = cache_dir
         self.realism = pseudo_realism(realism)
         for kind in kinds:
             if kind not in ("depth", "semantics", "features"):
@@ -439,9 +447,42 @@ class SyntheticPseudoLabels:
         if not torch.equal(frame.img_aug, torch.eye(3).expand_as(frame.img_aug)):
             raise ValueError(f"frame {frame.token}: make synthetic pseudo labels before any image augmentation")
 
+    def cache_key(self) -> str:
+        """A short hash of everything that changes the maps of a given frame: realism, kinds, taxonomy, code."""
+        text = repr((asdict(self.realism), self.kinds, self.taxonomy, PSEUDO_CODE_VERSION))
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def _cache_path(self, token: str) -> Path | None:
+        return None if self.cache_dir is None else Path(self.cache_dir) / self.cache_key() / f"{token}.pt"
+
+    def is_cached(self, token: str) -> bool:
+        """Whether the maps of frame ``token`` are in the cache (always True without one: nothing to make ahead)."""
+        path = self._cache_path(token)
+        return path is None or path.is_file()
+
     def maps(self, frame: Frame) -> dict[str, Tensor]:
         """``{"depth": (N, H, W), "semantics": (N, H, W) raw ids, "semantics_aux": (N, H, W) auxiliary ids,
-        "features": (N, F, h, w)}`` (the configured kinds; ``semantics_aux`` with :attr:`has_auxiliary`)."""
+        "features": (N, F, h, w)}`` (the configured kinds; ``semantics_aux`` with :attr:`has_auxiliary`).
+
+        With :attr:`cache_dir` set, the maps of a frame are read from ``<cache_dir>/<cache_key>/<token>.pt``
+        when there, else made and stored (atomically): the maps are a pure function of the frame and the
+        settings, and a frame and its neighbours' ``adjacent`` copies share one token.
+        """
+        path = self._cache_path(frame.token)
+        if path is not None and path.is_file():
+            try:
+                return torch.load(path, weights_only=True)
+            except Exception:  # a damaged entry is made again
+                pass
+        out = self._make_maps(frame)
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            torch.save(out, tmp)
+            os.replace(tmp, path)
+        return out
+
+    def _make_maps(self, frame: Frame) -> dict[str, Tensor]:
         self._check(frame)
         ego, glob = self._points(frame)
         n = frame.num_cameras
