@@ -124,8 +124,8 @@ def main() -> None:
     args = parser.parse_args()
     start = time.monotonic()
     rows: dict[str, dict[str, list[float]]] = {}
-    for seed in args.seeds:
-        for name in args.rows:
+    for name in args.rows:  # row by row: an interrupted ablation leaves whole rows
+        for seed in args.seeds:
             metrics = run(name, seed, args)
             row = rows.setdefault(ROWS[name], {c: [] for c in COLUMNS})
             for column, key in COLUMNS.items():

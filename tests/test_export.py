@@ -36,6 +36,8 @@ RECIPES = [
     pytest.param(((BASELINE,), (), None), id="baseline"),
     pytest.param(((BASELINE,), STREAMING, None), id="streaming"),
     pytest.param((("example/tiny",), (), EXAMPLE), id="example"),
+    # a method plugin shipped in this distribution (its entry point loads it): a BEV plane read by a query decoder
+    pytest.param((("queryocc/base",), (), None), id="queryocc"),
 ]
 
 
