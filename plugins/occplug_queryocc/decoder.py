@@ -92,7 +92,8 @@ class QueryDecoder(OccupancyHead):
         self.features = nn.Linear(hidden, feature_dim) if feature_dim else None
 
     def forward(self, scene: Scene, batch: Batch) -> dict[str, Tensor]:
-        """``{"logits"}`` at the scene grid's cell centres (training never reads them; the query path does the work)."""
+        """``{"logits"}`` at the scene grid's cell centres (a model whose scene lies on the evaluation grid is evaluated
+        from them; in training they cost a query per scene cell, which the conformance contract's gradient check reads)."""
         return {"logits": self.occupancy_logits(scene, scene.grid)}
 
     def query(self, scene: Scene, points: Tensor, times: Tensor | None = None) -> QueryResult:

@@ -78,10 +78,14 @@ def _zero_features(points: LabelledPoints, like: LabelledPoints) -> LabelledPoin
 
 class QuerySet:
     """Sampled queries of one batch: ``points`` ``(B, Q, 3)``, ``times`` ``(B, Q)``, ``occupied`` ``(B, Q)`` bool,
-    ``labels`` ``(B, Q)`` int64 (``ignore`` for negatives), ``features`` ``(B, Q, F)`` or ``None`` (NaN: no target)."""
+    ``labels`` ``(B, Q)`` int64 (``ignore`` for negatives), ``features`` ``(B, Q, F)`` or ``None`` (NaN: no target),
+    ``valid`` ``(B, Q)`` bool (False: a placeholder of a sample without points, in no loss)."""
 
-    def __init__(self, points: Tensor, times: Tensor, occupied: Tensor, labels: Tensor, features: Tensor | None):
+    def __init__(
+        self, points: Tensor, times: Tensor, occupied: Tensor, labels: Tensor, features: Tensor | None, valid: Tensor
+    ):
         self.points, self.times, self.occupied, self.labels, self.features = points, times, occupied, labels, features
+        self.valid = valid
 
 
 def sample_queries(
@@ -94,13 +98,14 @@ def sample_queries(
     generator: torch.Generator | None = None,
 ) -> QuerySet:
     """Draw ``points_per_sample`` points per sample (with replacement) and ``negatives`` + ``positives`` queries
-    from each (see the module docstring). A sample without points gets queries at the origin with no target
-    weight (``occupied`` False, label ``ignore``; the caller masks them with ``valid``)."""
-    qs, ts, occ, labels, feats = [], [], [], [], []
+    from each (see the module docstring). A sample without points gets placeholder queries at the origin with
+    ``valid`` False (the losses leave them out)."""
+    qs, ts, occ, labels, feats, valid = [], [], [], [], [], []
     has_features = all(s.features is not None for s, _ in sets)
     device = sets[0][0].points.device
     for pts, times in sets:
         n = len(pts)
+        valid.append(torch.full((points_per_sample * (negatives + positives),), n > 0, device=device))
         if n == 0:
             pts = LabelledPoints(
                 torch.zeros(1, 3, device=device),
@@ -155,6 +160,7 @@ def sample_queries(
         torch.stack(occ),
         torch.stack(labels),
         torch.stack(feats) if has_features else None,
+        torch.stack(valid),
     )
 
 
@@ -215,12 +221,12 @@ class QuerySupervision(SupervisionSource):
         self.lambda_occ, self.lambda_sem, self.lambda_vfm = float(lambda_occ), float(lambda_sem), float(lambda_vfm)
         self.ignore_label = 255 if ignore_label is None else int(ignore_label)
         self.free_label = free_label
-        needs = {"lidar": {"points", "lidar_to_ego"}}.get(points, set()) | (
-            {"points", "lidar_to_ego"} if points == "union" else set()
-        )
-        self.requires = frozenset(
-            needs | ({"pseudo_depth", "pseudo_semantics"} | ({"pseudo_features"} if self.lambda_vfm > 0 else set()))
-        )
+        needs = {"pseudo_semantics"}  # LiDAR points take their class from it too
+        if points in ("pseudo", "union"):
+            needs |= {"pseudo_depth"} | ({"pseudo_features"} if self.lambda_vfm > 0 else set())
+        if points in ("lidar", "union"):
+            needs |= {"points", "lidar_to_ego"}
+        self.requires = frozenset(needs)
 
     @classmethod
     def conformance_outputs(cls, batch: Batch, grid, channels: int) -> ModelOutputs:
@@ -250,6 +256,8 @@ class QuerySupervision(SupervisionSource):
             self.lambda_vfm > 0,
             self.max_depth,
         )
+        if self.free_label is not None:  # a point of class free (e.g. sky given a depth) is no surface
+            sets = [(p.select(keep), t[keep]) for p, t in sets for keep in [p.labels != self.free_label]]
         if not self.long_range:
             sets = [
                 (p.select(keep), t[keep])
@@ -266,8 +274,11 @@ class QuerySupervision(SupervisionSource):
         out: dict[str, Tensor] = {}
         if result.occupancy_logit is None:
             raise ValueError(f"query_points: model.heads.{self.query_head} returns no occupancy logit")
-        out["occ"] = self.lambda_occ * F.binary_cross_entropy_with_logits(result.occupancy_logit, q.occupied.float())
-        labels = torch.where(q.occupied & (q.labels != self.ignore_label), q.labels, torch.full_like(q.labels, -100))
+        valid = q.valid.float()
+        bce = F.binary_cross_entropy_with_logits(result.occupancy_logit, q.occupied.float(), reduction="none")
+        out["occ"] = self.lambda_occ * (bce * valid).sum() / valid.sum().clamp_min(1)
+        keep = q.occupied & q.valid & (q.labels != self.ignore_label)
+        labels = torch.where(keep, q.labels, torch.full_like(q.labels, -100))
         logits = result.class_logits.reshape(-1, result.class_logits.shape[-1])
         if bool((labels >= 0).any()):
             out["sem"] = self.lambda_sem * F.cross_entropy(logits, labels.reshape(-1), ignore_index=-100)
@@ -279,7 +290,7 @@ class QuerySupervision(SupervisionSource):
                     f"query_points: lambda_vfm > 0 needs model.heads.{self.query_head}.feature_dim > 0 "
                     "and pseudo_features in the batch"
                 )
-            valid = ~torch.isnan(q.features).any(-1)
+            has = ~torch.isnan(q.features).any(-1) & q.valid
             diff = (result.features - torch.nan_to_num(q.features)).abs().mean(-1)
-            out["vfm"] = self.lambda_vfm * (diff * valid).sum() / valid.sum().clamp_min(1)
+            out["vfm"] = self.lambda_vfm * (diff * has).sum() / has.sum().clamp_min(1)
         return out

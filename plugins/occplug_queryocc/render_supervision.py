@@ -14,7 +14,7 @@ Alpha blending over its answers ``(o_i, s_i)``:
 * semantics ``P(c) = sum_i w_i softmax(s_i)_c / sum_i w_i`` over the ``K - 1`` classes other than ``free``
   (computed in log space, so a nearly empty ray still gives a normalised distribution).
 
-Losses: ``L = l_depth |D - min(d*, far)| + l_sem (-log P(c*))`` with the pixel's pseudo depth ``d*`` (camera
+Losses: ``L = l_depth |D - min(d*, far)| / min(d*, far) + l_sem (-log P(c*))`` with the pixel's pseudo depth ``d*`` (camera
 z, as ``pseudo_depth`` stores it) and pseudo class ``c*``. A pixel deeper than ``far`` is a ray free up to
 ``far``: its depth target is ``far`` and it has no semantic term (nor does ``ignore_label``, nor ``free``).
 """
@@ -22,7 +22,7 @@ z, as ``pseudo_depth`` stores it) and pseudo class ``c*``. A pixel deeper than `
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import torch
 import torch.nn.functional as F
@@ -106,10 +106,13 @@ def sample_rays(
     max_depth: float = float("inf"),
     near_range: float | None = None,
     generator: torch.Generator | None = None,
+    log_spacing: bool = True,
 ) -> RaySet:
     """Draw ``rays_per_sample`` pixels per sample (with replacement, uniformly among every ``pixel_stride``-th
     pixel with a pseudo depth in ``(0, max_depth]`` of every camera of every frame offset in ``offsets``) and
-    ``samples_per_ray`` stratified depths in ``[near, far]`` along each.
+    ``samples_per_ray`` stratified depths in ``[near, far]`` along each: one uniform draw in each of ``S`` bins
+    of equal depth ratio (``log_spacing``, the default: dense near the camera where most surfaces are, as
+    QueryOcc's log-linear bins) or of equal length.
 
     Args:
         offsets: frame offsets (0: the current frame; others must be in ``batch.adjacent``).
@@ -155,7 +158,11 @@ def sample_rays(
         pick = torch.randint(0, n, (r,), generator=generator).to(device)
         slot, cam, row, col, target = slot[pick], cam[pick], row[pick], col[pick], zz[pick]
         jitter = torch.rand(r, s, generator=generator).to(device)
-        depths = near + (torch.arange(s, device=device) + jitter) * ((far - near) / s)  # (R, S) stratified
+        if log_spacing:  # bins of equal ratio (near -> far), one uniform sample in each: dense where surfaces are
+            edges = near * (far / near) ** (torch.arange(s + 1, device=device, dtype=torch.float32) / s)
+        else:
+            edges = near + torch.arange(s + 1, device=device, dtype=torch.float32) * ((far - near) / s)
+        depths = edges[:-1] + jitter * (edges[1:] - edges[:-1])  # (R, S) stratified
         points = torch.empty(r, s, 3, device=device)
         times = torch.zeros(r, device=device)
         labels = torch.full((r,), ignore_label, dtype=torch.int64, device=device)
@@ -219,8 +226,10 @@ class RenderSupervision(SupervisionSource):
             half-extent in x and y (metres, current ego frame) when ``long_range`` is off.
         pixel_stride: subsampling of the pseudo depth maps before drawing.
         max_depth: pixels with a deeper pseudo depth are not drawn (metres).
-        lambda_depth, lambda_sem: the loss weights (depth: L1 in metres of camera z; sem: negative log
-            likelihood of the rendered class distribution).
+        spacing: ``log`` (bins of equal depth ratio) or ``uniform`` stratified samples along each ray.
+        lambda_depth, lambda_sem: the loss weights (depth: relative L1 ``|D - d*| / d*`` of camera z, scale-free
+            like the semantic term, so far pixels do not outweigh near ones; sem: negative log likelihood of the
+            rendered class distribution).
 
     Returns ``{"depth": L1, "sem": NLL}``, already times their lambdas.
     """
@@ -242,10 +251,14 @@ class RenderSupervision(SupervisionSource):
         max_depth: Annotated[float, Positive] = 1000.0,
         lambda_depth: Annotated[float, NonNegative] = 1.0,
         lambda_sem: Annotated[float, NonNegative] = 1.0,
+        spacing: Literal["log", "uniform"] = "log",
         free_label: int | None = 17,
         ignore_label: int | None = 255,
     ) -> None:
         super().__init__()
+        if spacing not in ("log", "uniform"):
+            raise ValueError(f"render_points spacing must be 'log' or 'uniform', got {spacing!r}")
+        self.log_spacing = spacing == "log"
         if not far > near:
             raise ValueError(f"render_points needs far > near, got near={near}, far={far}")
         self.weight, self.query_head = float(weight), query_head
@@ -291,6 +304,7 @@ class RenderSupervision(SupervisionSource):
             self.pixel_stride,
             self.max_depth,
             None if self.long_range else self.near_range,
+            log_spacing=self.log_spacing,
         )
 
     def forward(self, batch: Batch, outputs: ModelOutputs) -> dict[str, Tensor]:
@@ -310,7 +324,8 @@ class RenderSupervision(SupervisionSource):
         valid = rays.valid.float()
         target = rays.target_depth.clamp_max(self.far)
         out: dict[str, Tensor] = {}
-        out["depth"] = self.lambda_depth * ((rendered.depth - target).abs() * valid).sum() / valid.sum().clamp_min(1)
+        relative = (rendered.depth - target).abs() / target.clamp_min(self.near)
+        out["depth"] = self.lambda_depth * (relative * valid).sum() / valid.sum().clamp_min(1)
         labels = rays.labels
         k = result.class_logits.shape[-1]
         has_free = self.free_label is not None and 0 <= self.free_label < k

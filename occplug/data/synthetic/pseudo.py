@@ -468,6 +468,7 @@ class SyntheticPseudoLabels:
         when there, else made and stored (atomically): the maps are a pure function of the frame and the
         settings, and a frame and its neighbours' ``adjacent`` copies share one token.
         """
+        self._check(frame)
         path = self._cache_path(frame.token)
         if path is not None and path.is_file():
             try:

@@ -102,6 +102,8 @@ def test_points_of_the_previous_frame_land_in_the_current_ego_frame():
     sets = supervision_points(batch, "pseudo", [-1], 255)
     prev = batch.adjacent[-1]
     for i, (pts, times) in enumerate(sets):
+        moved = float((invert_pose(batch.ego_to_global[i].double()) @ prev.ego_to_global[i].double())[:3, 3].norm())
+        assert moved > 1.0  # the ego drove between the frames: the transform is not the identity
         dt = float(prev.timestamp[i] - batch.timestamp[i])
         assert dt < 0 and torch.allclose(times, torch.full_like(times, dt))
         # moving agents: points labelled as vehicles/pedestrians lie in that frame's boxes, moved into this frame
@@ -117,6 +119,31 @@ def test_points_of_the_previous_frame_land_in_the_current_ego_frame():
         ground = pts.labels == 11
         assert bool(ground.any())
         assert float(pts.points[ground, 2].abs().max()) < 0.05
+        # and in x-y: seen at t-1, static structure (buildings) lands in voxels occupied now
+        grid = GridSpec((-16.0, -16.0, -1.0, 16.0, 16.0, 5.4), 0.8)
+        building = (pts.labels == 15) & grid.contains(pts.points)
+        if bool(building.any()):
+            idx = grid.coord_to_index(pts.points[building])
+            labels = batch.voxel_labels[i][idx[:, 0], idx[:, 1], idx[:, 2]]
+            assert (labels != 17).float().mean() > 0.9
+
+
+def test_a_sample_without_points_adds_nothing_to_the_losses():
+    full = _points(20)
+    empty = LabelledPoints(torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0, dtype=torch.int64))
+    q = sample_queries([(full, torch.zeros(20)), (empty, torch.zeros(0))], 16, 2, 2, 0.5, 255)
+    assert bool(q.valid[0].all()) and not bool(q.valid[1].any())
+    source = QuerySupervision(points_per_sample=16, negatives=2, positives=2)
+    source.queries = lambda batch: q  # the drawn set above, through the source's losses
+    from occplug.interfaces import ModelOutputs, QueryResult
+
+    def answer(name, points, times=None):  # a field that gets sample 1 (the placeholders) maximally wrong
+        o = torch.zeros(points.shape[:2])
+        o[1] = torch.where(q.occupied[1], -30.0, 30.0)
+        return QueryResult(class_logits=torch.zeros(*points.shape[:2], 18), occupancy_logit=o)
+
+    losses = source(None, ModelOutputs(None, None, None, {}, answer))
+    assert float(losses["occ"]) == pytest.approx(math.log(2.0), rel=1e-5)  # sample 0's BCE at o = 0 only
 
 
 def test_decoder_outputs_at_voxel_centres_equal_predict_occupancy():
@@ -134,6 +161,27 @@ def test_decoder_outputs_at_voxel_centres_equal_predict_occupancy():
     expected = torch.where(occupied, cls.argmax(-1), torch.full_like(occupied, 17, dtype=torch.int64))
     agree = (pred.reshape(1, -1) == expected).float().mean()
     assert agree > 0.999  # ties at exactly the threshold aside
+
+
+def test_the_model_predicts_what_its_decoder_answers_at_the_voxel_centres():
+    from occplug.runner import build_datamodule, build_model, load_config
+
+    cfg = load_config(["queryocc/base"], ["data.preset=tiny", "model.heads.occupancy.occupancy_threshold=0.4"])
+    dm = build_datamodule(cfg)
+    dm.prepare_data()
+    dm.setup("fit")
+    model = build_model(cfg, dm).eval()
+    batch = make_tiny_batch(1, pseudo_labels="default")
+    pred = model.predict_occupancy(batch)  # (1, X, Y, Z) through the model's evaluation path
+    with torch.no_grad():
+        outputs = model(batch)
+        res = model.heads["occupancy"].query(outputs.scene, model.grid.centers().reshape(1, -1, 3))
+    p = torch.sigmoid(res.occupancy_logit)
+    cls = res.class_logits.clone()
+    cls[..., 17] = -torch.inf
+    expected = torch.where(p >= 0.4, cls.argmax(-1), torch.full_like(p, 17, dtype=torch.int64))
+    clear = (p - 0.4).abs() > 1e-5  # a voxel exactly at the threshold may go either way
+    assert torch.equal(pred.reshape(1, -1)[clear], expected[clear])
 
 
 def test_query_supervision_loss_falls_on_one_batch():
