@@ -275,21 +275,10 @@ class RenderSupervision(SupervisionSource):
 
     @classmethod
     def conformance_outputs(cls, batch: Batch, grid, channels: int) -> ModelOutputs:
-        """A query decoder over a random BEV plane on ``grid`` (the conformance model's head has no occupancy logit
-        and cannot be queried in time), as for ``query_points``."""
-        from occplug.interfaces import BevScene
+        """A query decoder over a random BEV plane on ``grid``, as for ``query_points``."""
+        from .query_supervision import QuerySupervision
 
-        from .decoder import QueryDecoder
-
-        head = QueryDecoder(channels, hidden=16)
-        scene = BevScene(torch.randn(len(batch), channels, *grid.shape[:2], requires_grad=True), grid)
-        return ModelOutputs(
-            image_features=None,
-            lifted=None,
-            scene=scene,
-            heads={},
-            query=lambda name, points, times=None: head.query(scene, points, times),
-        )
+        return QuerySupervision.conformance_outputs(batch, grid, channels)
 
     def rays(self, batch: Batch) -> RaySet:
         """This step's sampled rays (uses the global RNG; seeded runs repeat)."""

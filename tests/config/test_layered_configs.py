@@ -29,7 +29,7 @@ model:
 optimizer: {type: adamw, lr: 0.002, weight_decay: 0.01}
 scheduler: {type: cosine, warmup_steps: 50}
 metrics: [occ3d_miou]
-trainer: {max_epochs: 15}
+trainer: {max_epochs: 13}
 """
 
 
