@@ -117,7 +117,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
-    parser.add_argument("--epochs", type=int, default=6, help="trainer.max_epochs of every run (the CPU budget)")
+    parser.add_argument("--epochs", type=int, default=4, help="trainer.max_epochs of every run (the CPU budget)")
     parser.add_argument("--preset", default="default", help="synthetic world preset (default: default)")
     parser.add_argument("--set", nargs="*", default=[], help="extra key=value overrides for every run")
     parser.add_argument("--out", default="runs/ablate_queryocc")
