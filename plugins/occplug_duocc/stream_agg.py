@@ -1,0 +1,382 @@
+"""DuOcc's stream-based voxel feature aggregation (StreamAgg, paper §3.1, Fig. 3, Tab. 5).
+
+Per frame: warp the previous frame's final voxel feature into the current ego frame (Eqs. 1-2, the
+core's :func:`~occplug.geometry.warp_volume`), refine it with :class:`RefineNet` (a bottleneck with a
+3D CBAM, Eqs. 3-4) and fuse it with the current voxel feature (Eq. 5). Two auxiliary heads supervise
+the refinement in training only: the occupied-mask head reads the spatial-attention logits ``M_s``,
+the forecasting head reads the refined history (suppl. A.3: a 3D deconvolution, then a pointwise MLP).
+
+All volumes are laid out ``(B, C, X, Y, Z)`` on one :class:`~occplug.geometry.GridSpec` in the ego
+frame of their frame. The history is the previous frame's ``V_fin`` (after DQA in the full model),
+detached: no gradient flows across frames.
+
+Paper versus the public code (``duocc-code-notes.md`` §2), and what is chosen here:
+
+* fusion: Eq. 5 adds (``fusion="add"``, default); the code concatenates, then a 1x1x1 conv, GroupNorm
+  and ReLU (``fusion="concat"``);
+* reset (a sequence start, or a gap outside ``(0, 2] s``): as the code, the history becomes the current
+  feature ``V_curr`` itself (detached, no warp), not zeros;
+* the occupied head ends in a logit trained with plain BCE-with-logits (:func:`occupied_loss`); the code
+  applies a sigmoid and then ``BCEWithLogitsLoss`` (a double sigmoid);
+* RefineNet follows Eq. 4 (no activation after the residual); ``residual_relu=True`` adds the code's ReLU.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Annotated
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from occplug.constraints import Positive
+from occplug.geometry import GridSpec, warp_volume
+
+__all__ = [
+    "CBAMAttention",
+    "RefineNet",
+    "StreamAggOutput",
+    "StreamAggregation",
+    "UpsampleDecoder",
+    "forecast_loss",
+    "occupied_loss",
+]
+
+
+@dataclass
+class CBAMAttention:
+    """The 3D CBAM maps of :class:`RefineNet` (Eq. 3).
+
+    Attributes:
+        channel: ``M_c``, ``(B, C, 1, 1, 1)`` in ``(0, 1)``.
+        spatial_logits: ``M_s``, ``(B, 1, X, Y, Z)`` before the sigmoid (the occupied head reads these).
+    """
+
+    channel: Tensor
+    spatial_logits: Tensor
+
+    @property
+    def spatial(self) -> Tensor:
+        """``sigma(M_s)``, ``(B, 1, X, Y, Z)`` in ``(0, 1)`` (the factor of Eq. 4)."""
+        return torch.sigmoid(self.spatial_logits)
+
+
+class RefineNet(nn.Module):
+    """Bottleneck ``C -> C/4 -> C`` with a 3D CBAM and a residual (DuOcc Eqs. 3-4, Fig. 3).
+
+    ``V_out = Bottleneck(V_warp)``;
+    ``M_c = sigma(MLP(Avg_s(V_out)) + MLP(Max_s(V_out)))`` (one MLP shared by both descriptors);
+    ``M_s = Conv3D([Avg_c(M_c * V_out); Max_c(M_c * V_out)])``;
+    ``V_refwarp = sigma(M_s) * (M_c * V_out) + V_warp``.
+
+    Args:
+        channels: ``C`` (divisible by ``bottleneck_ratio``).
+        bottleneck_ratio: ``C / C_mid`` of the bottleneck (paper: 4).
+        reduction: hidden width ``max(1, C // reduction)`` of the channel-attention MLP (code: 16).
+        spatial_kernel: odd kernel size of the spatial-attention conv (code: 7).
+        residual_relu: apply a ReLU after the residual (the public code does; Eq. 4 does not).
+
+    Forward: ``V_warp (B, C, X, Y, Z)`` -> ``(V_refwarp (B, C, X, Y, Z), CBAMAttention)``.
+    """
+
+    def __init__(
+        self,
+        channels: Annotated[int, Positive],
+        bottleneck_ratio: Annotated[int, Positive] = 4,
+        reduction: Annotated[int, Positive] = 16,
+        spatial_kernel: Annotated[int, Positive] = 7,
+        residual_relu: bool = False,
+    ) -> None:
+        super().__init__()
+        if channels % bottleneck_ratio:
+            raise ValueError(f"RefineNet: channels {channels} not divisible by bottleneck_ratio {bottleneck_ratio}")
+        if spatial_kernel % 2 == 0:
+            raise ValueError(f"RefineNet: spatial_kernel must be odd (same-size output), got {spatial_kernel}")
+        mid = channels // bottleneck_ratio
+        self.bottleneck = nn.Sequential(
+            nn.Conv3d(channels, mid, 1, bias=False),
+            nn.BatchNorm3d(mid),
+            nn.ReLU(inplace=True),
+            nn.Conv3d(mid, mid, 3, padding=1, bias=False),
+            nn.BatchNorm3d(mid),
+            nn.ReLU(inplace=True),
+            nn.Conv3d(mid, channels, 1, bias=False),
+            nn.BatchNorm3d(channels),
+        )
+        hidden = max(1, channels // reduction)
+        self.channel_mlp = nn.Sequential(
+            nn.Conv3d(channels, hidden, 1, bias=False),
+            nn.ReLU(inplace=True),
+            nn.Conv3d(hidden, channels, 1, bias=False),
+        )
+        self.spatial_conv = nn.Conv3d(2, 1, spatial_kernel, padding=spatial_kernel // 2, bias=False)
+        self.residual_relu = bool(residual_relu)
+
+    def forward(self, warped: Tensor) -> tuple[Tensor, CBAMAttention]:
+        """Refine ``warped`` ``(B, C, X, Y, Z)``; returns the refined volume and the attention maps."""
+        out = self.bottleneck(warped)
+        avg = out.mean(dim=(2, 3, 4), keepdim=True)
+        mx = out.amax(dim=(2, 3, 4), keepdim=True)
+        channel = torch.sigmoid(self.channel_mlp(avg) + self.channel_mlp(mx))  # (B, C, 1, 1, 1)
+        attended = channel * out
+        pooled = torch.cat([attended.mean(dim=1, keepdim=True), attended.amax(dim=1, keepdim=True)], dim=1)
+        spatial_logits = self.spatial_conv(pooled)  # (B, 1, X, Y, Z)
+        refined = torch.sigmoid(spatial_logits) * attended + warped
+        if self.residual_relu:
+            refined = F.relu(refined)
+        return refined, CBAMAttention(channel=channel, spatial_logits=spatial_logits)
+
+
+class UpsampleDecoder(nn.Module):
+    """DuOcc's decoder shape (suppl. A.3): a 3D deconvolution by ``scale``, then a pointwise MLP.
+
+    ``ConvTranspose3d(k=s, stride=s) -> BN -> ReLU -> Conv3d 1x1x1`` (``scale=1``: a 1x1x1 conv instead
+    of the deconvolution), as the code's occupied and forecasting heads.
+
+    Forward: ``(B, C_in, X, Y, Z)`` -> ``(B, C_out, sX, sY, sZ)``.
+    """
+
+    def __init__(
+        self,
+        in_channels: Annotated[int, Positive],
+        hidden: Annotated[int, Positive],
+        out_channels: Annotated[int, Positive],
+        scale: Annotated[int, Positive] = 2,
+    ) -> None:
+        super().__init__()
+        up = (
+            nn.ConvTranspose3d(in_channels, hidden, scale, stride=scale, bias=False)
+            if scale > 1
+            else nn.Conv3d(in_channels, hidden, 1, bias=False)
+        )
+        self.net = nn.Sequential(up, nn.BatchNorm3d(hidden), nn.ReLU(inplace=True), nn.Conv3d(hidden, out_channels, 1))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.net(x)
+
+
+@dataclass
+class StreamAggOutput:
+    """What :class:`StreamAggregation` returns for one frame (all in the current ego frame).
+
+    Attributes:
+        fused: ``V_S.A``, ``(B, C, X, Y, Z)`` (Eq. 5).
+        warped: ``V_warp``, ``(B, C, X, Y, Z)``: the history warped into this frame; ``V_curr`` itself
+            (detached) for reset samples.
+        refined: ``V_refwarp``, ``(B, C, X, Y, Z)`` (``warped`` when ``refine=False``).
+        attention: RefineNet's CBAM maps, or None when ``refine=False``.
+        occupied_logits: ``(B, sX, sY, sZ)`` one logit per label voxel ("not free"), training only, else None.
+        forecast_logits: ``(B, K, sX, sY, sZ)`` class logits of the current frame from the history,
+            training only, else None.
+    """
+
+    fused: Tensor
+    warped: Tensor
+    refined: Tensor
+    attention: CBAMAttention | None = None
+    occupied_logits: Tensor | None = None
+    forecast_logits: Tensor | None = None
+
+
+class StreamAggregation(nn.Module):
+    """Motion-aware warping, RefineNet and fusion of the history with the current voxel feature (§3.1).
+
+    Each part of DuOcc's StreamAgg ablation (Tab. 5) can be switched off: ``refine=False`` fuses the
+    warped history as it is; ``occupied_head`` / ``forecast_head`` drop the auxiliary heads.
+
+    Args:
+        channels: ``C`` of the voxel features.
+        num_classes: ``K`` classes of the forecasting head (free included, e.g. 18 on Occ3D).
+        grid: the grid the volumes lie on (``GridSpec`` or ``{range, voxel_size}``), ego frame.
+        fusion: ``"add"`` (Eq. 5) or ``"concat"`` (the public code: concatenate ``[refined, V_curr]``,
+            1x1x1 conv to ``C``, GroupNorm, ReLU).
+        refine: use :class:`RefineNet` on the warped history.
+        occupied_head: add the occupied-mask head (needs ``refine``: it reads ``M_s``).
+        forecast_head: add the forecasting head.
+        upsample: scale from the feature grid to the label grid of the auxiliary heads (DuOcc: 2).
+        occupied_hidden: width of the occupied head's deconvolution (code: 64).
+        reduction: RefineNet's channel-attention reduction (code: 16).
+        residual_relu: RefineNet's ReLU after the residual (code: on; Eq. 4: off).
+
+    Forward:
+        ``(v_curr, v_hist, prev_to_current, reset)`` -> :class:`StreamAggOutput`; see :meth:`forward`.
+        The module holds no state: a streaming component keeps the history in a
+        :class:`occplug.streams.StreamState` (``max_gap_s=2.0``) and passes ``read.value``,
+        ``read.prev_to_current`` and ``read.reset``.
+    """
+
+    def __init__(
+        self,
+        channels: Annotated[int, Positive],
+        num_classes: Annotated[int, Positive],
+        grid: GridSpec | Mapping,
+        fusion: str = "add",
+        refine: bool = True,
+        occupied_head: bool = True,
+        forecast_head: bool = True,
+        upsample: Annotated[int, Positive] = 2,
+        occupied_hidden: Annotated[int, Positive] = 64,
+        reduction: Annotated[int, Positive] = 16,
+        residual_relu: bool = False,
+    ) -> None:
+        super().__init__()
+        if fusion not in ("add", "concat"):
+            raise ValueError(f"StreamAggregation fusion must be 'add' or 'concat', got {fusion!r}")
+        if occupied_head and not refine:
+            raise ValueError(
+                "StreamAggregation occupied_head reads RefineNet's spatial attention: it needs refine=True"
+            )
+        self.channels, self.num_classes = int(channels), int(num_classes)
+        self.grid = GridSpec.from_config(grid)
+        self.fusion = fusion
+        self.refine = RefineNet(channels, reduction=reduction, residual_relu=residual_relu) if refine else None
+        if fusion == "concat":
+            self.fuse = nn.Sequential(
+                nn.Conv3d(2 * channels, channels, 1, bias=False),
+                nn.GroupNorm(math.gcd(16, channels), channels),
+                nn.ReLU(inplace=True),
+            )
+        self.occupied = UpsampleDecoder(1, occupied_hidden, 1, upsample) if occupied_head else None
+        self.forecast = UpsampleDecoder(channels, channels, num_classes, upsample) if forecast_head else None
+
+    def forward(
+        self,
+        v_curr: Tensor,
+        v_hist: Tensor | None = None,
+        prev_to_current: Tensor | None = None,
+        reset: Tensor | None = None,
+    ) -> StreamAggOutput:
+        """Aggregate the history into the current frame.
+
+        Args:
+            v_curr: ``V_curr``, ``(B, C, X, Y, Z)`` in the current ego frame.
+            v_hist: ``V_fin`` of the previous frame, ``(B, C, X, Y, Z)`` in the previous ego frame; it is
+                detached here. None: no history at all (every sample is reset).
+            prev_to_current: ``(B, 4, 4)`` previous ego -> current ego (``T_{g->e}^t T_{e->g}^{t-1}``,
+                Eq. 1; :func:`occplug.geometry.relative_pose`); None: identity. Ignored where ``reset``.
+            reset: ``(B,)`` bool, samples whose history is ``V_curr`` itself (detached, unwarped); None: none.
+
+        Returns:
+            :class:`StreamAggOutput`; the auxiliary logits only in training mode.
+        """
+        b = v_curr.shape[0]
+        if tuple(v_curr.shape[2:]) != self.grid.shape:
+            raise ValueError(f"StreamAggregation: volume {tuple(v_curr.shape)} is not on grid {self.grid.shape}")
+        if v_hist is None:
+            warped = v_curr.detach()
+        else:
+            if v_hist.shape != v_curr.shape:
+                raise ValueError(
+                    f"StreamAggregation: history {tuple(v_hist.shape)} and current {tuple(v_curr.shape)} differ"
+                )
+            if prev_to_current is None:
+                prev_to_current = torch.eye(4, dtype=torch.float64, device=v_curr.device).expand(b, 4, 4)
+            warped = warp_volume(v_hist.detach(), self.grid, prev_to_current)
+            if reset is not None:  # the public code restarts a stream from the current feature, unwarped
+                warped = torch.where(reset.view(b, 1, 1, 1, 1).to(warped.device), v_curr.detach(), warped)
+        attention = None
+        refined = warped
+        if self.refine is not None:
+            refined, attention = self.refine(warped)
+        if self.fusion == "add":
+            fused = refined + v_curr
+        else:
+            fused = self.fuse(torch.cat([refined, v_curr], dim=1))
+        out = StreamAggOutput(fused=fused, warped=warped, refined=refined, attention=attention)
+        if self.training:
+            if self.occupied is not None and attention is not None:
+                out.occupied_logits = self.occupied(attention.spatial_logits).squeeze(1)
+            if self.forecast is not None:
+                out.forecast_logits = self.forecast(refined)
+        return out
+
+    def aux_losses(
+        self,
+        out: StreamAggOutput,
+        voxel_labels: Tensor,
+        free_label: int,
+        mask: Tensor | None = None,
+        class_weights: Tensor | None = None,
+        ignore_label: int = 255,
+    ) -> dict[str, Tensor]:
+        """The auxiliary losses of a training forward, unweighted (the paper weighs both by 10, suppl. A.4).
+
+        Args:
+            out: this module's training output.
+            voxel_labels: ``(B, sX, sY, sZ)`` integer class ids of the current frame on the label grid.
+            free_label: the id of free space (Occ3D: 17).
+            mask: ``(B, sX, sY, sZ)`` bool voxels to supervise (e.g. ``mask_camera``), or None (all).
+            class_weights: ``(K,)`` weights of the forecasting CE, or None.
+            ignore_label: label id never supervised.
+
+        Returns:
+            ``{"occupied": scalar, "forecast": scalar}`` for the heads that ran.
+        """
+        losses: dict[str, Tensor] = {}
+        if out.occupied_logits is not None:
+            losses["occupied"] = occupied_loss(out.occupied_logits, voxel_labels, free_label, mask, ignore_label)
+        if out.forecast_logits is not None:
+            losses["forecast"] = forecast_loss(out.forecast_logits, voxel_labels, mask, class_weights, ignore_label)
+        return losses
+
+
+def _valid(labels: Tensor, mask: Tensor | None, ignore_label: int) -> Tensor:
+    valid = labels != ignore_label
+    return valid if mask is None else valid & mask.to(torch.bool)
+
+
+def occupied_loss(
+    logits: Tensor, labels: Tensor, free_label: int, mask: Tensor | None = None, ignore_label: int = 255
+) -> Tensor:
+    """Binary cross-entropy with logits of "occupied" (label not free), averaged over the supervised voxels.
+
+    One sigmoid, inside :func:`torch.nn.functional.binary_cross_entropy_with_logits` (the public code's
+    head applies a second one before it).
+
+    Args:
+        logits: ``(B, X, Y, Z)`` occupied logits.
+        labels: ``(B, X, Y, Z)`` integer class ids.
+        free_label: the id of free space.
+        mask: ``(B, X, Y, Z)`` bool, voxels to supervise, or None (all but ``ignore_label``).
+        ignore_label: label id never supervised.
+
+    Returns:
+        Scalar; zero (still attached to ``logits``) when no voxel is supervised.
+    """
+    valid = _valid(labels, mask, ignore_label)
+    target = (labels != free_label).to(logits.dtype)
+    if not bool(valid.any()):
+        return logits.sum() * 0.0
+    return F.binary_cross_entropy_with_logits(logits[valid], target[valid])
+
+
+def forecast_loss(
+    logits: Tensor,
+    labels: Tensor,
+    mask: Tensor | None = None,
+    class_weights: Tensor | None = None,
+    ignore_label: int = 255,
+) -> Tensor:
+    """Cross-entropy of the forecasting head, summed over supervised voxels and divided by their count.
+
+    (With ``class_weights`` this divides by the voxel count, as the public code normalises its occupancy CE,
+    not by the summed weights as ``F.cross_entropy(reduction="mean")`` would.)
+
+    Args:
+        logits: ``(B, K, X, Y, Z)`` class logits.
+        labels: ``(B, X, Y, Z)`` integer class ids in ``[0, K)`` or ``ignore_label``.
+        mask: ``(B, X, Y, Z)`` bool, voxels to supervise, or None.
+        class_weights: ``(K,)`` per-class weights, or None.
+        ignore_label: label id never supervised.
+
+    Returns:
+        Scalar; zero (still attached to ``logits``) when no voxel is supervised.
+    """
+    valid = _valid(labels, mask, ignore_label)
+    target = torch.where(valid, labels.long(), torch.full_like(labels, ignore_label, dtype=torch.long))
+    weight = None if class_weights is None else class_weights.to(logits)
+    per_voxel = F.cross_entropy(logits, target, weight=weight, ignore_index=ignore_label, reduction="none")
+    return per_voxel.sum() / valid.sum().clamp(min=1)
