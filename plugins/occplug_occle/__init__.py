@@ -1,6 +1,7 @@
 """occplug-occle: OccLE (label-efficient occupancy with decoupled semantic and geometric branches) as occplug
 components.
 
-Work in progress: the building blocks below are tested; the components, configs and the ``occplug`` entry point
-come with the plugin's model.
+Loaded through the ``occplug`` entry point ``occle = occplug_occle.plugin``, exactly as a third-party plugin; it
+imports only occplug's public API. The components are in ``plugin.py``; the tested building blocks in
+``geometry_branch``, ``mamba``, ``selective_scan``, ``serialization``, ``projection``, ``unets`` and ``losses``.
 """

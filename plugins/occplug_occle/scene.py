@@ -1,0 +1,233 @@
+"""Scene ``occle_scene``: OccLE's semantic branch grid, geometric branch and semantic-geometric fusion (§3.2-3.4).
+
+One module holds the three 3D parts of Fig. 2 so that each is one switch (Tab. 4(b)) and one parameter prefix
+(``model.scene.semantic_branch``, ``model.scene.geometric_branch``, ``model.scene.fusion``) for the phases'
+``freeze`` / ``init_from``. Inputs, all on one ego-frame grid ``(X, Y, Z)`` (x forward, y left, z up):
+
+* the lifted image grid (the view transform's volume, Eq. 2 ``F(F_I, K(T P))``) ``(B, C_img, X, Y, Z)``;
+* the LiDAR grid of a point encoder (``outputs.encoded[lidar_encoder]``) ``(B, C_lidar, X, Y, Z)``.
+
+Parts:
+
+* semantic branch: the LiDAR 3D UNet ``G_s3d`` gives ``F_P^s`` (read by the ``occle_lidar_semantic`` head, ``S``);
+  ``F_f^s`` = ``1x1x1 conv -> BN -> ReLU`` of ``[lifted image, F_P^s]`` ("combine", §3.4);
+* geometric branch: cross-plane image/LiDAR synergy (Eq. 3-4) or Tab. 4(a)'s Conv3D + 3D deformable
+  attention baseline gives ``F_f^g`` (read by the ``occle_geometry`` head, ``G``);
+* fusion: Dual Mamba (Appendix A) of ``F_f^s`` and ``F_f^g`` -> ``F_3d^f``, the scene's ``features``
+  (read by ``occle_occupancy`` -> ``Y`` and ``occle_projection`` -> ``y``).
+
+A switched-off branch (``semantic: false`` / ``geometric: false``) is replaced by a plain stem,
+``1x1x1 conv -> BN -> ReLU`` of ``[lifted image, LiDAR grid]``, so the fusion still receives two grids; the
+branch's heads then return nothing and its losses drop out. ``projection: false`` does the same for the
+projected segmentation ``y``. With all three off this is Tab. 4(b)'s baseline.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+import torch
+from torch import Tensor, nn
+
+from occplug.components.layers import BasicBlock3d
+from occplug.constraints import Length, NonNegative, Positive
+from occplug.data.frame import Batch
+from occplug.geometry import GridSpec
+from occplug.interfaces import DenseVoxelScene, Lifted, ModelOutputs, SceneRepresentation
+
+from .geometry_branch import Conv3dDeformableBaseline, CrossPlaneFusion
+from .mamba import DualMambaUNet
+from .unets import UNet3d
+
+__all__ = ["OccleGrids", "OccleScene", "conformance_scene"]
+
+
+class OccleGrids(DenseVoxelScene):
+    """The scene OccLE's heads read: the fused grid plus the branch grids, all ``(B, C, X, Y, Z)`` on ``grid``.
+
+    Attributes:
+        features: ``F_3d^f``, the Dual Mamba output (sampled by :meth:`sample`).
+        grid: the ego-frame grid of every tensor here.
+        lidar_semantic: ``F_P^s`` of the LiDAR 3D UNet, or None (semantic branch off).
+        semantic: ``F_f^s``, the semantic grid fused, or None (semantic branch off).
+        geometry: ``F_f^g``, the geometric grid, or None (geometric branch off).
+        projection: whether the projected segmentation ``y`` is on.
+    """
+
+    def __init__(
+        self,
+        features: Tensor,
+        grid: GridSpec,
+        lidar_semantic: Tensor | None = None,
+        semantic: Tensor | None = None,
+        geometry: Tensor | None = None,
+        projection: bool = True,
+    ) -> None:
+        super().__init__(features, grid)
+        self.lidar_semantic = lidar_semantic
+        self.semantic = semantic
+        self.geometry = geometry
+        self.projection = projection
+
+
+def _stem(in_channels: int, out_channels: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv3d(in_channels, out_channels, 1, bias=False), nn.BatchNorm3d(out_channels), nn.ReLU(inplace=True)
+    )
+
+
+class ConvFusion(nn.Module):
+    """A plain fusion of two grids (no Mamba): concatenation, ``1x1x1 conv -> BN -> ReLU``, ``blocks`` 3D blocks.
+
+    Forward: ``(B, C, X, Y, Z)`` twice -> ``(B, C, X, Y, Z)``.
+    """
+
+    def __init__(self, channels: int, blocks: int = 1) -> None:
+        super().__init__()
+        self.mix = _stem(2 * channels, channels)
+        self.blocks = nn.Sequential(*(BasicBlock3d(channels, channels) for _ in range(blocks)))
+
+    def forward(self, semantic: Tensor, geometry: Tensor) -> Tensor:
+        return self.blocks(self.mix(torch.cat([semantic, geometry], dim=1)))
+
+
+class OccleScene(SceneRepresentation):
+    """OccLE's semantic branch grid, geometric branch and Dual Mamba fusion (§3.2-3.4); see the module docstring.
+
+    Args:
+        in_channels: ``C_img`` of the lifted image grid (the view transform's ``out_channels``).
+        grid: the grid every input and output lies on (the evaluation grid, ego frame).
+        lidar_channels: ``C_lidar`` of the point encoder's volume.
+        lidar_encoder: which ``model.point_encoders`` entry is the LiDAR grid.
+        channels: ``C`` of every branch grid and of the fused grid (so every head gets ``in_channels = C``).
+        semantic, geometric, projection: Tab. 4(b)'s switches (see the module docstring).
+        geometry: ``cross_plane`` (§3.3.1) or ``conv3d`` (Tab. 4(a)'s Conv3D + 3D deformable attention baseline).
+        unet_depth: downsampling levels of the LiDAR 3D UNet ``G_s3d`` (dense here; sparse in the paper).
+        plane_kernel, attention_heads: of the cross-plane Conv2Ds and axial attention (Eq. 3); the heads also serve
+            the baseline's deformable attention.
+        fusion: ``dual_mamba`` (Appendix A) or ``conv`` (concatenation + 3D conv, a Mamba-free ablation).
+        mamba_channels: widths of the Dual Mamba U-Net's levels, one more than its stages (the paper: 4 stages;
+            here 2 by default, for CPU).
+        mamba_state: the SSM state size of its Mamba blocks.
+
+    Forward:
+        ``lifted`` (volume ``(B, C_img, X, Y, Z)``), ``batch``, ``outputs`` (``encoded[lidar_encoder]``
+        ``(B, C_lidar, X, Y, Z)``) -> :class:`OccleGrids` with ``features`` ``(B, C, X, Y, Z)``.
+    """
+
+    reads_outputs = True
+
+    def __init__(
+        self,
+        in_channels: Annotated[int, Positive],
+        grid: GridSpec | dict,
+        lidar_channels: Annotated[int, Positive] = 32,
+        lidar_encoder: str = "lidar",
+        channels: Annotated[int, Positive] = 32,
+        semantic: bool = True,
+        geometric: bool = True,
+        projection: bool = True,
+        geometry: Literal["cross_plane", "conv3d"] = "cross_plane",
+        unet_depth: Annotated[int, NonNegative] = 2,
+        plane_kernel: Annotated[int, Positive] = 3,
+        attention_heads: Annotated[int, Positive] = 4,
+        fusion: Literal["dual_mamba", "conv"] = "dual_mamba",
+        mamba_channels: Annotated[list[Annotated[int, Positive]], Length(min=2)] = [32, 48, 64],  # noqa: B006 - read only
+        mamba_state: Annotated[int, Positive] = 16,
+    ) -> None:
+        super().__init__()
+        if geometry not in ("cross_plane", "conv3d"):
+            raise ValueError(f"occle_scene geometry must be 'cross_plane' or 'conv3d', got {geometry!r}")
+        if fusion not in ("dual_mamba", "conv"):
+            raise ValueError(f"occle_scene fusion must be 'dual_mamba' or 'conv', got {fusion!r}")
+        self.grid = GridSpec.from_config(grid)
+        self.in_channels, self.lidar_channels = int(in_channels), int(lidar_channels)
+        self.lidar_encoder = lidar_encoder
+        self.out_channels = c = int(channels)
+        self.semantic, self.geometric, self.projection = bool(semantic), bool(geometric), bool(projection)
+        both = self.in_channels + self.lidar_channels
+        # plain stems stand in for a switched-off branch, so the fusion always sees two grids
+        self.stems = nn.ModuleDict()
+        if self.semantic:
+            unet = UNet3d(self.lidar_channels, num_classes=1, base_channels=c, depth=unet_depth)
+            unet.head = nn.Identity()  # S's header is the occle_lidar_semantic head component
+            self.semantic_branch = nn.ModuleDict({"lidar_unet": unet, "mix": _stem(self.in_channels + c, c)})
+        else:
+            self.stems["semantic"] = _stem(both, c)
+        if self.geometric:
+            if geometry == "cross_plane":
+                self.geometric_branch: nn.Module = CrossPlaneFusion(
+                    self.lidar_channels,
+                    self.in_channels,
+                    self.grid,
+                    c,
+                    plane_kernel=plane_kernel,
+                    heads=attention_heads,
+                )
+            else:
+                baseline = Conv3dDeformableBaseline(
+                    self.lidar_channels, self.in_channels, self.grid, c, heads=attention_heads
+                )
+                baseline.head = nn.Identity()  # G's header is the occle_geometry head component
+                self.geometric_branch = baseline
+        else:
+            self.stems["geometric"] = _stem(both, c)
+        self.fusion_kind = fusion
+        self.fusion = (
+            DualMambaUNet(c, c, channels=list(mamba_channels), d_state=mamba_state)
+            if fusion == "dual_mamba"
+            else ConvFusion(c)
+        )
+
+    def forward(self, lifted: Lifted, batch: Batch, outputs: ModelOutputs) -> OccleGrids:
+        image = lifted.volume
+        if self.lidar_encoder not in outputs.encoded:
+            raise ValueError(
+                f"occle_scene reads point encoder '{self.lidar_encoder}', but the model's point encoders are: "
+                f"{', '.join(outputs.encoded) or '(none)'}"
+            )
+        lidar = outputs.encoded[self.lidar_encoder]
+        shape = self.grid.shape
+        want_image, want_lidar = (self.in_channels, *shape), (self.lidar_channels, *shape)
+        if tuple(image.shape[1:]) != want_image or tuple(lidar.shape[1:]) != want_lidar:
+            raise ValueError(
+                f"occle_scene expects the lifted image grid (B, {self.in_channels}, {', '.join(map(str, shape))}) and "
+                f"the LiDAR grid (B, {self.lidar_channels}, ...) on the same grid; got {tuple(image.shape)} and "
+                f"{tuple(lidar.shape)}"
+            )
+        lidar_semantic = semantic = geometry = None
+        if self.semantic:
+            lidar_semantic = self.semantic_branch["lidar_unet"].features(lidar)
+            semantic = self.semantic_branch["mix"](torch.cat([image, lidar_semantic], dim=1))
+            sem_in = semantic
+        else:
+            sem_in = self.stems["semantic"](torch.cat([image, lidar], dim=1))
+        if self.geometric:
+            geometry = self.geometric_branch(lidar.unsqueeze(1), image.unsqueeze(1))  # one frame: T = 1
+            geo_in = geometry
+        else:
+            geo_in = self.stems["geometric"](torch.cat([image, lidar], dim=1))
+        fused = self.fusion(sem_in, geo_in)
+        return OccleGrids(fused, self.grid, lidar_semantic, semantic, geometry, self.projection)
+
+    @classmethod
+    def conformance_inputs(cls, batch: Batch, grid: GridSpec, channels: int) -> tuple[Any, ...]:
+        """A random lifted grid with ``channels`` channels and a random 32-channel LiDAR grid (the default
+        ``lidar_channels``) under ``outputs.encoded["lidar"]``."""
+        gen = torch.Generator().manual_seed(0)
+        image = torch.randn(len(batch), channels, *grid.shape, generator=gen)
+        lidar = torch.randn(len(batch), 32, *grid.shape, generator=gen).relu()
+        outputs = ModelOutputs(image_features=None, lifted=None, scene=None, heads={}, query=_no_query)
+        outputs.encoded["lidar"] = lidar
+        return (Lifted(volume=image, grid=grid), batch, outputs)
+
+
+def _no_query(*args: Any, **kwargs: Any) -> Any:
+    raise TypeError("no queryable head in the conformance outputs")
+
+
+def conformance_scene(batch: Batch, grid: GridSpec, channels: int) -> OccleGrids:
+    """Random :class:`OccleGrids` with every grid ``(B, channels, X, Y, Z)`` (heads' conformance inputs)."""
+    gen = torch.Generator().manual_seed(0)
+    grids = [torch.randn(len(batch), channels, *grid.shape, generator=gen) for _ in range(4)]
+    return OccleGrids(grids[0], grid, grids[1], grids[2], grids[3], projection=True)

@@ -1,0 +1,102 @@
+"""OccLE as an occplug model: builds from its configs, trains, predicts, runs the three phases (tiny world)."""
+
+import json
+
+import pytest
+import torch
+
+from occplug import runner
+from occplug.testing import run_config
+
+# 16 x 16 x 8 voxels in front of the ego (the recipe's 32 x 32 x 8 shrunk for test speed)
+SMALL = ["grid.range=[0.0,-6.4,-1.0,12.8,6.4,5.4]", "model.scene.mamba_channels=[16,24]"]
+
+
+def _model_and_batch(*overrides):
+    cfg = runner.load_config(["occle/base", "occplug/trainer/debug"], [*SMALL, *overrides])
+    dm, model = runner.build_run(cfg)
+    dataset = dm.dataset("train")
+    batch = dm.collate([dataset[i] for i in range(2)])
+    return model, batch
+
+
+def _loss(model, batch):
+    losses = model.losses(batch, model(batch))
+    return torch.stack(list(losses.values())).sum(), losses
+
+
+def test_base_trains_without_nan_and_the_loss_falls_on_one_batch():
+    torch.manual_seed(0)
+    model, batch = _model_and_batch()
+    assert set(model.heads) == {"occupancy", "lidar_semantic", "geometry", "image_semantic", "projection"}
+    _, terms = _loss(model, batch)
+    expected = {"semantic/image_ce", "semantic/lidar_ce", "fusion/occ_ce", "fusion/projection_ce", "geometry/geo_ce"}
+    assert expected <= set(terms)
+    opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
+    history = []
+    for _ in range(5):
+        loss, _ = _loss(model, batch)
+        assert torch.isfinite(loss)
+        opt.zero_grad()
+        loss.backward()
+        assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+        opt.step()
+        history.append(float(loss.detach()))
+    assert history[-1] < history[0]
+    model.eval()
+    pred = model.predict_occupancy(batch)
+    assert pred.shape == (2, 16, 16, 8) and pred.dtype == torch.int64
+    assert 0 <= int(pred.min()) and int(pred.max()) < model.num_classes
+
+
+@pytest.mark.parametrize(
+    "switch",
+    [
+        "model.scene.semantic=false",
+        "model.scene.geometric=false",
+        "model.scene.projection=false",
+        "model.scene.geometry=conv3d",
+        "model.heads.projection.mode=distance",
+    ],
+)
+def test_ablation_switch_builds_and_trains_one_step(switch):
+    torch.manual_seed(0)
+    model, batch = _model_and_batch(switch, "model.scene.fusion=conv")
+    loss, terms = _loss(model, batch)
+    loss.backward()
+    assert torch.isfinite(loss)
+    if "semantic=false" in switch:
+        assert not any(k.startswith("semantic/") for k in terms)
+        assert "semantic_branch" not in dict(model.scene.named_children())
+    if "geometric=false" in switch:
+        assert "geometry/geo_ce" not in terms
+    if "projection=false" in switch:
+        assert "fusion/projection_ce" not in terms
+    assert model.predict_occupancy(batch).shape == (2, 16, 16, 8)
+
+
+def test_geometry_head_gives_k_class_logits_with_two_class_probabilities():
+    model, batch = _model_and_batch("model.scene.fusion=conv")
+    model.eval()
+    with torch.no_grad():
+        out = model(batch).heads["geometry"]
+    two = out["geometry"].softmax(1)
+    k = out["logits"].softmax(1)
+    free, occ = model.heads["geometry"].free_label, model.heads["geometry"].occupied_label
+    assert torch.allclose(k[:, free], two[:, 0], atol=1e-6) and torch.allclose(k[:, occ], two[:, 1], atol=1e-6)
+    assert set(out["logits"].argmax(1).unique().tolist()) <= {free, occ}
+
+
+def test_three_phases_run_and_mark_done(tmp_path):
+    run = tmp_path / "run"
+    metrics = run_config("occle/three_phase_10pct", run_dir=run, overrides=[*SMALL, "trainer.max_steps=1"])
+    for phase in ("semantic", "teacher", "student", "fusion"):
+        assert (run / phase / "DONE").is_file(), phase
+    assert (run / "pseudo_labels" / "teacher.geometry.unlabelled" / "DONE").is_file()
+    assert json.loads((run / "metrics.json").read_text())["final_phase"] == "fusion"
+    assert metrics["IoU"] == metrics["IoU"]  # computed, not NaN
+    # phase III trains with the geometric branch frozen at the student's weights
+    student = torch.load(run / "student" / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
+    fusion = torch.load(run / "fusion" / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
+    keys = [k for k in student if k.startswith("scene.geometric_branch.") and student[k].is_floating_point()]
+    assert keys and all(torch.equal(student[k], fusion[k]) for k in keys)
