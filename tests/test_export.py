@@ -38,6 +38,9 @@ RECIPES = [
     pytest.param((("example/tiny",), (), EXAMPLE), id="example"),
     # a method plugin shipped in this distribution (its entry point loads it): a BEV plane read by a query decoder
     pytest.param((("queryocc/base",), (), None), id="queryocc"),
+    # DuOcc: the stateful StreamAgg scene (its history an explicit input and output), and the stacking baseline
+    pytest.param((("duocc/stream_agg",), (), None), id="duocc_stream_agg"),
+    pytest.param((("duocc/stacking",), (), None), id="duocc_stacking"),
 ]
 
 

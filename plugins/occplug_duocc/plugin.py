@@ -1,0 +1,26 @@
+"""DuOcc's hook implementations (the only module that uses ``@occplug.hookimpl``)."""
+
+from __future__ import annotations
+
+from importlib.resources import files
+from importlib.resources.abc import Traversable
+
+import occplug
+
+
+@occplug.hookimpl
+def occplug_register_components(registry: occplug.Registry) -> None:
+    from .decoder import DuOccDecoder
+    from .scene import DuOccStacking, DuOccStream
+    from .supervision import DuOccForecast, DuOccOccupied
+
+    registry.add("scene", "duocc_stream", DuOccStream)
+    registry.add("scene", "duocc_stacking", DuOccStacking)
+    registry.add("head", "duocc_decoder", DuOccDecoder)
+    registry.add("supervision", "duocc_occupied", DuOccOccupied)
+    registry.add("supervision", "duocc_forecast", DuOccForecast)
+
+
+@occplug.hookimpl
+def occplug_config_dir() -> Traversable:
+    return files("occplug_duocc") / "configs"
