@@ -12,13 +12,14 @@ import occplug
 def occplug_register_components(registry: occplug.Registry) -> None:
     from .decoder import DuOccDecoder
     from .scene import DuOccStacking, DuOccStream
-    from .supervision import DuOccForecast, DuOccOccupied
+    from .supervision import DuOccDetection, DuOccForecast, DuOccOccupied
 
     registry.add("scene", "duocc_stream", DuOccStream)
     registry.add("scene", "duocc_stacking", DuOccStacking)
     registry.add("head", "duocc_decoder", DuOccDecoder)
     registry.add("supervision", "duocc_occupied", DuOccOccupied)
     registry.add("supervision", "duocc_forecast", DuOccForecast)
+    registry.add("supervision", "duocc_detection", DuOccDetection)
 
 
 @occplug.hookimpl

@@ -23,14 +23,32 @@ from occplug.interfaces import DenseVoxelScene, Lifted, ModelOutputs, SceneRepre
 from occplug.streams import StreamState
 
 from .fpn3d import VoxelFPN3D
+from .queryagg import QueryAggregation
 from .stream_agg import StreamAggregation
 
-__all__ = ["FORECAST_KEY", "OCCUPIED_KEY", "DuOccStacking", "DuOccStream", "StreamVoxelScene", "coarse_grid"]
+__all__ = [
+    "DETECTION_CLASSES_KEY",
+    "DETECTION_KEY",
+    "DQA_SELECTED_KEY",
+    "FORECAST_KEY",
+    "OCCUPIED_KEY",
+    "DuOccStacking",
+    "DuOccStream",
+    "StreamVoxelScene",
+    "coarse_grid",
+]
 
 #: ``outputs.extras`` key of the occupied-mask logits ``(B, X, Y, Z)`` on the label grid (training only).
 OCCUPIED_KEY = "duocc_stream/occupied_logits"
 #: ``outputs.extras`` key of the forecasting logits ``(B, K, X, Y, Z)`` on the label grid (training only).
 FORECAST_KEY = "duocc_stream/forecast_logits"
+#: ``outputs.extras`` key of the detector's :class:`~occplug_duocc.detector.DetectorOutput` (with ``query_agg``;
+#: every stage: boxes ``(B, Q, 9)`` per layer in the current ego frame).
+DETECTION_KEY = "duocc_stream/detection"
+#: ``outputs.extras`` key of the label id of each detection class (a tuple of ints, detection class order).
+DETECTION_CLASSES_KEY = "duocc_stream/detection_classes"
+#: ``outputs.extras`` key of the ``(B, Q)`` bool mask of the queries DQA wrote into the voxels.
+DQA_SELECTED_KEY = "duocc_stream/dqa_selected"
 
 
 def coarse_grid(grid: GridSpec, factor: int) -> GridSpec:
@@ -121,6 +139,13 @@ class DuOccStream(_DuOccVoxels):
     In training the auxiliary heads publish their logits in ``outputs.extras`` (:data:`OCCUPIED_KEY`,
     :data:`FORECAST_KEY`) for the ``duocc_occupied`` and ``duocc_forecast`` supervision sources.
 
+    ``query_agg`` (a mapping, off when None; :mod:`occplug_duocc.queryagg`) adds QueryAgg (§3.2) after StreamAgg:
+    the image-to-query detector on ``outputs.image_levels``, V2Q into ``V_S.A``, DQA on the selected queries and the
+    voxel FFN give ``V_fin``, which is what the history keeps. The detector's state lives in the same
+    :class:`~occplug.streams.StreamState` entry as the voxel history (``{"voxels", "detector"}``), so it is kept per
+    slot and stage and reset with it. The detections go to ``outputs.extras`` (:data:`DETECTION_KEY`,
+    :data:`DETECTION_CLASSES_KEY`, :data:`DQA_SELECTED_KEY`) for the ``duocc_detection`` supervision source.
+
     Args:
         in_channels: ``C_init`` of ``V_init`` (the view transform's ``out_channels``).
         grid: the evaluation grid of ``V_init`` (ego frame), ``{range, voxel_size}``.
@@ -137,6 +162,9 @@ class DuOccStream(_DuOccVoxels):
         reduction: RefineNet's channel-attention reduction (code: 16).
         residual_relu: RefineNet's ReLU after the residual (code: on; Eq. 4: off).
         max_gap_s: seconds between frames above which the history restarts (DuOcc: 2.0).
+        query_agg: QueryAgg's settings (:data:`~occplug_duocc.queryagg.QUERY_AGG_KEYS`: ``v2q``, ``dqa``,
+            ``gt_boxes``, ``selection`` (``paper`` | ``code`` | a mapping), ``detector``, ``level_channels``, ...), or
+            None (off: Tab. 4 B). Needs ``stream: true``.
 
     Forward:
         :class:`~occplug.interfaces.Lifted` ``V_init`` ``(B, C_init, X, Y, Z)``, the batch (``scene``,
@@ -165,9 +193,12 @@ class DuOccStream(_DuOccVoxels):
         reduction: Annotated[int, Positive] = 16,
         residual_relu: bool = False,
         max_gap_s: Annotated[float, Positive] = 2.0,
+        query_agg: dict | None = None,
     ) -> None:
         super().__init__(in_channels, grid, channels, downsample, fpn_channels, fpn_blocks)
         self.stream = bool(stream)
+        if query_agg is not None and not self.stream:
+            raise ValueError("duocc_stream query_agg needs stream: true (the detector state and V_fin are streamed)")
         self.stateful = self.stream  # the single-frame model keeps nothing (export treats it as stateless)
         self.agg: StreamAggregation | None = None
         if self.stream:
@@ -185,21 +216,42 @@ class DuOccStream(_DuOccVoxels):
                 residual_relu=residual_relu,
             )
             self.history = StreamState(on_reset=_itself, max_gap_s=max_gap_s)
+        self.query_agg: QueryAggregation | None = None
+        if query_agg is not None:
+            self.query_agg = QueryAggregation(self.out_channels, self.coarse, query_agg)
 
     def forward(self, lifted: Lifted, batch: Batch, outputs: ModelOutputs | None = None) -> StreamVoxelScene:
         """``V_fin`` of this frame; stores it as the history of each slot (see the class docstring)."""
         v_curr = self.current(lifted)
         if self.agg is None:
             return self.scene(v_curr)
-        read = self.history.get(batch, v_curr)  # reset slots read V_curr itself
-        out = self.agg(v_curr, read.value, read.prev_to_current, read.reset)
-        self.history.update(batch, out.fused)
+        qa = self.query_agg
+        if qa is None:
+            read = self.history.get(batch, v_curr)  # reset slots read V_curr itself
+            history, det_state = read.value, None
+        else:
+            det_template = qa.state_template(batch, v_curr.device)
+            read = self.history.get(batch, {"voxels": v_curr, "detector": det_template})
+            history, det_state = read.value["voxels"], read.value["detector"]
+        out = self.agg(v_curr, history, read.prev_to_current, read.reset)
+        v_fin = out.fused  # V_S.A
+        if qa is not None:
+            if outputs is None or not outputs.image_levels:
+                raise ValueError("duocc_stream query_agg reads the image levels: call it with the model's outputs")
+            q = qa(v_fin, outputs.image_levels, batch, det_state, read.reset, read.prev_to_current, read.dt)
+            v_fin = q.volume
+            outputs.extras[DETECTION_KEY] = q.detection
+            outputs.extras[DETECTION_CLASSES_KEY] = qa.classes
+            outputs.extras[DQA_SELECTED_KEY] = q.selected
+            self.history.update(batch, {"voxels": v_fin, "detector": q.state})
+        else:
+            self.history.update(batch, v_fin)
         if outputs is not None:
             if out.occupied_logits is not None:
                 outputs.extras[OCCUPIED_KEY] = out.occupied_logits
             if out.forecast_logits is not None:
                 outputs.extras[FORECAST_KEY] = out.forecast_logits
-        return self.scene(out.fused)
+        return self.scene(v_fin)
 
 
 class DuOccStacking(_DuOccVoxels):

@@ -1,8 +1,9 @@
-"""DuOcc's auxiliary RefineNet losses (paper §3.1 "Supervision for RefineNet", suppl. A.4) as supervision sources.
+"""DuOcc's auxiliary losses (suppl. A.4) as supervision sources.
 
-Both read the training-only logits ``duocc_stream`` publishes in ``outputs.extras`` and the current frame's voxel
-labels; the paper weighs each by 10 (``L_bin``, ``L_fore``), the defaults here. In evaluation (no auxiliary
-logits) they return no loss.
+``duocc_occupied`` / ``duocc_forecast`` (§3.1 "Supervision for RefineNet") read the training-only logits
+``duocc_stream`` publishes in ``outputs.extras`` and the current frame's voxel labels; the paper weighs each by 10
+(``L_bin``, ``L_fore``), the defaults here. In evaluation (no auxiliary logits) they return no loss.
+``duocc_detection`` (``L_det``, weight 0.2) trains QueryAgg's image-to-query detector on ``batch.boxes``.
 """
 
 from __future__ import annotations
@@ -16,10 +17,12 @@ from occplug.constraints import NonNegative
 from occplug.data.frame import Batch
 from occplug.interfaces import ModelOutputs, SupervisionSource
 
-from .scene import FORECAST_KEY, OCCUPIED_KEY
+from .detector import DetectorOutput, detection_loss
+from .queryagg import detection_targets
+from .scene import DETECTION_CLASSES_KEY, DETECTION_KEY, FORECAST_KEY, OCCUPIED_KEY
 from .stream_agg import forecast_loss, occupied_loss
 
-__all__ = ["DuOccForecast", "DuOccOccupied"]
+__all__ = ["DuOccDetection", "DuOccForecast", "DuOccOccupied"]
 
 _NO_LABEL = -1  # stands in for ignore_label None (no label id is negative)
 
@@ -156,3 +159,87 @@ class DuOccForecast(_AuxLoss):
     @classmethod
     def _aux(cls, batch: Batch, grid: Any) -> Tensor:
         return torch.randn(len(batch), 18, *grid.shape, requires_grad=True)
+
+
+class DuOccDetection(SupervisionSource):
+    """``L_det``: Sparse4D v3's detection loss (:func:`~occplug_duocc.detector.detection_loss`) on QueryAgg's detector.
+
+    Reads ``outputs.extras["duocc_stream/detection"]`` (every layer's ``(B, Q, K)`` logits and ``(B, Q, 10)``
+    encoded boxes, ego frame) and ``"duocc_stream/detection_classes"`` (the label id of each of the ``K`` classes),
+    and ``batch.boxes`` ``(M_b, 9)`` / ``batch.box_labels`` ``(M_b,)``; ground truths whose label is not a
+    detection class are left out (:func:`~occplug_duocc.queryagg.detection_targets`), and so are those farther
+    than ``max_distance`` metres from the ego in x-y (the public code: 42 m; None keeps all).
+
+    Args:
+        weight: ``lambda_det`` (paper and code: 0.2).
+        cls_weight, box_weight: Sparse4D's focal and L1 weights (2.0, 0.25), in the loss and the matching.
+        max_distance: the ground-truth radius, metres, or None.
+        free_label, ignore_label: unused (the model fills them in).
+
+    Returns ``{"det_cls": scalar, "det_box": scalar}`` (summed over layers); ``{}`` outside training when the batch
+    has no boxes.
+    """
+
+    requires = frozenset({"boxes", "box_labels"})
+
+    def __init__(
+        self,
+        weight: Annotated[float, NonNegative] = 0.2,
+        cls_weight: Annotated[float, NonNegative] = 2.0,
+        box_weight: Annotated[float, NonNegative] = 0.25,
+        max_distance: Annotated[float, NonNegative] | None = None,
+        free_label: int = 17,
+        ignore_label: int | None = 255,
+    ) -> None:
+        super().__init__()
+        self.weight = float(weight)
+        self.cls_weight, self.box_weight = float(cls_weight), float(box_weight)
+        self.max_distance = None if max_distance is None else float(max_distance)
+
+    def forward(self, batch: Batch, outputs: ModelOutputs) -> dict[str, Tensor]:
+        """``{"det_cls", "det_box"}`` (see the class docstring)."""
+        det = outputs.extras.get(DETECTION_KEY)
+        if not isinstance(det, DetectorOutput):
+            raise ValueError(
+                "duocc_detection: no 'duocc_stream/detection' in the model's outputs; it needs "
+                "model.scene.type=duocc_stream with a query_agg mapping"
+            )
+        if (batch.boxes is None or batch.box_labels is None) and not self.training:
+            return {}
+        classes = outputs.extras[DETECTION_CLASSES_KEY]
+        labels, boxes = detection_targets(batch, classes, "duocc_detection")  # type: ignore[arg-type]
+        if self.max_distance is not None:
+            near = [b[:, :2].norm(dim=-1) <= self.max_distance for b in boxes]
+            labels = [lab[k] for lab, k in zip(labels, near, strict=True)]
+            boxes = [b[k] for b, k in zip(boxes, near, strict=True)]
+        device = det.cls_logits[0].device
+        return detection_loss(
+            det,
+            [lab.to(device) for lab in labels],
+            [b.to(device) for b in boxes],
+            cls_weight=self.cls_weight,
+            box_weight=self.box_weight,
+        )
+
+    @classmethod
+    def conformance_outputs(cls, batch: Batch, grid: Any, channels: int) -> ModelOutputs:
+        """Random two-layer detections (``Q = 8`` queries, the ten Occ3D detection classes) that require grad."""
+        gen = torch.Generator().manual_seed(0)
+        b = len(batch)
+        logits = [torch.randn(b, 8, 10, generator=gen, requires_grad=True) for _ in range(2)]
+        boxes = []
+        for _ in range(2):
+            enc = torch.cat(
+                [
+                    torch.randn(b, 8, 3, generator=gen) * 5,
+                    torch.zeros(b, 8, 3),
+                    torch.zeros(b, 8, 1),
+                    torch.ones(b, 8, 1),
+                    torch.zeros(b, 8, 2),
+                ],
+                -1,
+            )
+            boxes.append(enc.requires_grad_(True))
+        det = DetectorOutput(cls_logits=logits, encoded_boxes=boxes)
+        extras = {DETECTION_KEY: det, DETECTION_CLASSES_KEY: (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)}
+        return ModelOutputs(None, None, None, {}, lambda *a, **k: None, extras=extras)

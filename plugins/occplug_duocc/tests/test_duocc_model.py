@@ -177,3 +177,130 @@ def test_stacking_keeps_the_k_previous_v_curr_with_their_poses():
     frames = [_batch(dm, [i], "val") for i in range(2)]
     assert torch.equal(entry["poses"][0], frames[1].ego_to_global[0].double())
     assert torch.equal(entry["poses"][1], frames[0].ego_to_global[0].double())
+
+
+# ---------------------------------------------------------------------------------------------- QueryAgg (Tab. 4 C, D)
+
+
+def _frames(dm, split, indices):
+    data = dm.dataset(split)
+    return [dm.collate([data[i]]) for i in indices]
+
+
+@pytest.mark.parametrize("config", ["det_only", "full"])
+def test_c_and_d_build_and_the_loss_falls_with_the_detection_loss(config):
+    torch.manual_seed(0)
+    model, dm = _model_and_dm(config)
+    qa = model.scene.query_agg
+    assert qa is not None and qa.classes == tuple(range(1, 11)) and qa.detector.num_classes == 10
+    assert (qa.dqa is None and qa.v2q is None) if config == "det_only" else (qa.dqa is not None and qa.v2q is not None)
+    assert model.supervision["detection"].weight == 0.2
+    batch = _batch(dm, [0, 3])
+    _, terms = _loss(model, batch)
+    assert {"detection/det_cls", "detection/det_box"} <= set(terms)
+    opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
+    history = []
+    for _ in range(4):
+        loss, _ = _loss(model, batch)
+        assert torch.isfinite(loss)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        history.append(float(loss.detach()))
+    assert history[-1] < history[0]
+
+
+def test_dqa_leaves_every_voxel_outside_the_selected_boxes_unchanged_in_the_scene_forward():
+    torch.manual_seed(0)
+    model, dm = _model_and_dm("full", "model.scene.query_agg.score_threshold=-1.0")  # eval: every query selected
+    model.eval()
+    agg, dqa, ffn = _capture(model.scene.agg), _capture(model.scene.query_agg.dqa), _capture(model.scene.query_agg.ffn)
+    with torch.no_grad():
+        scene = model(_batch(dm, [0], "val")).scene
+    (v_sa, queries, boxes, selected), v_dqa = dqa[-1]
+    assert torch.equal(v_sa, agg[-1][1].fused)  # DQA reads V_S.A
+    assert torch.equal(ffn[-1][0][0], v_dqa) and torch.equal(scene.features, ffn[-1][1])  # V_fin = FFN(V_DQA)
+    stored = model.scene.history._stores["train"][0].value["voxels"]
+    assert torch.equal(stored, scene.features[0])  # the history is V_fin
+    assert bool(selected.all())
+    voxel_idx, _ = model.scene.query_agg.dqa.edges(boxes[0, selected[0]])
+    covered = torch.zeros(v_sa[0, 0].numel(), dtype=torch.bool)
+    covered[voxel_idx] = True
+    before, after = v_sa[0].flatten(1), v_dqa[0].flatten(1)
+    assert 0 < int(covered.sum()) < covered.numel()
+    assert torch.equal(after[:, ~covered], before[:, ~covered])  # bit for bit outside every selected box
+    assert not torch.equal(after[:, covered], before[:, covered])
+
+
+def test_training_selection_uses_the_ground_truth_and_gt_boxes_replaces_the_detections():
+    torch.manual_seed(0)
+    model, dm = _model_and_dm("full", "model.scene.query_agg.selection={score_threshold: -1.0, iou_threshold: 0.0}")
+    batch = _batch(dm, [0, 3])
+    out = model(batch)
+    selected = out.extras["duocc_stream/dqa_selected"]
+    assert bool(selected.any()) and not bool(selected.all())  # IoU > 0 with a ground truth box: near queries only
+    gt, _ = _model_and_dm("full_gt_boxes")
+    dqa = _capture(gt.scene.query_agg.dqa)
+    gt.eval()
+    with torch.no_grad():
+        gt(batch)
+    _, _, boxes, sel = dqa[-1][0]
+    for b in range(2):
+        expected = batch.boxes[b][torch.isin(batch.box_labels[b], torch.arange(1, 11))]
+        assert int(sel[b].sum()) == expected.shape[0]
+        got = boxes[b, sel[b]]
+        assert torch.equal(got[got[:, 0].argsort()], expected[expected[:, 0].argsort()].to(got))
+
+
+def test_prediction_runs_without_boxes_and_matches_prediction_with_them():
+    torch.manual_seed(0)
+    model, dm = _model_and_dm("full")
+    model.eval()
+    batch = _batch(dm, [0, 1], "val")
+    set_stream_stage(model, "predict")
+    with_boxes = model.predict_occupancy(batch)
+    model.scene.history.clear()
+    batch.boxes, batch.box_labels, batch.box_track_ids = None, None, None
+    without = model.predict_occupancy(batch)
+    assert without.shape == with_boxes.shape == (2, 20, 20, 8)
+    assert torch.equal(without, with_boxes)  # in evaluation the selection reads scores only
+
+
+def test_the_detector_state_is_kept_per_slot_and_reset_at_sequence_starts():
+    torch.manual_seed(0)
+    model, dm = _model_and_dm("full")
+    model.eval()
+    calls = []
+    model.scene.query_agg.detector.register_forward_hook(
+        lambda m, args, kwargs, out: calls.append((kwargs, out)), with_kwargs=True
+    )
+    first, second = _frames(dm, "val", [0, 1])
+    set_stream_stage(model, "val")
+    with torch.no_grad():
+        fresh = model(first).extras["duocc_stream/detection"]
+        kw, out = calls[-1]
+        assert kw["reset"].tolist() == [True]
+        stored = model.scene.history._stores["val"][0].value["detector"]
+        assert torch.equal(stored["anchors"], out.state.anchors[0]) and stored["features"].shape == (24, 32)
+        model(second)
+        kw2, _ = calls[-1]
+        assert kw2["reset"].tolist() == [False]
+        assert torch.allclose(kw2["state"].anchors[0], out.state.anchors[0])  # the stored top-k, read back
+        # the store now holds frame 1; a sequence start ignores it: the same detections as from an empty store
+        again = model(first).extras["duocc_stream/detection"]
+        assert calls[-1][0]["reset"].tolist() == [True]
+    torch.testing.assert_close(again.cls_logits[-1], fresh.cls_logits[-1])
+    torch.testing.assert_close(again.encoded_boxes[-1], fresh.encoded_boxes[-1])
+
+
+def test_validation_of_the_full_model_over_a_whole_sequence_gives_the_same_metrics_twice():
+    torch.manual_seed(0)
+    model, dm = _model_and_dm("full", "data.frames_per_scene=3", "data.batch_size=1")
+    first = _validate(model, dm)
+    set_stream_stage(model, "val")
+    model.eval()
+    with torch.no_grad():
+        model(_batch(dm, [1], "val"))  # a stale stream in the store
+    second = _validate(model, dm)
+    assert "mIoU" in first and first.keys() == second.keys()
+    assert all(first[k] == second[k] or (first[k] != first[k] and second[k] != second[k]) for k in first)

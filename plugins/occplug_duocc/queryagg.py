@@ -1,0 +1,323 @@
+"""DuOcc's query-guided aggregation (QueryAgg, paper §3.2, Fig. 2, Tab. 4 C / D) as one module of the stream scene.
+
+Per frame, after StreamAgg has produced ``V_S.A`` ``(B, C, x, y, z)`` (coarse grid, current ego frame):
+
+1. **I2Q**: :class:`~.detector.SparseDetector` reads the image encoder's levels (``outputs.image_levels``) and
+   continues from the previous frame's :class:`~.detector.DetectorState` of the same batch slot;
+2. **selection** (suppl. A.2, :func:`~.dqa.select_queries`): in training the last layer's boxes are checked
+   against the ground truth (the paper's rule by default, the public code's with ``selection: code``); with no
+   ground truth (prediction, evaluation without boxes, or ``select_with_gt: false``) by score only
+   (``score_threshold``, 0.3); ``gt_boxes: true`` (Tab. 4 "D with GT boxes", an evaluation ablation) replaces
+   the detections by the ground-truth boxes, each carried by the query Hungarian-matched to it;
+3. **V2Q** (Eq. 6, :class:`~.detector.VoxelToQuery`): every query samples ``V_S.A`` inside its box;
+4. **DQA** (Eqs. 7-10, :class:`~.dqa.DynamicQueryAggregation`): the selected queries are written into the voxels
+   their boxes cover (``V_DQA`` equals ``V_S.A`` bit for bit elsewhere), then :class:`~.dqa.VoxelFFN` gives
+   ``V_fin``, which the stream stores as the next frame's history.
+
+``v2q: false, dqa: false`` is Tab. 4 C ("B + detection head"): the detector trains beside the voxels (its loss
+reaches the image encoder) but nothing flows into them, ``V_fin = V_S.A``.
+
+Classes. The detector classifies ``len(detection_classes)`` classes; ``detection_classes`` lists the label ids
+(the data set's taxonomy, as ``batch.box_labels``) of the detection classes in order, default the Occ3D
+dynamic classes ``1..10`` (barrier ... truck, the nuScenes detection classes), so detection class ``i`` is label
+``detection_classes[i]``; ground-truth boxes of other labels are ignored (:func:`detection_targets`).
+
+Assumptions where the paper is silent (code notes §3): V2Q runs once, after the detector's last layer (the code:
+inside layer 6, before its last refinement), so the boxes DQA uses are the last layer's; the paper's small-object
+rule needs a "small" set, here the classes ``small_classes`` (default barrier, bicycle, motorcycle, pedestrian,
+traffic cone).
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from occplug.data.frame import Batch
+from occplug.geometry import GridSpec
+
+from .detector import DetectorOutput, DetectorState, SparseDetector, VoxelToQuery
+from .dqa import CODE_SELECTION, PAPER_SELECTION, DynamicQueryAggregation, VoxelFFN, select_queries
+from .matching import encode_boxes, hungarian_match
+
+__all__ = [
+    "DEFAULT_DETECTION_CLASSES",
+    "DEFAULT_SMALL_CLASSES",
+    "QUERY_AGG_KEYS",
+    "QueryAggOutput",
+    "QueryAggregation",
+    "detection_targets",
+]
+
+#: Occ3D label ids of the detection classes: barrier, bicycle, bus, car, construction vehicle, motorcycle,
+#: pedestrian, traffic cone, trailer, truck (``occplug.data.classes.OCC3D_DYNAMIC``, the nuScenes detection set).
+DEFAULT_DETECTION_CLASSES = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
+#: Occ3D label ids the paper's selection treats as small objects (cost test): barrier, bicycle, motorcycle,
+#: pedestrian, traffic cone.
+DEFAULT_SMALL_CLASSES = (1, 2, 6, 7, 8)
+#: The keys of ``duocc_stream``'s ``query_agg`` mapping and their defaults.
+QUERY_AGG_KEYS: dict[str, Any] = {
+    "v2q": True,
+    "dqa": True,
+    "gt_boxes": False,
+    "select_with_gt": True,
+    "selection": "paper",
+    "small_classes": list(DEFAULT_SMALL_CLASSES),
+    "score_threshold": 0.3,
+    "max_queries": None,
+    "detection_classes": list(DEFAULT_DETECTION_CLASSES),
+    "level_channels": None,
+    "detector": {},
+    "v2q_heads": 4,
+    "v2q_points": 6,
+    "dqa_heads": 4,
+    "coverage": "center",
+    "positional": True,
+    "ffn_hidden": None,
+}
+
+
+def detection_targets(batch: Batch, classes: Sequence[int], who: str) -> tuple[list[Tensor], list[Tensor]]:
+    """Ground-truth boxes of the detection classes, labels mapped to detection class ids.
+
+    Args:
+        batch: reads ``boxes`` (``B`` tensors ``(M_b, 9)``, ego frame) and ``box_labels`` (``B`` tensors ``(M_b,)``
+            label ids).
+        classes: label id of each detection class (``classes[i]`` is detection class ``i``).
+        who: named in the error when the batch has no boxes.
+
+    Returns:
+        ``(labels, boxes)``: ``B`` tensors ``(G_b,)`` int64 detection class ids and ``(G_b, 9)`` boxes
+        ``[cx, cy, cz, l, w, h, yaw, vx, vy]`` (ego frame), only the boxes whose label is a detection class.
+    """
+    batch.require("boxes", "box_labels", by=who)
+    lookup = torch.full((max(max(classes), 0) + 1,), -1, dtype=torch.int64)
+    lookup[torch.as_tensor(list(classes), dtype=torch.int64)] = torch.arange(len(classes))
+    labels, boxes = [], []
+    for lab, box in zip(batch.box_labels, batch.boxes, strict=True):
+        lab = lab.long()
+        ids = torch.where(
+            (lab >= 0) & (lab < lookup.numel()), lookup.to(lab.device)[lab.clamp(0, lookup.numel() - 1)], -1
+        )
+        keep = ids >= 0
+        labels.append(ids[keep])
+        boxes.append(box[keep])
+    return labels, boxes
+
+
+def _selection_rule(selection: str | Mapping[str, Any], small: list[int]) -> dict[str, Any]:
+    """``select_queries`` keyword arguments of ``paper`` / ``code`` / a mapping on top of the paper's."""
+    if isinstance(selection, str):
+        if selection not in ("paper", "code"):
+            raise ValueError(
+                f"duocc_stream query_agg.selection must be 'paper', 'code' or a mapping, got {selection!r}"
+            )
+        if selection == "code":
+            return dict(CODE_SELECTION)
+        return {**PAPER_SELECTION, "small_classes": small}
+    return {**PAPER_SELECTION, "small_classes": small, **dict(selection)}
+
+
+@dataclass
+class QueryAggOutput:
+    """What :class:`QueryAggregation` returns for one frame.
+
+    Attributes:
+        volume: ``V_fin`` ``(B, C, x, y, z)`` (``V_S.A`` itself when DQA is off), current ego frame.
+        v_dqa: ``V_DQA`` ``(B, C, x, y, z)`` before the FFN, or None without DQA.
+        detection: the detector's output (``Q`` queries per layer, boxes in the current ego frame).
+        selected: ``(B, Q)`` bool, the queries DQA wrote (all False without DQA).
+        boxes: ``(B, Q, 9)`` the boxes V2Q / DQA used (the last layer's, or the ground truth with ``gt_boxes``).
+        state: the detector state to keep for the next frame (``anchors (B, k, 10)``, ``features (B, k, C_q)``,
+            ``confidence (B, k)``), or None (``num_temporal: 0``).
+    """
+
+    volume: Tensor
+    v_dqa: Tensor | None
+    detection: DetectorOutput
+    selected: Tensor
+    boxes: Tensor
+    state: dict[str, Tensor] | None
+
+
+class QueryAggregation(nn.Module):
+    """I2Q, V2Q, DQA and the FFN on one frame (module docstring).
+
+    Args:
+        channels: ``C`` of ``V_S.A``.
+        grid: the coarse grid of ``V_S.A`` (ego frame).
+        spec: the ``query_agg`` mapping (keys :data:`QUERY_AGG_KEYS`; ``detector`` holds
+            :class:`~.detector.SparseDetector` arguments, ``level_channels`` the image levels' channels).
+
+    Raises:
+        ValueError: an unknown key (one line, with the closest key), or a missing ``level_channels``.
+    """
+
+    def __init__(self, channels: int, grid: GridSpec, spec: Mapping[str, Any]) -> None:
+        super().__init__()
+        unknown = [k for k in spec if k not in QUERY_AGG_KEYS]
+        if unknown:
+            near = difflib.get_close_matches(unknown[0], list(QUERY_AGG_KEYS), n=1)
+            hint = f"; did you mean '{near[0]}'?" if near else f"; keys are: {', '.join(QUERY_AGG_KEYS)}"
+            raise ValueError(f"duocc_stream query_agg has no key '{unknown[0]}'{hint}")
+        cfg = {**QUERY_AGG_KEYS, **dict(spec)}
+        if not cfg["level_channels"]:
+            raise ValueError(
+                "duocc_stream query_agg.level_channels: give the image encoder's level channels "
+                "(e.g. ['${model.encoder.out_channels}'] per level)"
+            )
+        self.grid = grid
+        self.v2q_on, self.dqa_on = bool(cfg["v2q"]), bool(cfg["dqa"])
+        if self.v2q_on and not self.dqa_on:
+            raise ValueError(
+                "duocc_stream query_agg: v2q: true needs dqa: true (V2Q runs after the detector's last layer here, "
+                "so without DQA nothing reads its output); the detector alone is v2q: false, dqa: false"
+            )
+        self.gt_boxes, self.select_with_gt = bool(cfg["gt_boxes"]), bool(cfg["select_with_gt"])
+        self.classes = tuple(int(c) for c in cfg["detection_classes"])
+        small_ids = [self.classes.index(int(c)) for c in (cfg["small_classes"] or []) if int(c) in self.classes]
+        self.rule = _selection_rule(cfg["selection"], small_ids)
+        self.score_threshold = float(cfg["score_threshold"])
+        self.max_queries = None if cfg["max_queries"] is None else int(cfg["max_queries"])
+        det = dict(cfg["detector"])
+        det.setdefault("anchor_range", tuple(grid.range))
+        self.detector = SparseDetector(
+            num_classes=len(self.classes), level_channels=[int(c) for c in cfg["level_channels"]], **det
+        )
+        q = self.detector.channels
+        self.v2q = (
+            VoxelToQuery(q, grid, volume_channels=channels, heads=cfg["v2q_heads"], points=cfg["v2q_points"])
+            if self.v2q_on
+            else None
+        )
+        self.dqa = None
+        self.ffn = None
+        if self.dqa_on:
+            self.dqa = DynamicQueryAggregation(
+                channels,
+                grid,
+                query_channels=q,
+                heads=cfg["dqa_heads"],
+                coverage=cfg["coverage"],
+                positional=cfg["positional"],
+            )
+            self.ffn = VoxelFFN(channels, cfg["ffn_hidden"])
+
+    # ------------------------------------------------------------------ state
+    def state_template(self, batch: Batch, device: torch.device) -> dict[str, Tensor] | None:
+        """A zero state ``{anchors (B, k, 10), features (B, k, C_q), confidence (B, k)}`` (what a reset slot
+        reads: the detector ignores it there), or None when nothing is propagated."""
+        k = self.detector.num_temporal
+        if k == 0:
+            return None
+        b = len(batch)
+        return {
+            "anchors": torch.zeros(b, k, 10, device=device),
+            "features": torch.zeros(b, k, self.detector.channels, device=device),
+            "confidence": torch.zeros(b, k, device=device),
+        }
+
+    # ------------------------------------------------------------------ selection
+    def _select(self, det: DetectorOutput, batch: Batch) -> tuple[Tensor, Tensor]:
+        """``(selected (B, Q) bool, boxes (B, Q, 9))`` for V2Q / DQA (module docstring, step 2)."""
+        logits, boxes = det.cls_logits[-1], det.boxes[-1]
+        scores = logits.detach().sigmoid().amax(-1)
+        has_gt = batch.boxes is not None and batch.box_labels is not None
+        if self.gt_boxes:
+            if not has_gt:
+                raise ValueError("duocc_stream query_agg.gt_boxes: true needs batch.boxes and batch.box_labels")
+            labels, gts = detection_targets(batch, self.classes, "duocc_stream query_agg.gt_boxes")
+            matches = hungarian_match(logits, det.encoded_boxes[-1], labels, [encode_boxes(g.to(boxes)) for g in gts])
+            selected = torch.zeros_like(scores, dtype=torch.bool)
+            boxes = boxes.detach().clone()
+            for b, (qi, gi) in enumerate(matches):
+                selected[b, qi] = True
+                boxes[b, qi] = gts[b][gi].to(boxes)
+            return selected, boxes
+        if self.training and self.select_with_gt and has_gt:
+            _, gts = detection_targets(batch, self.classes, "duocc_stream query_agg")
+            selected = select_queries(
+                scores,
+                boxes.detach(),
+                logits.detach().argmax(-1),
+                gt_boxes=[g.to(boxes) for g in gts],
+                max_queries=self.max_queries,
+                **self.rule,
+            )
+        else:
+            selected = select_queries(
+                scores, boxes.detach(), score_threshold=self.score_threshold, max_queries=self.max_queries
+            )
+        return selected, boxes
+
+    # ------------------------------------------------------------------ forward
+    def forward(
+        self,
+        volume: Tensor,
+        levels: Sequence[Tensor],
+        batch: Batch,
+        state: dict[str, Tensor] | None,
+        reset: Tensor,
+        prev_to_current: Tensor,
+        dt: Tensor,
+    ) -> QueryAggOutput:
+        """One frame of QueryAgg.
+
+        Args:
+            volume: ``V_S.A`` ``(B, C, x, y, z)`` on :attr:`grid`, current ego frame.
+            levels: the image encoder's levels, ``(B, N, C_l, H_l, W_l)`` each, finest first.
+            batch: the frames (cameras, images, ``boxes`` / ``box_labels`` where selection or ``gt_boxes`` use them).
+            state: the previous frame's detector state per slot (:meth:`state_template` layout, the previous ego
+                frame), or None.
+            reset: ``(B,)`` bool, slots whose state must not be used.
+            prev_to_current: ``(B, 4, 4)`` float64 previous ego -> current ego (identity where reset).
+            dt: ``(B,)`` float64 seconds since the stored frame (0 where reset).
+
+        Returns:
+            :class:`QueryAggOutput`.
+        """
+        det_state = None
+        pose = batch.ego_to_global.to(torch.float64)
+        if state is not None:
+            # the stream gives the previous frame relative to this one: pose and time of the stored frame
+            det_state = DetectorState(
+                anchors=state["anchors"],
+                features=state["features"],
+                confidence=state["confidence"],
+                ego_to_global=pose @ prev_to_current.to(pose),
+                timestamp=batch.timestamp.to(torch.float64) - dt.to(torch.float64),
+            )
+        h, w = batch.images.shape[-2:]
+        det = self.detector(
+            list(levels),
+            (int(h), int(w)),
+            batch.intrinsics,
+            batch.cam_to_ego,
+            batch.img_aug,
+            state=det_state,
+            ego_to_global=pose,
+            timestamp=batch.timestamp,
+            reset=reset,
+        )
+        new_state = None
+        if det.state is not None:
+            new_state = {
+                "anchors": det.state.anchors,
+                "features": det.state.features,
+                "confidence": det.state.confidence,
+            }
+        if not self.dqa_on and not self.v2q_on:  # Tab. 4 C: the detector only
+            none = torch.zeros(det.features.shape[:2], dtype=torch.bool, device=volume.device)
+            return QueryAggOutput(volume, None, det, none, det.boxes[-1], new_state)
+        selected, boxes = self._select(det, batch)
+        queries = det.features
+        if self.v2q is not None:
+            queries = self.v2q(volume, queries, boxes, det.anchor_embed)
+        assert self.dqa is not None and self.ffn is not None
+        v_dqa = self.dqa(volume, queries, boxes, selected)
+        return QueryAggOutput(self.ffn(v_dqa), v_dqa, det, selected, boxes, new_state)

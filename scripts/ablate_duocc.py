@@ -1,0 +1,225 @@
+"""DuOcc's component ablation (paper Tab. 4) on the synthetic world: A, B, C, D and D evaluated with GT boxes.
+
+Each row is one shipped config (``duocc/<name>``) trained per seed in its own ``occplug fit`` process on the same
+budget and evaluated on the validation split (camera mask), printed as mean ± std over the seeds:
+
+* mIoU, static mIoU and dynamic mIoU: ``occ3d_miou``'s ``mIoU`` / ``mIoU_static`` / ``mIoU_dynamic`` over the core's
+  class groups (``occplug.data.classes.OCC3D_STATIC`` / ``OCC3D_DYNAMIC``);
+* the detector's mAP (C, D, D with GT boxes): :func:`occplug_duocc.detector.detection_map` (nuScenes-style, BEV
+  centre distance 0.5 / 1 / 2 / 4 m) over the validation split read in order, the stream state carried as in
+  evaluation, top 100 (query, class) pairs per frame;
+* latency (ms per frame) and peak memory (MiB) of inference: the seed-0 run directories measured side by side by
+  :func:`occplug.bench.run_bench` (each in its own process, interleaved; on CPU the memory is the process's peak
+  RSS, so compare rows, not absolute values).
+
+"D + GT boxes" is not trained: it is D's checkpoint evaluated with ``model.scene.query_agg.gt_boxes=true`` (what
+``duocc/full_gt_boxes`` sets), through ``occplug validate``; its detector is D's, so its mAP equals D's.
+The expected direction (paper: B > A; D > B with the gain mostly on dynamic classes) is printed as a check, not
+tuned for::
+
+    python scripts/ablate_duocc.py                                   # 3 seeds, every row, default world
+    python scripts/ablate_duocc.py --rows stream_agg full --seeds 0 1 2
+    python scripts/ablate_duocc.py --seeds 0 --preset tiny --epochs 1 --set trainer.max_steps=4   # a smoke run
+
+A finished run directory (its ``metrics.json``) is reused, so an interrupted ablation continues where it stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+#: row -> (config stem trained, table label). ``full_gt_boxes`` evaluates ``full``'s runs.
+ROWS = {
+    "single_frame": ("single_frame", "A. Base (single frame)"),
+    "stream_agg": ("stream_agg", "B. A + StreamAgg"),
+    "det_only": ("det_only", "C. B + detection head"),
+    "full": ("full", "D. B + QueryAgg"),
+    "full_gt_boxes": ("full", "D with GT boxes (eval only)"),
+}
+COLUMNS = {"mIoU": "mIoU", "mIoU_D": "mIoU_dynamic", "mIoU_S": "mIoU_static"}
+DETECTOR_ROWS = ("det_only", "full", "full_gt_boxes")
+GT_OVERRIDE = "model.scene.query_agg.gt_boxes=true"
+
+
+def fit(config: str, seed: int, args: argparse.Namespace) -> Path:
+    """The run directory of ``config`` at ``seed`` (trained first unless a finished one is there)."""
+    out = Path(args.out) / f"{config}-seed{seed}"
+    if (out / "metrics.json").is_file():
+        return out
+    overrides = [
+        f"seed={seed}",
+        "trainer.enable_progress_bar=false",
+        f"data.preset={args.preset}",
+        f"trainer.max_epochs={args.epochs}",
+        *args.set,
+    ]
+    command = [sys.executable, "-m", "occplug.cli", "fit", "-c", f"duocc/{config}", *overrides]
+    command += ["--resume", str(out)] if (out / "config.yaml").is_file() else ["--run-dir", str(out)]
+    start = time.monotonic()
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+    print(f"{config} seed {seed}: trained in {time.monotonic() - start:.0f} s", file=sys.stderr)
+    return out
+
+
+def gt_metrics(run: Path) -> dict:
+    """Metrics of ``run``'s checkpoint validated with ground-truth boxes in DQA (cached beside the run)."""
+    path = run / "metrics_gt_boxes.json"
+    if not path.is_file():
+        command = [sys.executable, "-m", "occplug.cli", "validate", "--ckpt", str(checkpoint(run)), GT_OVERRIDE]
+        subprocess.run([*command, "--json", str(path)], check=True, stdout=subprocess.DEVNULL)
+    return json.loads(path.read_text())
+
+
+def checkpoint(run: Path) -> Path:
+    last = run / "checkpoints" / "last.ckpt"
+    if last.is_file():
+        return last
+    found = sorted((run / "checkpoints").glob("*.ckpt"))
+    if not found:
+        raise SystemExit(f"{run}: no checkpoint to evaluate")
+    return found[-1]
+
+
+def detection_map_of(run: Path, gt_boxes: bool) -> float:
+    """The detector's mAP (percent) on the validation split, frames in order (cached beside the run)."""
+    path = run / ("det_map_gt_boxes.json" if gt_boxes else "det_map.json")
+    if path.is_file():
+        return float(json.loads(path.read_text())["mAP"])
+    import torch
+    import yaml
+
+    from occplug import runner
+    from occplug.streams import find_streams, set_stream_stage
+    from occplug_duocc.detector import detection_map, select_detections
+    from occplug_duocc.queryagg import detection_targets
+    from occplug_duocc.scene import DETECTION_CLASSES_KEY, DETECTION_KEY
+
+    saved = yaml.safe_load((run / "config.yaml").read_text())
+    cfg = runner.load_config([], [GT_OVERRIDE] if gt_boxes else [], saved=saved)
+    dm, model = runner.build_run(cfg)
+    model.load_state_dict(runner.load_checkpoint(checkpoint(run))["state_dict"])
+    model.eval()
+    dm.prepare_data()
+    dm.setup("validate")
+    set_stream_stage(model, "val")
+    for _, state in find_streams(model):
+        state.clear("val")
+    preds: list[list] = [[], [], []]
+    gts: list[list] = [[], []]
+    with torch.no_grad():
+        for batch in dm.val_dataloader():
+            out = model(batch)
+            classes = out.extras[DETECTION_CLASSES_KEY]
+            for boxes, scores, labels in select_detections(out.extras[DETECTION_KEY], top_k=100):
+                preds[0].append(boxes)
+                preds[1].append(scores)
+                preds[2].append(labels)
+            labels, boxes = detection_targets(batch, classes, "ablate_duocc")
+            gts[0].extend(boxes)
+            gts[1].extend(labels)
+    result = detection_map(*preds, *gts)
+    value = 100.0 * float(result["mAP"])
+    path.write_text(json.dumps({"mAP": value, "AP": result["AP"]}, indent=2) + "\n")
+    return value
+
+
+def mean_std(values: list[float]) -> str:
+    values = [v for v in values if v == v]
+    if not values:
+        return "—"
+    std = statistics.stdev(values) if len(values) > 1 else float("nan")
+    return f"{statistics.mean(values):.2f} ± {std:.2f}"
+
+
+def mean(values: list[float]) -> float:
+    values = [v for v in values if v == v]
+    return statistics.mean(values) if values else float("nan")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
+    parser.add_argument("--epochs", type=int, default=8, help="trainer.max_epochs of every run (the CPU budget)")
+    parser.add_argument("--preset", default="default", help="synthetic world preset (default: default)")
+    parser.add_argument("--set", nargs="*", default=[], help="extra key=value overrides for every run")
+    parser.add_argument("--repeats", type=int, default=5, help="latency / training rounds of the benchmark")
+    parser.add_argument("--device", default="cpu", help="benchmark device: cpu | cuda | auto")
+    parser.add_argument("--no-bench", action="store_true", help="skip latency and memory")
+    parser.add_argument("--out", default="runs/ablate_duocc")
+    args = parser.parse_args()
+    start = time.monotonic()
+    table: dict[str, dict[str, list[float]]] = {}
+    runs: dict[str, Path] = {}
+    for row in args.rows:  # row by row: an interrupted ablation leaves whole rows
+        config, _ = ROWS[row]
+        cells = table.setdefault(row, {**{c: [] for c in COLUMNS}, "mAP": []})
+        for seed in args.seeds:
+            run = fit(config, seed, args)
+            runs.setdefault(row, run)
+            metrics = gt_metrics(run) if row == "full_gt_boxes" else json.loads((run / "metrics.json").read_text())
+            for column, key in COLUMNS.items():
+                cells[column].append(float(metrics.get(key, float("nan"))))
+            if row in DETECTOR_ROWS:
+                cells["mAP"].append(detection_map_of(run, row == "full_gt_boxes"))
+    bench: dict[str, tuple[float, float]] = {}
+    header = ""
+    if not args.no_bench and runs:
+        from occplug.bench import BenchSettings, resolve_target, run_bench
+
+        settings = BenchSettings(
+            repeats=args.repeats, warmup=1, train_repeats=args.repeats, batch_size=1, device=args.device
+        )
+        targets = [
+            resolve_target(str(run), settings, [GT_OVERRIDE] if row == "full_gt_boxes" else [])
+            for row, run in runs.items()
+        ]
+        report = run_bench(targets, settings, progress=lambda line: print(line, file=sys.stderr))
+        bench = {row: (r.latency_ms, r.memory_mib) for row, r in zip(runs, report.rows, strict=True)}
+        header = f"{report.machine}; {report.device}; "
+    lines = [
+        f"{header}seeds {args.seeds}, world '{args.preset}', {args.epochs} epochs per run, "
+        f"{time.monotonic() - start:.0f} s",
+        "",
+        "| method | mIoU | mIoU_D (dynamic) | mIoU_S (static) | det mAP | latency (ms) | peak mem (MiB) |",
+        "|---|--:|--:|--:|--:|--:|--:|",
+    ]
+    for row, cells in table.items():
+        lat, mem = bench.get(row, (float("nan"), float("nan")))
+        lines.append(
+            f"| {ROWS[row][1]} | "
+            + " | ".join(mean_std(cells[c]) for c in COLUMNS)
+            + f" | {mean_std(cells['mAP'])} | "
+            + ("—" if lat != lat else f"{lat:.1f}")
+            + " | "
+            + ("—" if mem != mem else f"{mem:.0f}")
+            + " |"
+        )
+    a, b, d = (table.get(k) for k in ("single_frame", "stream_agg", "full"))
+    lines.append("")
+    if a and b:
+        ma, mb = mean(a["mIoU"]), mean(b["mIoU"])
+        lines.append(f"B > A (mIoU {mb:.2f} vs {ma:.2f}; paper 40.4 vs 36.8): {'PASS' if mb > ma else 'FAIL'}")
+    if b and d:
+        gain = mean(d["mIoU"]) - mean(b["mIoU"])
+        dyn, sta = mean(d["mIoU_D"]) - mean(b["mIoU_D"]), mean(d["mIoU_S"]) - mean(b["mIoU_S"])
+        lines.append(f"D > B (mIoU gain {gain:+.2f}; paper +1.5): {'PASS' if gain > 0 else 'FAIL'}")
+        lines.append(
+            f"D's gain mostly dynamic (dynamic {dyn:+.2f} vs static {sta:+.2f}; paper +2.7 vs -0.1): "
+            f"{'PASS' if dyn > sta and dyn > 0 else 'FAIL'}"
+        )
+    print("\n".join(lines))
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    (Path(args.out) / "table.json").write_text(
+        json.dumps({"args": vars(args), "rows": table, "bench": bench}, indent=2) + "\n"
+    )
+
+
+if __name__ == "__main__":
+    main()
