@@ -12,7 +12,8 @@
   labels of labelled frames; in the student phase the unlabelled frames carry the teacher's confident pseudo
   labels in their voxel labels (the core's ``pseudo_labels_from``).
 * ``occle_fusion``: ``l_fus = l_occ(Y, Ȳ) + l_ce(y, s̄)``; ``l_occ`` only on frames with voxel labels, so an
-  unlabelled frame gets ``l_ce(y, s̄)`` alone (add ``occle_semantic`` for its ``l_sem``).
+  unlabelled frame gets ``l_ce(y, s̄)`` alone (add ``occle_semantic`` for its ``l_sem``). ``occupancy_weight: 0``
+  drops ``l_occ`` and so every voxel label (Table C.2's "w/o limited voxel annotation").
 
 ``l_ce`` is class-weighted cross-entropy and ``l_occ`` MonoScene's CE + ``sem_scal`` + ``geo_scal``
 (:mod:`.losses`). Class weights are config values: ``class_weights`` (``K`` numbers used as they are) or
@@ -267,6 +268,8 @@ class OccleFusion(SupervisionSource):
         head: head giving ``Y`` (``logits`` ``(B, K, X, Y, Z)``).
         projection_head: head giving ``y`` (``image_logits`` ``(B, N, K, h, w)``), or None for no ``l_ce(y, s̄)``.
         projection_weight: extra scale of ``l_ce(y, s̄)``.
+        occupancy_weight: extra scale of ``l_occ(Y, Ȳ)``; 0 leaves it out (no voxel label is read: the pseudo
+            labels alone, Table C.2).
         camera_mask: count only camera-visible voxels in ``l_occ``.
         class_weights, class_frequencies: ``K`` CE weights or raw class counts (module docstring).
         free_label, ignore_label: the data set's (given).
@@ -274,8 +277,8 @@ class OccleFusion(SupervisionSource):
     Needs batch fields: ``voxel_labels``, ``has_voxel_labels``, ``pseudo_semantics`` (for ``y``).
 
     Returns:
-        ``{"occ_ce", "occ_sem_scal", "occ_geo_scal", "projection_ce"}`` (unweighted; ``projection_ce`` only
-        when the projection head gave logits).
+        ``{"occ_ce", "occ_sem_scal", "occ_geo_scal", "projection_ce"}`` (unweighted; the ``occ_*`` terms only
+        with ``occupancy_weight > 0``, ``projection_ce`` only when the projection head gave logits).
     """
 
     requires = frozenset({"pseudo_semantics"})
@@ -286,6 +289,7 @@ class OccleFusion(SupervisionSource):
         head: str = "occupancy",
         projection_head: str | None = "projection",
         projection_weight: Annotated[float, NonNegative] = 1.0,
+        occupancy_weight: Annotated[float, NonNegative] = 1.0,
         camera_mask: bool = False,
         class_weights: list[Annotated[float, NonNegative]] | None = None,
         class_frequencies: list[Annotated[float, NonNegative]] | None = None,
@@ -296,6 +300,7 @@ class OccleFusion(SupervisionSource):
         self.weight = float(weight)
         self.head, self.projection_head = head, projection_head
         self.projection_weight = float(projection_weight)
+        self.occupancy_weight = float(occupancy_weight)
         self.camera_mask = bool(camera_mask)
         self.ignore_label = ignore_label
         self.ignore = 255 if ignore_label is None else int(ignore_label)
@@ -312,10 +317,13 @@ class OccleFusion(SupervisionSource):
         logits = _head(outputs, self.head, "occle_fusion").get("logits")
         if logits is None:
             raise ValueError(f"occle_fusion: head '{self.head}' gave no 'logits'")
-        batch.require("voxel_labels", by="occle_fusion")
-        labels = batch.voxel_labels.to(logits.device).long()
-        keep = _voxel_mask(batch, labels, self.ignore_label, self.camera_mask, "occle_fusion")
-        out = {f"occ_{k}": v for k, v in self.occ(logits, labels, keep).items()}
+        out: dict[str, Tensor] = {}
+        if self.occupancy_weight > 0:
+            batch.require("voxel_labels", by="occle_fusion")
+            labels = batch.voxel_labels.to(logits.device).long()
+            keep = _voxel_mask(batch, labels, self.ignore_label, self.camera_mask, "occle_fusion")
+            w = self.occupancy_weight
+            out.update({f"occ_{k}": v if w == 1.0 else w * v for k, v in self.occ(logits, labels, keep).items()})
         if self.projection_head is not None:
             y = _head(outputs, self.projection_head, "occle_fusion").get("image_logits")
             if y is not None:

@@ -75,6 +75,23 @@ def test_ablation_switch_builds_and_trains_one_step(switch):
     assert model.predict_occupancy(batch).shape == (2, 16, 16, 8)
 
 
+def test_fusion_without_voxel_labels_reads_none():
+    """``occupancy_weight: 0`` (Table C.2, no voxel labels): only ``l_ce(y, s̄)`` is left of ``l_fus``, and the
+    loss does not change when every voxel label does."""
+    torch.manual_seed(0)
+    model, batch = _model_and_batch("model.scene.fusion=conv", "model.supervision.fusion.occupancy_weight=0")
+    model.eval()
+    with torch.no_grad():
+        outputs = model(batch)
+        terms = model.supervision["fusion"](batch, outputs)
+        assert set(terms) == {"projection_ce"}
+        batch.voxel_labels = torch.randint_like(batch.voxel_labels, 0, 18)
+        again = model.supervision["fusion"](batch, outputs)
+    assert torch.equal(terms["projection_ce"], again["projection_ce"])
+    _, all_terms = _loss(model, batch)
+    assert not any(k.startswith("fusion/occ_") for k in all_terms)
+
+
 def test_geometry_head_gives_k_class_logits_with_two_class_probabilities():
     model, batch = _model_and_batch("model.scene.fusion=conv")
     model.eval()
