@@ -8,7 +8,7 @@ Per batch element, channel ``d`` and state ``n`` (zero initial state ``h_0 = 0``
 
 with ``delta``, ``B`` and ``C`` varying along the sequence -- that is what makes the scan *selective*.
 
-Three implementations with one signature (sequence-major layout ``(B, L, ...)``):
+Four implementations with one signature (sequence-major layout ``(B, L, ...)``):
 
 * :func:`selective_scan_ref`: a Python loop over the ``L`` time steps, vectorised over batch,
   channels and states, written like ``mamba_ssm``'s own ``selective_scan_ref`` (``dA`` and
@@ -32,6 +32,14 @@ Three implementations with one signature (sequence-major layout ``(B, L, ...)``)
 
   Both only ever exponentiate numbers <= 0 (given ``delta >= 0`` and ``A <= 0``, as in Mamba), and both
   equal the reference to float64 round-off (the tests hold them to 1e-10, gradients included).
+* :class:`SelectiveScanFn` (:func:`selective_scan_lean`): the ``"steps"`` chunked scan as an autograd
+  Function with a hand-written backward. Autograd through the scans above keeps every step's ``(B, D, N)``
+  intermediates (several ``B x L x D x N`` tensors per scan, ~0.3 GB per Mamba block on a ``32 x 32 x 8``
+  grid) until backward; the Function keeps only its inputs and the ``(K, B, D, N)`` chunk-start states, and
+  its backward runs the adjoint recurrence ``lam_t = C_t g_t + dA_{t+1} lam_{t+1}`` (``grad dA_t = lam_t
+  h_{t-1}``, ``grad dBu_t = lam_t``) by chunks, recomputing the states of a few chunks at a time. Same
+  gradients as the reference (float64 round-off), about the time of autograd through the chunked scan, a
+  fraction of its memory; :func:`selective_scan` uses it whenever gradients are needed.
 * ``mamba_ssm``'s CUDA kernel ``selective_scan_fn``, used by :func:`selective_scan` in ``"auto"`` mode
   when the tensors are on CUDA, float32/16/bfloat16, and the ``mamba_ssm`` package is installed; it is
   never imported otherwise.
@@ -53,7 +61,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["ScanMode", "selective_scan", "selective_scan_chunked", "selective_scan_ref"]
+__all__ = [
+    "BACKWARD_GROUP_ELEMENTS",
+    "ScanMode",
+    "SelectiveScanFn",
+    "selective_scan",
+    "selective_scan_chunked",
+    "selective_scan_lean",
+    "selective_scan_ref",
+]
 
 ScanMode = Literal["auto", "chunked", "ref"]
 
@@ -144,22 +160,88 @@ def _step(h: Tensor, dt: Tensor, x: Tensor, B: Tensor, A2: Tensor, in_place: boo
     return torch.addcmul(torch.exp2(dt * A2) * h, x, B)
 
 
-def _carry(local_last: Tensor, decay: Tensor) -> tuple[Tensor, Tensor]:
-    """States entering each chunk: ``start_{c+1} = decay_c * start_c + local_last_c``, ``start_0 = 0``.
+def _carry(local: Tensor, decay: Tensor, init: Tensor | None = None, reverse: bool = False) -> tuple[Tensor, Tensor]:
+    """States entering each chunk: ``start_{c+1} = decay_c * start_c + local_c``, ``start_0 = init`` (0 if None).
+
+    With ``reverse`` the same recurrence runs from the last chunk back (``end_{c-1} = decay_c * end_c + local_c``,
+    ``end_{K-1} = init``): the adjoint entering each chunk from its end, in the backward pass.
 
     Args:
-        local_last: ``(B, K, D, N)`` each chunk's last state from a zero start.
-        decay: ``(B, K, D, N)`` each chunk's total decay ``exp(A * sum delta)`` in (0, 1].
+        local: ``(K, B, D, N)`` each chunk's last state from a zero start (chunk-major).
+        decay: ``(K, B, D, N)`` each chunk's total decay ``exp(A * sum delta)`` in (0, 1].
+        init: ``(B, D, N)`` the state entering the first chunk (the last, with ``reverse``), or None for 0.
 
     Returns:
-        ``(starts (B, K, D, N), final (B, D, N))``.
+        ``(starts (K, B, D, N), final (B, D, N))``.
     """
-    state = torch.zeros_like(local_last[:, 0])
-    starts = []
-    for c in range(local_last.shape[1]):
-        starts.append(state)
-        state = torch.addcmul(local_last[:, c], decay[:, c], state)
-    return torch.stack(starts, dim=1), state
+    state = torch.zeros_like(local[0]) if init is None else init
+    order = range(local.shape[0] - 1, -1, -1) if reverse else range(local.shape[0])
+    starts: list[Tensor] = [state] * local.shape[0]
+    for c in order:
+        starts[c] = state
+        state = torch.addcmul(local[c], decay[c], state)
+    return torch.stack(starts), state
+
+
+def _chunk_major(x: Tensor, chunks: int, size: int) -> Tensor:
+    """``(B, L, F)`` -> ``(T, K * B, F)``, padded with zeros to ``K * T`` steps: step ``t`` of every chunk is one
+    contiguous slice, row ``c * B + b`` is chunk ``c`` of batch element ``b`` (consecutive chunks: consecutive rows).
+    """
+    batch, length = x.shape[:2]
+    x = F.pad(x, (0, 0, 0, chunks * size - length))
+    return x.view(batch, chunks, size, -1).permute(2, 1, 0, 3).reshape(size, chunks * batch, -1)
+
+
+def _from_chunk_major(x: Tensor, batch: int, length: int) -> Tensor:
+    """Inverse of :func:`_chunk_major`: ``(T, K * B, F)`` -> ``(B, L, F)``."""
+    size, rows, features = x.shape
+    chunks = rows // batch
+    return x.view(size, chunks, batch, features).permute(2, 1, 0, 3).reshape(batch, chunks * size, features)[:, :length]
+
+
+def _geometry(length: int, chunk_size: int) -> tuple[int, int]:
+    """``(T, K)``: steps per chunk and number of chunks."""
+    if chunk_size < 1:
+        raise ValueError(f"selective scan: chunk_size must be >= 1, got {chunk_size}")
+    size = min(chunk_size, length)
+    return size, math.ceil(length / size)
+
+
+def _scan_steps(
+    dt: Tensor, xt: Tensor, Bt: Tensor, Ct: Tensor, A: Tensor, batch: int, in_place: bool
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The ``"steps"`` chunked scan on chunk-major inputs (:func:`_chunk_major`, ``M = K * B`` rows).
+
+    Args:
+        dt, xt: ``(T, M, D, 1)`` ``delta`` and ``delta * u``.
+        Bt: ``(T, M, 1, N)``; Ct: ``(T, M, N, 1)``.
+        A: ``(D, N)``.
+        batch: ``B``.
+        in_place: step in place (only without autograd).
+
+    Returns:
+        ``y`` ``(T, M, D)`` (the state's part, ``sum_n C h``), the states entering each chunk ``(K, B, D, N)``
+        and the last state ``(B, D, N)``.
+    """
+    size, rows, dim = dt.shape[:3]
+    chunks, n = rows // batch, A.shape[1]
+    A2 = A * math.log2(math.e)
+    h = xt.new_zeros(rows, dim, n)
+    if chunks > 1:
+        for t in range(size):  # pass 1: each chunk's own last state, from zero
+            h = _step(h, dt[t], xt[t], Bt[t], A2, in_place)
+        decay = torch.exp(dt.sum(0) * A)  # (M, D, N): the chunk's log-space sum, <= 0
+        starts, last = _carry(h.view(chunks, batch, dim, n), decay.view(chunks, batch, dim, n))
+        h = starts.view(rows, dim, n)
+    else:
+        starts = h.view(1, batch, dim, n)
+    ys = []
+    for t in range(size):  # pass 2: the same steps from the carried states
+        h = _step(h, dt[t], xt[t], Bt[t], A2, in_place)
+        ys.append(torch.bmm(h, Ct[t]).squeeze(-1))
+    if chunks == 1:
+        last = h
+    return torch.stack(ys), starts, last
 
 
 def selective_scan_chunked(
@@ -187,62 +269,190 @@ def selective_scan_chunked(
             chunks in turn, all states of a chunk at once from segment sums of ``log dA``).
     """
     _check(u, delta, A, B, C, D, z)
-    if chunk_size < 1:
-        raise ValueError(f"selective scan: chunk_size must be >= 1, got {chunk_size}")
     if within_chunk not in ("steps", "segsum"):
         raise ValueError(f"selective scan: within_chunk must be 'steps' or 'segsum', got {within_chunk!r}")
     dtype, work = u.dtype, _work_dtype(u.dtype)
     u, delta, A, B, C = (t.to(work) for t in (u, delta, A, B, C))
     batch, length, dim = u.shape
     n = A.shape[1]
-    size = min(chunk_size, length)
-    chunks = math.ceil(length / size)
-    pad = chunks * size - length
-
-    def time_major(x: Tensor) -> Tensor:
-        # (B, L, K) -> (T, B * chunks, K): step t of every chunk is one contiguous slice
-        x = F.pad(x, (0, 0, 0, pad))
-        return x.view(batch, chunks, size, -1).permute(2, 0, 1, 3).reshape(size, batch * chunks, -1)
-
-    dt, xt = time_major(delta).unsqueeze(-1), time_major(delta * u).unsqueeze(-1)  # (T, M, D, 1), M = B * chunks
-    Bt, Ct = time_major(B).unsqueeze(2), time_major(C).unsqueeze(-1)  # (T, M, 1, N), (T, M, N, 1)
+    size, chunks = _geometry(length, chunk_size)
+    dt, xt = (_chunk_major(x, chunks, size).unsqueeze(-1) for x in (delta, delta * u))  # (T, M, D, 1), M = K * B
+    Bt, Ct = _chunk_major(B, chunks, size).unsqueeze(2), _chunk_major(C, chunks, size).unsqueeze(-1)
     if within_chunk == "steps":
         # dA and dBu are formed step by step (twice) rather than stored: a (T, M, D, N) tensor is fresh memory
         # on every call, and filling it costs more than recomputing the exponentials. Without autograd each
         # step allocates one (M, D, N) tensor and works in place on it: fewer fresh pages per step.
         in_place = not (torch.is_grad_enabled() and any(t.requires_grad for t in (u, delta, A, B, C)))
-        A2 = A * math.log2(math.e)
-        h = xt.new_zeros(batch * chunks, dim, n)
-        if chunks > 1:
-            for t in range(size):  # pass 1: each chunk's own last state, from zero
-                h = _step(h, dt[t], xt[t], Bt[t], A2, in_place)
-            decay = torch.exp(dt.sum(0) * A)  # (M, D, N): the chunk's log-space sum, <= 0
-            starts, last = _carry(h.view(batch, chunks, dim, n), decay.view(batch, chunks, dim, n))
-            h = starts.reshape(batch * chunks, dim, n)
-        ys = []
-        for t in range(size):  # pass 2: the same steps from the carried states
-            h = _step(h, dt[t], xt[t], Bt[t], A2, in_place)
-            ys.append(torch.bmm(h, Ct[t]).squeeze(-1))
-        y = torch.stack(ys)  # (T, M, D)
-        if chunks == 1:
-            last = h
+        y, _, last = _scan_steps(dt, xt, Bt, Ct, A, batch, in_place)  # (T, M, D)
     else:
-        dt, xt = dt.view(size, batch, chunks, dim, 1), xt.view(size, batch, chunks, dim, 1)
-        Bt, Ct = Bt.view(size, batch, chunks, 1, n), Ct.view(size, batch, chunks, n, 1)
+        dt, xt = dt.view(size, chunks, batch, dim, 1), xt.view(size, chunks, batch, dim, 1)
+        Bt, Ct = Bt.view(size, chunks, batch, 1, n), Ct.view(size, chunks, batch, n, 1)
         above = ~torch.ones(size, size, dtype=torch.bool, device=u.device).tril().view(size, size, 1, 1, 1)
         last = xt.new_zeros(batch, dim, n)
         ys = []
         for c in range(chunks):
-            S = torch.cumsum(dt[:, :, c] * A, dim=0)  # (T, B, D, N): log-space cumsum of log dA within the chunk
+            S = torch.cumsum(dt[:, c] * A, dim=0)  # (T, B, D, N): log-space cumsum of log dA within the chunk
             # weights[t, s] = exp(S_t - S_s) = prod_{s < r <= t} dA_r for s <= t (exponent <= 0); 0 above
             weights = (S.unsqueeze(1) - S.unsqueeze(0)).masked_fill(above, float("-inf")).exp()
-            dBu = xt[:, :, c] * Bt[:, :, c]  # (T, B, D, N)
+            dBu = xt[:, c] * Bt[:, c]  # (T, B, D, N)
             states = (weights * dBu.unsqueeze(0)).sum(1) + torch.exp(S) * last  # (T, B, D, N)
-            ys.append(torch.matmul(states, Ct[:, :, c]).squeeze(-1))  # (T, B, D)
+            ys.append(torch.matmul(states, Ct[:, c]).squeeze(-1))  # (T, B, D)
             last = states[-1]
-        y = torch.stack(ys, dim=2).view(size, batch * chunks, dim)
-    y = y.view(size, batch, chunks, dim).permute(1, 2, 0, 3).reshape(batch, chunks * size, dim)[:, :length]
-    y = _finish(y, u, D, z, dtype)
+        y = torch.stack(ys, dim=1).view(size, chunks * batch, dim)
+    y = _finish(_from_chunk_major(y, batch, length), u, D, z, dtype)
+    return (y, last) if return_last_state else y
+
+
+#: elements of one ``(T, chunks, B, D, N)`` buffer in :class:`SelectiveScanFn`'s backward (three are live at once)
+BACKWARD_GROUP_ELEMENTS = 1 << 20
+
+
+class SelectiveScanFn(torch.autograd.Function):
+    """The chunked ``"steps"`` scan with a hand-written, memory-lean backward (recompute + adjoint by chunks).
+
+    Autograd through :func:`selective_scan_chunked` (or the reference) keeps every step's ``(B, D, N)``
+    intermediates -- several ``B x L x D x N`` tensors per scan until the backward pass. This Function runs the
+    chunked scan without autograd and keeps only its inputs and the ``(K, B, D, N)`` states entering the ``K``
+    chunks. The backward pass runs the adjoint recurrence of the scan in reverse time (per batch element, channel
+    ``d``, state ``n``; ``g`` the gradient of ``y`` after the gate)::
+
+        lam_t = C_t g_t + dA_{t+1} lam_{t+1}        (lam_{L+1} = 0; the gradient reaching h_t)
+        grad dA_t = lam_t h_{t-1},  grad dBu_t = lam_t
+
+    chained to ``delta`` (``d dA_t / d delta_t = A dA_t``, ``dBu_t = delta_t u_t B_t``), ``A``, ``u``, ``B``
+    and ``C`` (``grad C_t = sum_d g_t h_t``), and the skip ``D`` and gate ``z`` directly. Like the forward it
+    works by chunks: pass A runs every chunk's adjoint from a zero end state at once (``T`` steps over all
+    chunks) and carries the adjoints from chunk to chunk back in time (a chunk passes ``decay_c`` of what enters
+    its end on to its start); pass B then takes groups of chunks (``BACKWARD_GROUP_ELEMENTS`` per buffer),
+    recomputes their ``T`` states from the saved chunk starts, runs their adjoints from the carried ones, and
+    reduces the gradients over the group in batched products. Peak extra memory: ``O(B L (D + N) + B K D N)``
+    plus three group buffers, instead of ``O(k B L D N)``. Once differentiable (no double backward).
+
+    ``apply(u, delta, A, B, C, D, z, chunk_size, group_elements)`` -> ``(y (B, L, D) in u's dtype, last state
+    (B, D, N))``; use :func:`selective_scan_lean`.
+    """
+
+    @staticmethod
+    def forward(ctx, u, delta, A, B, C, D, z, chunk_size, group_elements):
+        dtype, work = u.dtype, _work_dtype(u.dtype)
+        uw, dw, Aw, Bw, Cw = (t.to(work) for t in (u, delta, A, B, C))
+        batch, length, _ = u.shape
+        size, chunks = _geometry(length, chunk_size)
+        dt, xt = (_chunk_major(x, chunks, size).unsqueeze(-1) for x in (dw, dw * uw))
+        Bt, Ct = _chunk_major(Bw, chunks, size).unsqueeze(2), _chunk_major(Cw, chunks, size).unsqueeze(-1)
+        y, starts, last = _scan_steps(dt, xt, Bt, Ct, Aw, batch, in_place=True)
+        y = _finish(_from_chunk_major(y, batch, length), uw, D, z, dtype)
+        ctx.save_for_backward(u, delta, A, B, C, D, z, starts)
+        ctx.geometry = (size, chunks, group_elements)
+        ctx.set_materialize_grads(False)
+        return y, last
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_out, g_last):
+        u, delta, A, B, C, D, z, starts = ctx.saved_tensors
+        n_inputs = (u, delta, A, B, C, D, z)
+        if g_out is None and g_last is None:
+            return (None,) * 9
+        size, chunks, group_elements = ctx.geometry
+        work = _work_dtype(u.dtype)
+        uw, dw, Aw, Bw, Cw = (t.to(work) for t in (u, delta, A, B, C))
+        batch, length, dim = u.shape
+        n = A.shape[1]
+        g_out = uw.new_zeros(uw.shape) if g_out is None else g_out.to(work)
+        g_z = g_D = None
+        if z is not None:
+            gate_sig = torch.sigmoid(z.to(work))
+            g_y = g_out * (z.to(work) * gate_sig)
+        else:
+            g_y = g_out
+        if D is not None:
+            g_D = (g_y * uw).sum((0, 1))
+        A2 = Aw * math.log2(math.e)
+        dt, ut, xt, gt = (_chunk_major(x, chunks, size) for x in (dw, uw, dw * uw, g_y))  # (T, M, D)
+        Bt, Ct = _chunk_major(Bw, chunks, size), _chunk_major(Cw, chunks, size)  # (T, M, N)
+        rows = chunks * batch
+        # pass A: every chunk's adjoint from a zero end state, back to its start (times that step's dA)
+        if chunks > 1:
+            m = uw.new_zeros(rows, dim, n)
+            for t in range(size - 1, -1, -1):
+                m = torch.baddbmm(m, gt[t].unsqueeze(-1), Ct[t].unsqueeze(1)).mul_((dt[t].unsqueeze(-1) * A2).exp2_())
+            decay = torch.exp(dt.sum(0).unsqueeze(-1) * Aw)  # (M, D, N)
+            shape = (chunks, batch, dim, n)
+            init = None if g_last is None else g_last.to(work)
+            ends, _ = _carry(m.view(shape), decay.view(shape), init=init, reverse=True)
+        else:
+            ends = (uw.new_zeros(batch, dim, n) if g_last is None else g_last.to(work)).unsqueeze(0)
+        ends = ends.reshape(rows, dim, n)  # the adjoint entering each chunk from its end (from later chunks)
+        starts = starts.reshape(rows, dim, n)
+        # pass B: by groups of chunks, recompute the states, run the adjoint, reduce the gradients
+        g_delta, g_u, y_state = torch.empty_like(dt), torch.empty_like(dt), torch.empty_like(dt)
+        g_B, g_C = torch.empty_like(Bt), torch.empty_like(Ct)
+        g_A = torch.zeros_like(Aw)
+        group = max(1, group_elements // (size * batch * dim * n)) * batch  # rows per group: whole chunks
+        for r0 in range(0, rows, group):
+            rs = slice(r0, min(r0 + group, rows))
+            dg, ug, xg, gg, Bg, Cg = (x[:, rs] for x in (dt, ut, xt, gt, Bt, Ct))
+            rows_g = dg.shape[1]
+            hs = uw.new_empty(size + 1, rows_g, dim, n)  # hs[t + 1] = h_t; hs[0] = the chunks' start states
+            dA_lam = uw.new_empty(size, rows_g, dim, n)  # dA_t, then lam_t * dA_t, then lam_t * dA_t * h_{t-1}
+            lam = uw.new_empty(size, rows_g, dim, n)
+            hs[0] = starts[rs]
+            for t in range(size):
+                torch.exp2(dg[t].unsqueeze(-1) * A2, out=dA_lam[t])
+                torch.mul(dA_lam[t], hs[t], out=hs[t + 1]).addcmul_(xg[t].unsqueeze(-1), Bg[t].unsqueeze(1))
+            m = ends[rs]
+            for t in range(size - 1, -1, -1):
+                torch.baddbmm(m, gg[t].unsqueeze(-1), Cg[t].unsqueeze(1), out=lam[t])
+                m = dA_lam[t].mul_(lam[t])
+            P = dA_lam.mul_(hs[:-1])  # grad of dA_t times dA_t
+            g_A += torch.einsum("tmdn,tmd->dn", P, dg)
+            lam_B = torch.matmul(lam, Bg.unsqueeze(-1)).squeeze(-1)  # (T, m, D): sum_n lam B
+            g_delta[:, rs] = torch.einsum("tmdn,dn->tmd", P, Aw).addcmul_(lam_B, ug)
+            g_u[:, rs] = lam_B * dg
+            g_B[:, rs] = torch.matmul(xg.unsqueeze(2), lam).squeeze(2)  # sum_d lam delta u
+            g_C[:, rs] = torch.matmul(gg.unsqueeze(2), hs[1:]).squeeze(2)  # sum_d g h
+            if z is not None:
+                y_state[:, rs] = torch.matmul(hs[1:], Cg.unsqueeze(-1)).squeeze(-1)
+        g_delta, g_u, g_B, g_C = (_from_chunk_major(x, batch, length) for x in (g_delta, g_u, g_B, g_C))
+        if D is not None:
+            g_u = g_u.addcmul_(g_y, D.to(work))
+        if z is not None:
+            y = _from_chunk_major(y_state, batch, length)
+            if D is not None:
+                y = y.addcmul_(uw, D.to(work))
+            zw = z.to(work)
+            g_z = g_out * y * gate_sig * (1 + zw * (1 - gate_sig))  # silu'(z) = s (1 + z (1 - s))
+        grads = (g_u, g_delta, g_A, g_B, g_C, g_D, g_z)
+        grads = tuple(
+            None if g is None or not need else g.to(x.dtype)
+            for g, x, need in zip(grads, n_inputs, ctx.needs_input_grad[:7], strict=True)
+        )
+        return (*grads, None, None)
+
+
+def selective_scan_lean(
+    u: Tensor,
+    delta: Tensor,
+    A: Tensor,
+    B: Tensor,
+    C: Tensor,
+    D: Tensor | None = None,
+    z: Tensor | None = None,
+    *,
+    chunk_size: int = 64,
+    return_last_state: bool = False,
+    group_elements: int | None = None,
+) -> Tensor | tuple[Tensor, Tensor]:
+    """The chunked ``"steps"`` scan through :class:`SelectiveScanFn`: same result, memory-lean gradients.
+
+    Same arguments and result as :func:`selective_scan_chunked`, plus ``group_elements`` (the backward's
+    group buffer size, default ``BACKWARD_GROUP_ELEMENTS``). The last state is differentiable too.
+    """
+    _check(u, delta, A, B, C, D, z)
+    _geometry(u.shape[1], chunk_size)
+    group = BACKWARD_GROUP_ELEMENTS if group_elements is None else group_elements
+    y, last = SelectiveScanFn.apply(u, delta, A, B, C, D, z, chunk_size, group)
     return (y, last) if return_last_state else y
 
 
@@ -300,7 +510,8 @@ def selective_scan(
     """Selective scan, dispatched: arguments and result as :func:`selective_scan_ref`.
 
     Args:
-        mode: ``"ref"`` (the step loop), ``"chunked"`` (:func:`selective_scan_chunked`, ``"steps"``), or
+        mode: ``"ref"`` (the step loop), ``"chunked"`` (:func:`selective_scan_chunked`, ``"steps"``; when
+            gradients are needed, :func:`selective_scan_lean`: the same forward, a memory-lean backward), or
             ``"auto"``: ``mamba_ssm``'s CUDA kernel when the tensors are CUDA float32/16/bfloat16 and
             ``mamba_ssm`` is installed, else ``"chunked"``.
         chunk_size: ``T`` of the chunked scan.
@@ -317,4 +528,6 @@ def selective_scan(
     ):
         _check(u, delta, A, B, C, D, z)
         return _scan_mamba_ssm(u, delta, A, B, C, D, z, return_last_state)
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (u, delta, A, B, C, D, z)):
+        return selective_scan_lean(u, delta, A, B, C, D, z, chunk_size=chunk_size, return_last_state=return_last_state)
     return selective_scan_chunked(u, delta, A, B, C, D, z, chunk_size=chunk_size, return_last_state=return_last_state)

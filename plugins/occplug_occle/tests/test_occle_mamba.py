@@ -8,7 +8,13 @@ import torch
 import torch.nn.functional as F
 
 from occplug_occle.mamba import DualMambaBlock, DualMambaUNet, MambaBlock, channel_exchange, exchange_mask
-from occplug_occle.selective_scan import selective_scan, selective_scan_chunked, selective_scan_ref
+from occplug_occle.selective_scan import (
+    SelectiveScanFn,
+    selective_scan,
+    selective_scan_chunked,
+    selective_scan_lean,
+    selective_scan_ref,
+)
 from occplug_occle.serialization import deserialize, hilbert_curve, hilbert_permutation, serialize
 
 #: grids a 4-stage U-Net meets (Occ3D-like and SemanticKITTI-like sizes, their stages, odd and flat ones)
@@ -111,6 +117,64 @@ def test_chunked_scan_gradients_equal_reference(within):
     )
     for g, g_ref in zip(grads, grads_ref, strict=True):
         assert float((g - g_ref).abs().max()) < 1e-10
+
+
+@pytest.mark.parametrize(
+    ("length", "chunk", "group_elements"),
+    [(37, 5, None), (37, 37, None), (64, 16, None), (100, 7, 1), (100, 64, 300), (50, 200, None)],
+)
+@pytest.mark.parametrize("skip_and_gate", [True, False])
+def test_lean_scan_gradients_equal_reference(length, chunk, group_elements, skip_and_gate):
+    # the hand-written backward (adjoint by chunks; chunk sizes dividing L or not, one chunk, groups of one chunk
+    # or several) against autograd through the step loop, for every input and the last state's gradient too
+    inputs = list(_scan_inputs(length=length, seed=length + chunk))
+    if not skip_and_gate:
+        inputs[5] = inputs[6] = None
+    inputs = [None if t is None else t.requires_grad_() for t in inputs]
+    used = [t for t in inputs if t is not None]
+    y_ref, h_ref = selective_scan_ref(*inputs, return_last_state=True)
+    y, h = selective_scan_lean(*inputs, chunk_size=chunk, return_last_state=True, group_elements=group_elements)
+    assert float((y - y_ref).detach().abs().max()) < 1e-10 and float((h - h_ref).detach().abs().max()) < 1e-10
+    g = torch.Generator().manual_seed(1)
+    w_y = torch.randn(y.shape, generator=g, dtype=y.dtype)
+    w_h = torch.randn(h.shape, generator=g, dtype=h.dtype)
+    grads_ref = torch.autograd.grad((y_ref * w_y).sum() + (h_ref * w_h).sum(), used, retain_graph=True)
+    grads = torch.autograd.grad((y * w_y).sum() + (h * w_h).sum(), used)
+    for grad, grad_ref in zip(grads, grads_ref, strict=True):
+        assert grad.shape == grad_ref.shape and grad.dtype == grad_ref.dtype
+        assert float((grad - grad_ref).abs().max()) < 1e-9
+    # the output alone (the last state unused: its gradient arrives as None)
+    grads = torch.autograd.grad((selective_scan_lean(*inputs, chunk_size=chunk) * w_y).sum(), used)
+    grads_ref = torch.autograd.grad((y_ref * w_y).sum(), used)
+    for grad, grad_ref in zip(grads, grads_ref, strict=True):
+        assert float((grad - grad_ref).abs().max()) < 1e-9
+
+
+def test_lean_scan_passes_gradcheck():
+    inputs = [t.requires_grad_() for t in _scan_inputs(batch=2, length=6, dim=2, state=3)]
+    assert torch.autograd.gradcheck(lambda *a: selective_scan_lean(*a, chunk_size=4), inputs)
+    assert torch.autograd.gradcheck(lambda *a: selective_scan_lean(*a, chunk_size=4, return_last_state=True), inputs)
+    assert torch.autograd.gradcheck(lambda *a: selective_scan_lean(*a[:5], chunk_size=2), inputs[:5])
+
+
+def test_selective_scan_takes_the_lean_function_with_gradients():
+    inputs = [t.requires_grad_() for t in _scan_inputs(length=20)]
+    for mode in ("auto", "chunked"):
+        y = selective_scan(*inputs, mode=mode, chunk_size=6)
+        assert y.grad_fn is not None and "SelectiveScanFn" in type(y.grad_fn).__name__
+    assert selective_scan(*inputs, mode="ref").grad_fn is not None
+    assert "SelectiveScanFn" not in type(selective_scan(*inputs, mode="ref").grad_fn).__name__
+    with torch.no_grad():
+        y_ref = selective_scan_ref(*inputs)
+        assert float((selective_scan(*inputs, chunk_size=6) - y_ref).abs().max()) < 1e-10
+    # float32 inputs with a float32 A: gradients in the inputs' dtypes, close to the float64 reference
+    inputs32 = [t.detach().float().requires_grad_() for t in inputs]
+    grads32 = torch.autograd.grad(selective_scan(*inputs32, chunk_size=6).sum(), inputs32)
+    grads = torch.autograd.grad(selective_scan_ref(*inputs).sum(), inputs)
+    for grad32, grad in zip(grads32, grads, strict=True):
+        assert grad32.dtype == torch.float32
+        assert float((grad32.double() - grad).abs().max()) < 1e-4 * (1 + float(grad.abs().max()))
+    assert issubclass(SelectiveScanFn, torch.autograd.Function)
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
