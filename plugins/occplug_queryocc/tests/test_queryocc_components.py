@@ -228,3 +228,19 @@ def test_lidar_points_take_their_class_from_the_pseudo_semantics(source):
     ref = batch.point_labels[0]
     ok = lid.labels != 255
     assert (lid.labels[ok] == ref[ok]).float().mean() > 0.85
+
+
+@pytest.mark.parametrize(
+    ("name", "half", "cells"), [("no_contraction", 60.0, 60), ("no_contraction_near", 24.0, 60), ("base", 30.0, 60)]
+)
+def test_the_contraction_ablations_lay_a_metric_plane_of_the_same_cells(name, half, cells):
+    """The ablation must drop the base's contraction (an overlay that changes only the range keeps it, and a
+    contracted plane's cells do not depend on its numeric range: it trained identically to base)."""
+    from occplug.runner import load_config
+
+    grid = GridSpec.from_config(load_config([f"queryocc/{name}"], [])["model"]["view_transform"]["grid"])
+    assert grid.shape[:2] == (cells, cells)
+    assert (grid.contraction is None) == (name != "base")
+    if grid.contraction is None:  # metric: a point at 0.9 of the half-range lies in the cell that range says
+        index = grid.coord_to_index(torch.tensor([[0.9 * half, 0.0, 0.0]]))
+        assert int(index[0, 0]) == int(0.95 * cells)
