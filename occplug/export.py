@@ -11,7 +11,9 @@ cannot be traced: ``torch.export`` stops at it (a data-dependent guard on the de
 then the host copy for the hash), so a cached plan can never end up in a graph as a constant.
 While exporting, every splatter runs its ``reference`` path instead (the same frustum geometry,
 pooled with ``index_add_`` over all points: equal up to float summation order), which is plain
-tensor code on the inputs. The parity check runs the eager model with its own (cached) path on
+tensor code on the inputs. ONNX gets that ``index_add`` as ``ScatterElements`` (:func:`_index_add_as_scatter_add`):
+onnxruntime's CPU ``ScatterND(reduction="add")`` races on duplicate indices, so a graph holding one is refused.
+The parity check runs the eager model with its own (cached) path on
 the original frames and on frames with perturbed intrinsics, extrinsics and image augmentation,
 so an export that baked one rig's geometry in would fail it.
 
@@ -516,9 +518,45 @@ def _inverse3(a: Tensor) -> tuple[Tensor, Tensor]:
     return adjugate / det[..., None, None], torch.zeros(a.shape[:-2], dtype=torch.int32, device=a.device)
 
 
+def _index_add_as_scatter_add(self: Tensor, dim: int, index: Tensor, source: Tensor, alpha: float = 1) -> Tensor:
+    """``index_add`` as ``scatter_add`` (ONNX ``ScatterElements``): the same sums in the same order.
+
+    ``index_add`` becomes ``ScatterND(reduction="add")``, whose onnxruntime CPU kernel races on
+    duplicate indices with more than one thread (microsoft/onnxruntime#18048, #23396: lost updates,
+    a different result every run); a splat's indices are all duplicates.
+    """
+    dim = dim % source.dim()
+    shape = [1] * source.dim()
+    shape[dim] = -1
+    return self.scatter_add(dim, index.reshape(shape).expand_as(source), source if alpha == 1 else source * alpha)
+
+
 def _onnx_decompositions() -> dict[Any, Callable[..., Any]]:
     aten = torch.ops.aten
-    return {aten.linalg_inv.default: lambda a: _inverse3(a)[0], aten.linalg_inv_ex.default: _inverse3}
+    return {
+        aten.linalg_inv.default: lambda a: _inverse3(a)[0],
+        aten.linalg_inv_ex.default: _inverse3,
+        aten.index_add.default: _index_add_as_scatter_add,
+    }
+
+
+#: ONNX ops whose onnxruntime CPU kernel is not deterministic with duplicate indices (see above).
+_RACY_ONNX = {"ScatterND": "reduction"}
+
+
+def _racy_nodes(model_proto: Any) -> list[str]:
+    """Nodes of an ONNX graph (subgraphs included) that onnxruntime's CPU kernels compute with a race."""
+    found = []
+    graphs = [model_proto.graph]
+    while graphs:
+        graph = graphs.pop()
+        for node in graph.node:
+            attrs = {a.name: a for a in node.attribute}
+            graphs.extend(a.g for a in node.attribute if a.HasField("g"))
+            attr = _RACY_ONNX.get(node.op_type)
+            if attr and attr in attrs and attrs[attr].s not in (b"", b"none"):
+                found.append(f"{node.op_type}({attr}={attrs[attr].s.decode()}) {node.name}")
+    return found
 
 
 def trace(model: OccupancyModel, template: Batch) -> torch.export.ExportedProgram:
@@ -579,6 +617,12 @@ def export_model(model: OccupancyModel, template: Batch, fmt: str, out: Path) ->
                         raise
                     except Exception as exc:
                         raise _onnx_failure(exc, program, model) from None
+                    racy = _racy_nodes(onnx_program.model_proto)
+                    if racy:
+                        raise ExportError(
+                            f"export to onnx: {racy[0]}: onnxruntime's CPU kernel races on duplicate indices "
+                            "(a different result every run); accumulate with scatter_add/index_add, not index_put"
+                        )
                     onnx_program.save(str(tmp), external_data=False)  # one self-contained file
         os.replace(tmp, out)
     finally:
