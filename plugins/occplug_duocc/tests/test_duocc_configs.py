@@ -1,0 +1,54 @@
+"""DuOcc's real-data recipes: the paper's settings, composed and validated (the synthetic recipes train in
+tests/test_configs.py's sweep)."""
+
+from __future__ import annotations
+
+import copy
+
+from occplug.config import compose, validate
+from occplug.plugins import get_registry
+
+#: timm is optional (not in the dev extra): the recipe is validated with a core encoder in its slot.
+CORE_ENCODER = "model.encoder={type: small_cnn, out_channels: 64, stride: 16}"
+LOSSES = ("occupancy", "forecast", "occupied")
+
+
+def test_occ3d_nuscenes_has_the_papers_settings_and_validates():
+    cfg = compose(["duocc/occ3d_nuscenes"]).resolved()
+    model = cfg["model"]
+    assert cfg["data"]["type"] == "occ3d_nuscenes" and cfg["data"]["image_size"] == [256, 704]
+    assert cfg["grid"] == {"range": [-40.0, -40.0, -1.0, 40.0, 40.0, 5.4], "voxel_size": 0.4}  # 200 x 200 x 16
+    assert model["view_transform"]["grid"] == cfg["grid"] and model["scene"]["grid"] == cfg["grid"]
+    assert model["encoder"] == {"type": "timm", "model_name": "resnet50", "out_channels": 64, "feature_level": 3,
+                                "weights": None}
+    assert model["view_transform"]["out_channels"] == 64  # V_init: 200 x 200 x 16 x 64
+    detector = model["scene"]["query_agg"]["detector"]
+    assert (detector["num_queries"], detector["num_layers"]) == (900, 6)
+    weights = {name: model["supervision"][name]["weight"] for name in ("depth", *LOSSES, "detection")}
+    assert weights == {"depth": 0.05, "occupancy": 10.0, "forecast": 10.0, "occupied": 10.0, "detection": 0.2}
+    assert all(model["supervision"][name]["camera_mask"] for name in LOSSES)
+    assert cfg["optimizer"]["lr"] == 0.0002 and cfg["optimizer"]["reference_batch"] == 8
+    assert cfg["trainer"]["max_epochs"] == 24 and cfg["trainer"]["gradient_clip_val"] == 5.0
+    validate(compose(["duocc/occ3d_nuscenes"], [CORE_ENCODER]).resolved(), get_registry())
+
+
+def test_rayiou_recipe_is_the_occ3d_recipe_without_the_camera_mask():
+    masked = compose(["duocc/occ3d_nuscenes"]).resolved()
+    unmasked = compose(["duocc/occ3d_nuscenes_rayiou"]).resolved()
+    assert unmasked["metrics"] == ["rayiou"] and unmasked["eval_mask"] == "none"
+    assert not any(unmasked["model"]["supervision"][name]["camera_mask"] for name in LOSSES)
+    expected = copy.deepcopy(masked)
+    for name in LOSSES:
+        expected["model"]["supervision"][name]["camera_mask"] = False
+    expected["metrics"], expected["eval_mask"] = ["rayiou"], "none"
+    assert unmasked == expected  # nothing else changes
+    validate(compose(["duocc/occ3d_nuscenes_rayiou"], [CORE_ENCODER]).resolved(), get_registry())
+
+
+def test_synthetic_no_camera_mask_recipe_is_full_without_the_mask():
+    full = compose(["duocc/full"]).resolved()
+    unmasked = compose(["duocc/no_camera_mask"]).resolved()
+    for name in LOSSES:
+        full["model"]["supervision"][name]["camera_mask"] = False
+    assert unmasked["model"] == full["model"] and unmasked["eval_mask"] == "none"
+    assert [m if isinstance(m, str) else m["type"] for m in unmasked["metrics"]] == ["occ3d_miou", "rayiou"]
