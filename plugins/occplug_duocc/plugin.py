@@ -11,6 +11,7 @@ import occplug
 @occplug.hookimpl
 def occplug_register_components(registry: occplug.Registry) -> None:
     from .decoder import DuOccDecoder
+    from .mask_decoder import DuOccMask
     from .scene import DuOccStacking, DuOccStream
     from .supervision import DuOccDetection, DuOccForecast, DuOccOccupied
 
@@ -20,6 +21,7 @@ def occplug_register_components(registry: occplug.Registry) -> None:
     registry.add("supervision", "duocc_occupied", DuOccOccupied)
     registry.add("supervision", "duocc_forecast", DuOccForecast)
     registry.add("supervision", "duocc_detection", DuOccDetection)
+    registry.add("supervision", "duocc_mask", DuOccMask)
 
 
 @occplug.hookimpl
