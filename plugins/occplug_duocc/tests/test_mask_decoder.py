@@ -1,0 +1,203 @@
+"""DuOcc's auxiliary mask decoder (``duocc_mask``, training only): costs, matching, groups, masking, training."""
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from occplug import runner
+from occplug.interfaces import ModelOutputs
+from occplug.streams import set_stream_stage
+from occplug.testing import check_component, make_tiny_batch
+from occplug.testing.conformance import label_grid
+from occplug_duocc.detector import _sigmoid_focal
+from occplug_duocc.mask_decoder import (
+    OCC3D_GROUP_SPLIT,
+    DuOccMask,
+    MaskDecoder,
+    group_lookup,
+    mask_dice_cost,
+    mask_dice_loss,
+    mask_focal_cost,
+    match_masks,
+)
+from occplug_duocc.scene import StreamVoxelScene, coarse_grid
+
+SMALL = ["grid.range=[-8.0,-8.0,-1.0,8.0,8.0,5.4]", "model.encoder.out_channels=16", "model.encoder.width=16"]
+TINY = dict(in_channels=8, num_queries=4, num_groups=3, channels=16, heads=2, points=2, ffn_hidden=32, mask_hidden=32)
+
+
+def _source(**kwargs):
+    torch.manual_seed(0)
+    return DuOccMask(grid=label_grid(make_tiny_batch()).to_dict(), **{**TINY, "dropout": 0.0, **kwargs})
+
+
+def _outputs(source, batch, seed=1):
+    gen = torch.Generator().manual_seed(seed)
+    volume = torch.randn(
+        len(batch), source.decoder.layers[0].cross.value_proj.in_features, *source.grid.shape, generator=gen
+    )
+    return ModelOutputs(None, None, StreamVoxelScene(volume, source.grid, source.label_grid), {}, lambda *a, **k: None)
+
+
+def test_group_tables_full_set_code_split_and_a_bad_split():
+    full = group_lookup(18, 17, None)
+    assert full.tolist() == list(range(18))  # Occ3D: free (17) is already the last id = group 0's no-object
+    assert [len(g) for g in OCC3D_GROUP_SPLIT] == [2, 6, 6, 4, 4]  # the public code's group_split
+    objects = group_lookup(18, 17, OCC3D_GROUP_SPLIT[0])
+    assert objects.tolist() == [0] * 11 + [1] * 6 + [2]
+    rare = group_lookup(18, 17, OCC3D_GROUP_SPLIT[1])
+    assert rare[[2, 3, 5, 6, 9]].tolist() == [1, 2, 3, 4, 5] and rare[[0, 4, 16]].tolist() == [0, 0, 0]
+    assert int(rare[17]) == 6
+    kitti = group_lookup(4, 0, None)  # free first (SemanticKITTI-like): the others shift down
+    assert kitti.tolist() == [3, 0, 1, 2]
+    with pytest.raises(ValueError, match="exactly once"):
+        group_lookup(18, 17, [list(range(11)), list(range(10, 17))])  # 10 twice
+    with pytest.raises(ValueError, match="exactly once"):
+        group_lookup(18, 17, [list(range(11))])  # 11..16 missing
+    with pytest.raises(ValueError, match="num_groups 7"):
+        _source(num_groups=7)
+
+
+def test_focal_and_dice_equal_hand_computed_values():
+    logits, target = torch.tensor([[0.0, 2.0]]), torch.tensor([[1.0, 0.0]])
+    p1 = 1 / (1 + math.exp(-2.0))
+    focal_v0 = 0.25 * (1 - 0.5) ** 2 * -math.log(0.5)  # positive voxel, p = 0.5
+    focal_v1 = 0.75 * p1**2 * -math.log(1 - p1)  # negative voxel
+    assert float(mask_focal_cost(logits, target)) == pytest.approx((focal_v0 + focal_v1) / 2, rel=1e-6)
+    dice = 1 - (2 * 0.5 + 1) / (0.5 + p1 + 1 + 1)
+    assert float(mask_dice_cost(logits, target, eps=1.0)) == pytest.approx(dice, rel=1e-6)
+    # the matching costs are the losses of each pair: the diagonal of a square case equals the paired losses
+    gen = torch.Generator().manual_seed(0)
+    pred, gt = torch.randn(3, 50, generator=gen), (torch.rand(3, 50, generator=gen) > 0.5).float()
+    focal_pairs = torch.stack([_sigmoid_focal(pred[i], gt[i], 0.25, 2.0) / 50 for i in range(3)])
+    torch.testing.assert_close(mask_focal_cost(pred, gt).diagonal(), focal_pairs)
+    torch.testing.assert_close(mask_dice_cost(pred, gt).diagonal(), mask_dice_loss(pred, gt))
+
+
+def test_matching_finds_the_optimal_assignment_where_greedy_does_not():
+    # class cost only: greedy takes q0 -> A (0.50) then q1 -> B (0.02), total 0.52; the optimum is 0.45 + 0.48
+    probs = torch.tensor([[0.50, 0.45, 0.05], [0.48, 0.02, 0.50]])
+    masks, gt_masks = torch.zeros(2, 4), torch.ones(2, 4)
+    qi, gi = match_masks(probs.log(), masks, torch.tensor([0, 1]), gt_masks, 1.0, 0.0, 0.0)
+    assert qi.tolist() == [0, 1] and gi.tolist() == [1, 0]
+    # mask costs only: query 0 draws ground truth 1, query 2 ground truth 0, query 1 matches nothing
+    gt_masks = torch.tensor([[1.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 1.0]])
+    pred = torch.tensor([[-8.0, -8.0, 8.0, 8.0], [8.0, -8.0, 8.0, -8.0], [8.0, 8.0, -8.0, -8.0]])
+    qi, gi = match_masks(torch.zeros(3, 3), pred, torch.tensor([0, 2]), gt_masks)
+    assert qi.tolist() == [0, 2] and gi.tolist() == [1, 0]
+
+
+def test_group_self_attention_does_not_leak_across_groups():
+    torch.manual_seed(0)
+    grid = coarse_grid(label_grid(make_tiny_batch()), 2)
+    decoder = MaskDecoder(8, grid, [17, 2, 6], num_queries=4, channels=16, heads=2, points=2, num_layers=2).eval()
+    volume = torch.randn(1, 8, *grid.shape)
+    with torch.no_grad():
+        before = decoder(volume)[-1]
+        decoder.query_feat.weight[4:8] += torch.randn(4, 16)  # group 1's queries and positions only
+        decoder.query_pos.weight[4:8] += torch.randn(4, 16)
+        after = decoder(volume)[-1]
+    for g in (0, 2):
+        assert torch.equal(before.cls_logits[g], after.cls_logits[g])
+        assert torch.equal(before.mask_logits[:, 4 * g : 4 * g + 4], after.mask_logits[:, 4 * g : 4 * g + 4])
+    assert not torch.allclose(before.cls_logits[1], after.cls_logits[1])
+    assert [c.shape[-1] for c in before.cls_logits] == [18, 3, 7]  # each group's classes + no-object
+    assert before.mask_logits.shape == (1, 12, *grid.shape)
+
+
+def test_voxels_outside_the_camera_mask_do_not_affect_the_loss():
+    source = _source()
+    batch = make_tiny_batch()
+    outputs = _outputs(source, batch)
+    hidden = ~batch.mask_camera.bool()
+    assert bool(hidden.any()) and bool((~hidden).any())
+    torch.manual_seed(0)
+    first = source(batch, outputs)
+    assert set(first) == {"mask_cls", "mask_focal", "mask_dice"} and all(torch.isfinite(v) for v in first.values())
+    scrambled = batch.voxel_labels.clone()
+    scrambled[hidden] = torch.randint(0, 18, (int(hidden.sum()),), dtype=scrambled.dtype)
+    torch.manual_seed(0)
+    second = source(dataclasses.replace(batch, voxel_labels=scrambled), outputs)
+    for key in first:
+        assert torch.equal(first[key], second[key]), key
+    # the predicted masks outside do not count either
+    labels = batch.voxel_labels.long()
+    counted = source.counted(batch, labels)
+    layers = source.decoder(outputs.scene.features)
+    base = source.loss(layers, labels, counted)
+    for out in layers:
+        up = torch.nn.functional.interpolate(out.mask_logits, size=labels.shape[1:], mode="trilinear")
+        out.mask_logits = torch.where(counted[:, None], up, torch.full_like(up, 50.0))
+    moved = source.loss(layers, labels, counted)
+    for key in base:
+        torch.testing.assert_close(base[key], moved[key])
+    # and a visible voxel does: relabelling one changes the loss
+    relabelled = batch.voxel_labels.clone()
+    idx = tuple(i[0] for i in torch.nonzero(~hidden & (batch.voxel_labels == 17), as_tuple=True))
+    relabelled[idx] = 4
+    third = source(dataclasses.replace(batch, voxel_labels=relabelled), outputs)
+    assert any(not torch.equal(first[k], third[k]) for k in first)
+
+
+def test_loss_falls_on_a_fixed_batch_and_nothing_is_returned_outside_training():
+    source = _source()
+    batch = make_tiny_batch()
+    outputs = _outputs(source, batch)
+    opt = torch.optim.Adam(source.parameters(), lr=1e-2)
+    history = []
+    for _ in range(12):
+        loss = torch.stack(list(source(batch, outputs).values())).sum()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        history.append(float(loss.detach()))
+    assert history[-1] < 0.8 * history[0], history
+    source.eval()
+    assert source(batch, outputs) == {}
+
+
+def test_conformance_with_a_small_decoder():
+    check_component("supervision", "duocc_mask", TINY | {"in_channels": 32}, batch=make_tiny_batch())
+
+
+def test_full_mask_trains_and_predicts_exactly_as_full_with_the_same_weights():
+    torch.manual_seed(0)
+    cfg = runner.load_config(["duocc/full_mask", "occplug/trainer/debug"], SMALL)
+    dm, model = runner.build_run(cfg)
+    mask = model.supervision["mask"]
+    assert (mask.decoder.groups, mask.decoder.num_queries, len(mask.decoder.layers)) == (3, 8, 1)
+    assert mask.weight == 1.0 and mask.training_mask == "camera"
+    data = dm.dataset("train")
+    batch = dm.collate([data[i] for i in (0, 3)])
+    opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
+    start = {k: v.clone() for k, v in mask.state_dict().items()}
+    for _ in range(2):
+        losses = model.losses(batch, model(batch))
+        assert {"mask/mask_cls", "mask/mask_focal", "mask/mask_dice"} <= set(losses)
+        opt.zero_grad()
+        torch.stack(list(losses.values())).sum().backward()
+        opt.step()
+    assert any(not torch.equal(start[k], v) for k, v in mask.state_dict().items())  # the decoder trained
+    model.zero_grad()
+    terms = model.losses(batch, model(batch))
+    torch.stack([v for k, v in terms.items() if k.startswith("mask/")]).sum().backward()
+    assert any(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in model.scene.parameters())  # V_fin learns
+    # the same weights without the mask supervision: duocc/full, loaded strictly from everything but the decoder
+    _, full = runner.build_run(runner.load_config(["duocc/full", "occplug/trainer/debug"], SMALL))
+    state = {k: v for k, v in model.state_dict().items() if not k.startswith("supervision.mask.")}
+    full.load_state_dict(state, strict=True)
+    val = dm.dataset("val")
+    frames = [dm.collate([val[i]]) for i in range(len(val))]  # one stream, frame by frame (history read)
+    predictions = []
+    for m in (model, full):
+        m.eval()
+        set_stream_stage(m, "predict")
+        predictions.append([m.predict_occupancy(f) for f in frames])
+        assert m.losses(frames[0], m(frames[0])).keys().isdisjoint({"mask/mask_cls"})  # no decoder at inference
+    for with_mask, without in zip(*predictions, strict=True):
+        assert torch.equal(with_mask, without)
+    # a checkpoint rebuilds from its hyper-parameters alone (the decoder included)
+    rebuilt = type(model)(**model.hparams)
+    rebuilt.load_state_dict(model.state_dict(), strict=True)
