@@ -24,8 +24,11 @@ def test_occ3d_nuscenes_has_the_papers_settings_and_validates():
     assert model["view_transform"]["out_channels"] == 64  # V_init: 200 x 200 x 16 x 64
     detector = model["scene"]["query_agg"]["detector"]
     assert (detector["num_queries"], detector["num_layers"]) == (900, 6)
-    weights = {name: model["supervision"][name]["weight"] for name in ("depth", *LOSSES, "detection")}
-    assert weights == {"depth": 0.05, "occupancy": 10.0, "forecast": 10.0, "occupied": 10.0, "detection": 0.2}
+    weights = {name: model["supervision"][name]["weight"] for name in ("depth", *LOSSES, "detection", "mask")}
+    assert weights == {"depth": 0.05, "occupancy": 10.0, "forecast": 10.0, "occupied": 10.0, "detection": 0.2,
+                       "mask": 1.0}  # suppl. A.4
+    mask = model["supervision"]["mask"]
+    assert (mask["num_queries"], mask["num_groups"], mask["camera_mask"]) == (100, 6, True)
     assert all(model["supervision"][name]["camera_mask"] for name in LOSSES)
     assert cfg["optimizer"]["lr"] == 0.0002 and cfg["optimizer"]["reference_batch"] == 8
     assert cfg["trainer"]["max_epochs"] == 24 and cfg["trainer"]["gradient_clip_val"] == 5.0
@@ -36,9 +39,9 @@ def test_rayiou_recipe_is_the_occ3d_recipe_without_the_camera_mask():
     masked = compose(["duocc/occ3d_nuscenes"]).resolved()
     unmasked = compose(["duocc/occ3d_nuscenes_rayiou"]).resolved()
     assert unmasked["metrics"] == ["rayiou"] and unmasked["eval_mask"] == "none"
-    assert not any(unmasked["model"]["supervision"][name]["camera_mask"] for name in LOSSES)
+    assert not any(unmasked["model"]["supervision"][name]["camera_mask"] for name in (*LOSSES, "mask"))
     expected = copy.deepcopy(masked)
-    for name in LOSSES:
+    for name in (*LOSSES, "mask"):
         expected["model"]["supervision"][name]["camera_mask"] = False
     expected["metrics"], expected["eval_mask"] = ["rayiou"], "none"
     assert unmasked == expected  # nothing else changes
