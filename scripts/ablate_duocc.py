@@ -1,5 +1,8 @@
 """DuOcc's component ablation (paper Tab. 4) on the synthetic world: A, B, C, D and D evaluated with GT boxes.
 
+Also B with the public code's concat fusion (``duocc/stream_agg_concat``) and, by ``--rows``, Tab. 5's StreamAgg
+component rows.
+
 Each row is one shipped config (``duocc/<name>``) trained per seed in its own ``occplug fit`` process on the same
 budget and evaluated on the validation split (camera mask), printed as mean ± std over the seeds:
 
@@ -17,7 +20,8 @@ budget and evaluated on the validation split (camera mask), printed as mean ± s
 The expected direction (paper: B > A; D > B with the gain mostly on dynamic classes) is printed as a check, not
 tuned for::
 
-    python scripts/ablate_duocc.py                                   # 3 seeds, every row, default world
+    python scripts/ablate_duocc.py                                   # 3 seeds, Tab. 4's rows, default world
+    python scripts/ablate_duocc.py --rows single_frame stream_warp_only stream_refine stream_refine_forecast stream_agg
     python scripts/ablate_duocc.py --rows stream_agg full --seeds 0 1 2
     python scripts/ablate_duocc.py --seeds 0 --preset tiny --epochs 1 --set trainer.max_steps=4   # a smoke run
 
@@ -38,10 +42,17 @@ from pathlib import Path
 ROWS = {
     "single_frame": ("single_frame", "A. Base (single frame)"),
     "stream_agg": ("stream_agg", "B. A + StreamAgg"),
+    "stream_agg_concat": ("stream_agg_concat", "B, concat fusion (public code)"),
     "det_only": ("det_only", "C. B + detection head"),
     "full": ("full", "D. B + QueryAgg"),
     "full_gt_boxes": ("full", "D with GT boxes (eval only)"),
+    # Tab. 5: StreamAgg's components, one at a time (the last row, + occupied mask, is B)
+    "stream_warp_only": ("stream_warp_only", "Tab. 5: warping only"),
+    "stream_refine": ("stream_refine", "Tab. 5: + RefineNet"),
+    "stream_refine_forecast": ("stream_refine_forecast", "Tab. 5: + forecasting"),
 }
+#: the rows run by default: Tab. 4 and the public code's fusion
+DEFAULT_ROWS = ["single_frame", "stream_agg", "stream_agg_concat", "det_only", "full", "full_gt_boxes"]
 COLUMNS = {"mIoU": "mIoU", "mIoU_D": "mIoU_dynamic", "mIoU_S": "mIoU_static"}
 DETECTOR_ROWS = ("det_only", "full", "full_gt_boxes")
 GT_OVERRIDE = "model.scene.query_agg.gt_boxes=true"
@@ -145,7 +156,7 @@ def mean(values: list[float]) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
+    parser.add_argument("--rows", nargs="+", default=DEFAULT_ROWS, choices=list(ROWS))
     parser.add_argument("--epochs", type=int, default=8, help="trainer.max_epochs of every run (the CPU budget)")
     parser.add_argument("--preset", default="default", help="synthetic world preset (default: default)")
     parser.add_argument("--set", nargs="*", default=[], help="extra key=value overrides for every run")
@@ -206,6 +217,9 @@ def main() -> None:
     if a and b:
         ma, mb = mean(a["mIoU"]), mean(b["mIoU"])
         lines.append(f"B > A (mIoU {mb:.2f} vs {ma:.2f}; paper 40.4 vs 36.8): {'PASS' if mb > ma else 'FAIL'}")
+    if a and table.get("stream_agg_concat"):
+        ma, mc = mean(a["mIoU"]), mean(table["stream_agg_concat"]["mIoU"])
+        lines.append(f"B (concat fusion) > A (mIoU {mc:.2f} vs {ma:.2f}): {'PASS' if mc > ma else 'FAIL'}")
     if b and d:
         gain = mean(d["mIoU"]) - mean(b["mIoU"])
         dyn, sta = mean(d["mIoU_D"]) - mean(b["mIoU_D"]), mean(d["mIoU_S"]) - mean(b["mIoU_S"])
