@@ -22,7 +22,8 @@ What it does (``duocc-code-notes.md`` §4 "Auxiliary mask decoder"; the paper gi
   matching (:func:`~occplug_duocc.matching.linear_assignment`) with the costs ``1 x (-p_class) + 20 x focal + 1
   x dice``, then CE over every query (no-object weight 0.1), sigmoid focal (alpha 0.25, gamma 2) on the matched
   masks x 20 and dice (eps 1) x 1. Every group is matched independently against the same ground truth
-  (group-wise one-to-many); group 0 weighs 1, the others ``coarse_group_weight`` (code: 1/5).
+  (group-wise one-to-many); group 0 weighs 1, the others ``coarse_group_weight`` (code: ``1 / (G - 1)``, 1/5 at
+  its 6 groups).
 
 Where the notes are silent (or the data flow here differs), the choices are:
 
@@ -37,12 +38,15 @@ Where the notes are silent (or the data flow here differs), the choices are:
 * normalisation (as Mask2Former's): CE is the class-weighted mean over the queries of the samples with visible
   voxels; focal is averaged over visible voxels per mask, focal and dice are summed over matched masks and
   divided by the number of matched masks of the group in the batch (at least 1); matching and losses use every
-  visible voxel (no point sampling).
+  visible voxel (no point sampling);
+* the losses and the matching costs are computed in float32 with autocast off (under ``bf16-mixed`` the mask
+  logits arrive in bfloat16, and sums over ~1e5 voxels would lose precision).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Annotated, Any
 
 import torch
@@ -194,6 +198,7 @@ def match_masks(
 # ---------------------------------------------------------------------------------------------- decoder
 
 
+@dataclass
 class MaskDecoderOutput:
     """One decoder layer's predictions.
 
@@ -202,9 +207,8 @@ class MaskDecoderOutput:
         mask_logits: ``(B, G * Q, x, y, z)`` on the decoder's grid, queries ordered group by group.
     """
 
-    def __init__(self, cls_logits: list[Tensor], mask_logits: Tensor) -> None:
-        self.cls_logits = cls_logits
-        self.mask_logits = mask_logits
+    cls_logits: list[Tensor]
+    mask_logits: Tensor
 
 
 class _MaskDecoderLayer(nn.Module):
@@ -345,7 +349,8 @@ class DuOccMask(_AuxLoss):
             (:class:`MaskDecoder`).
         cls_weight, focal_weight, dice_weight: loss and matching-cost coefficients (code: 1, 20, 1).
         no_object_weight: CE weight of the no-object class (code: 0.1).
-        coarse_group_weight: weight of groups 1 .. G-1 (code: 1/5; group 0 weighs 1).
+        coarse_group_weight: weight of groups 1 .. G-1 (group 0 weighs 1); None: ``1 / (G - 1)``, the code's rule
+            (1/5 at its 6 groups).
         dice_eps: dice smoothing (code: 1).
         weight: ``lambda_mask`` (paper suppl. A.4: 1).
         camera_mask: count only ``batch.mask_camera`` voxels (code: yes).
@@ -373,7 +378,7 @@ class DuOccMask(_AuxLoss):
         focal_weight: Annotated[float, NonNegative] = 20.0,
         dice_weight: Annotated[float, NonNegative] = 1.0,
         no_object_weight: Annotated[float, NonNegative] = 0.1,
-        coarse_group_weight: Annotated[float, NonNegative] = 0.2,
+        coarse_group_weight: Annotated[float, NonNegative] | None = None,
         dice_eps: Annotated[float, Positive] = 1.0,
         weight: Annotated[float, NonNegative] = 1.0,
         camera_mask: bool = True,
@@ -397,6 +402,8 @@ class DuOccMask(_AuxLoss):
             float(focal_weight),
             float(dice_weight),
         )
+        if coarse_group_weight is None:  # the public code: 1 / (num_groups - 1); nothing to weigh at G = 1
+            coarse_group_weight = 1.0 / (groups - 1) if groups > 1 else 0.0
         self.no_object_weight, self.coarse_group_weight = float(no_object_weight), float(coarse_group_weight)
         self.dice_eps = float(dice_eps)
         self.decoder = MaskDecoder(
@@ -442,17 +449,24 @@ class DuOccMask(_AuxLoss):
         return self.loss(self.decoder(features), labels, counted)
 
     def loss(self, layers: Sequence[MaskDecoderOutput], labels: Tensor, counted: Tensor) -> dict[str, Tensor]:
-        """The weighted terms for the decoder's ``layers`` against ``(B, X, Y, Z)`` labels at ``counted`` voxels."""
+        """The weighted terms for the decoder's ``layers`` against ``(B, X, Y, Z)`` labels at ``counted`` voxels.
+
+        Computed in float32 with autocast off, whatever the logits' dtype (``bf16-mixed``: sums over ~1e5 voxels).
+        """
+        with torch.autocast(labels.device.type, enabled=False):
+            return self._loss(layers, labels, counted)
+
+    def _loss(self, layers: Sequence[MaskDecoderOutput], labels: Tensor, counted: Tensor) -> dict[str, Tensor]:
         safe = torch.where(counted, labels, torch.full_like(labels, self.free_label))
         terms = {"mask_cls": [], "mask_focal": [], "mask_dice": []}
         for out in layers:
-            masks = out.mask_logits
+            masks = out.mask_logits.float()
             if tuple(masks.shape[2:]) != tuple(labels.shape[1:]):  # V_fin's grid -> the label grid, voxel centres
                 masks = F.interpolate(masks, size=labels.shape[1:], mode="trilinear", align_corners=False)
             per_group = masks.split(self.decoder.num_queries, dim=1)
             for g, (cls_logits, group_masks) in enumerate(zip(out.cls_logits, per_group, strict=True)):
                 w = 1.0 if g == 0 else self.coarse_group_weight
-                ce, focal, dice = self.group_loss(cls_logits, group_masks, self.lookup[g][safe], counted)
+                ce, focal, dice = self.group_loss(cls_logits.float(), group_masks, self.lookup[g][safe], counted)
                 terms["mask_cls"].append(w * self.cls_weight * ce)
                 terms["mask_focal"].append(w * self.focal_weight * focal)
                 terms["mask_dice"].append(w * self.dice_weight * dice)
@@ -471,6 +485,7 @@ class DuOccMask(_AuxLoss):
             ``(ce, focal, dice)`` scalars.
         """
         b, q, k1 = cls_logits.shape
+        cls_logits = cls_logits.float()
         target = torch.full((b, q), k1 - 1, dtype=torch.int64, device=cls_logits.device)
         focal, dice = cls_logits.new_zeros(()), cls_logits.new_zeros(())
         matched, seen = 0, []
@@ -479,7 +494,7 @@ class DuOccMask(_AuxLoss):
             if not bool(keep.any()):
                 continue  # nothing visible: no targets, not even "no object"
             seen.append(i)
-            pred = masks[i][:, keep]  # (Q, V)
+            pred = masks[i][:, keep].float()  # (Q, V), float32 (the sums below run over every visible voxel)
             gt_coarse = coarse[i][keep]
             gt_labels = gt_coarse.unique()
             gt_masks = (gt_coarse[None] == gt_labels[:, None]).to(pred.dtype)  # (M, V); free is a mask too

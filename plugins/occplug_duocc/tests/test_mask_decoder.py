@@ -5,6 +5,7 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from occplug import runner
 from occplug.interfaces import ModelOutputs
@@ -16,6 +17,7 @@ from occplug_duocc.mask_decoder import (
     OCC3D_GROUP_SPLIT,
     DuOccMask,
     MaskDecoder,
+    MaskDecoderOutput,
     group_lookup,
     mask_dice_cost,
     mask_dice_loss,
@@ -41,15 +43,25 @@ def _outputs(source, batch, seed=1):
     return ModelOutputs(None, None, StreamVoxelScene(volume, source.grid, source.label_grid), {}, lambda *a, **k: None)
 
 
+#: The public code's cfg ``group_split`` (projects/configs/DuOcc.py): label id (free = 17 last) -> coarse class,
+#: the last entry (free) the group's no-object index.
+CODE_GROUP_SPLIT = [
+    [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 2],
+    [0, 0, 1, 2, 0, 3, 4, 0, 0, 5, 0, 0, 0, 0, 0, 0, 0, 6],
+    [0, 1, 0, 0, 2, 0, 0, 3, 4, 0, 5, 0, 0, 0, 0, 0, 0, 6],
+    [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 2, 3, 0, 0, 4],
+    [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 2, 3, 4],
+]
+
+
 def test_group_tables_full_set_code_split_and_a_bad_split():
     full = group_lookup(18, 17, None)
     assert full.tolist() == list(range(18))  # Occ3D: free (17) is already the last id = group 0's no-object
     assert [len(g) for g in OCC3D_GROUP_SPLIT] == [2, 6, 6, 4, 4]  # the public code's group_split
-    objects = group_lookup(18, 17, OCC3D_GROUP_SPLIT[0])
-    assert objects.tolist() == [0] * 11 + [1] * 6 + [2]
-    rare = group_lookup(18, 17, OCC3D_GROUP_SPLIT[1])
-    assert rare[[2, 3, 5, 6, 9]].tolist() == [1, 2, 3, 4, 5] and rare[[0, 4, 16]].tolist() == [0, 0, 0]
-    assert int(rare[17]) == 6
+    assert [group_lookup(18, 17, split).tolist() for split in OCC3D_GROUP_SPLIT] == CODE_GROUP_SPLIT
+    source = _source(num_groups=6)
+    assert source.lookup.tolist() == [list(range(18)), *CODE_GROUP_SPLIT]
+    assert source.decoder.group_classes == (17, 2, 6, 6, 4, 4)  # the code's group_classes
     kitti = group_lookup(4, 0, None)  # free first (SemanticKITTI-like): the others shift down
     assert kitti.tolist() == [3, 0, 1, 2]
     with pytest.raises(ValueError, match="exactly once"):
@@ -58,6 +70,128 @@ def test_group_tables_full_set_code_split_and_a_bad_split():
         group_lookup(18, 17, [list(range(11))])  # 11..16 missing
     with pytest.raises(ValueError, match="num_groups 7"):
         _source(num_groups=7)
+
+
+def test_coarse_group_weight_defaults_to_the_codes_one_over_groups_minus_one():
+    assert _source(num_groups=3).coarse_group_weight == pytest.approx(1 / 2)
+    assert _source(num_groups=6).coarse_group_weight == pytest.approx(1 / 5)  # the code's 6 groups: 1/5
+    assert _source(num_groups=1).coarse_group_weight == 0.0  # no coarse group to weigh
+    assert _source(num_groups=3, coarse_group_weight=0.3).coarse_group_weight == 0.3  # explicit wins
+
+
+def _reference_group_loss(cls_logits, masks, coarse, keep):
+    """An independent Mask2Former group loss (scipy's Hungarian on the explicit cost, dense per-pair formulas).
+
+    ``cls_logits (B, Q, K + 1)``, ``masks (B, Q, X, Y, Z)``, ``coarse (B, X, Y, Z)`` (``K`` = free),
+    ``keep (B, X, Y, Z)``. Returns unweighted ``(ce, focal, dice)``: CE the no-object-0.1-weighted mean over the
+    queries of samples with visible voxels; focal (voxel mean per mask) and dice (eps 1) summed over the matched
+    pairs of the batch and divided by their count.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    def focal(logit, t):  # (..., V) logits and targets -> (...) voxel mean; alpha 0.25, gamma 2
+        p = logit.sigmoid()
+        pos = -0.25 * t * (1 - p) ** 2 * F.logsigmoid(logit)
+        neg = -0.75 * (1 - t) * p**2 * F.logsigmoid(-logit)
+        return (pos + neg).mean(-1)
+
+    def dice(logit, t):
+        p = logit.sigmoid()
+        return 1 - (2 * (p * t).sum(-1) + 1) / (p.sum(-1) + t.sum(-1) + 1)
+
+    q, k1 = cls_logits.shape[1:]
+    logits, targets, focal_sum, dice_sum, matched = [], [], 0.0, 0.0, 0
+    for b in range(cls_logits.shape[0]):
+        if not bool(keep[b].any()):
+            continue
+        pred, gt = masks[b][:, keep[b]], coarse[b][keep[b]]
+        labels = gt.unique()  # free (K) included: a ground-truth mask labelled with the no-object index
+        gt_masks = (gt[None] == labels[:, None]).float()
+        with torch.no_grad():
+            cost = (
+                -1.0 * cls_logits[b].softmax(-1)[:, labels]
+                + 20.0 * focal(pred[:, None], gt_masks[None])
+                + 1.0 * dice(pred[:, None], gt_masks[None])
+            )
+        rows, cols = linear_sum_assignment(cost.double().numpy())
+        rows, cols = torch.as_tensor(rows), torch.as_tensor(cols)
+        target = torch.full((q,), k1 - 1)
+        target[rows] = labels[cols]
+        logits.append(cls_logits[b])
+        targets.append(target)
+        focal_sum = focal_sum + focal(pred[rows], gt_masks[cols]).sum()
+        dice_sum = dice_sum + dice(pred[rows], gt_masks[cols]).sum()
+        matched += len(rows)
+    logits, targets = torch.cat(logits), torch.cat(targets)
+    weight = torch.ones(k1)
+    weight[-1] = 0.1
+    per_query = F.cross_entropy(logits, targets, reduction="none") * weight[targets]
+    return per_query.sum() / weight[targets].sum(), focal_sum / matched, dice_sum / matched
+
+
+def test_loss_equals_an_independent_reimplementation():
+    groups, queries = 4, 6
+    source = _source(num_groups=groups, num_queries=queries)
+    batch = make_tiny_batch()
+    labels = batch.voxel_labels.long().clone()
+    visible = batch.mask_camera.bool()
+    assert len(labels) == 2 and all(bool(v.any()) and bool((~v).any()) for v in visible)  # partly hidden samples
+    gen = torch.Generator().manual_seed(3)
+    ignore = visible & (torch.rand(labels.shape, generator=gen) < 0.05)
+    labels[ignore] = 255
+    keep = visible & (labels != 255)
+    counted = source.counted(batch, labels)
+    assert torch.equal(counted, keep)
+    layers = [
+        MaskDecoderOutput(
+            [torch.randn(2, queries, int(t.max()) + 1, generator=gen) for t in source.lookup],
+            torch.randn(2, groups * queries, *labels.shape[1:], generator=gen) * 2,
+        )
+        for _ in range(2)
+    ]  # two layers, logits on the label grid
+    got = source.loss(layers, labels, counted)
+    safe = torch.where(keep, labels, torch.full_like(labels, 17))
+    tables = [list(range(18)), *CODE_GROUP_SPLIT[: groups - 1]]
+    want = {"mask_cls": 0.0, "mask_focal": 0.0, "mask_dice": 0.0}
+    for out in layers:
+        for g in range(groups):
+            coarse = torch.as_tensor(tables[g])[safe]
+            masks = out.mask_logits[:, g * queries : (g + 1) * queries]
+            ce, focal, dice = _reference_group_loss(out.cls_logits[g], masks, coarse, keep)
+            w = 1.0 if g == 0 else 1 / (groups - 1)  # the code's coarse-group weight
+            want["mask_cls"] += w * 1.0 * ce
+            want["mask_focal"] += w * 20.0 * focal
+            want["mask_dice"] += w * 1.0 * dice
+    assert set(got) == set(want)
+    for key in want:
+        torch.testing.assert_close(got[key], torch.as_tensor(want[key], dtype=torch.float32), rtol=1e-5, atol=1e-6)
+
+
+def test_loss_is_float32_under_bf16_autocast():
+    source = _source()
+    batch = make_tiny_batch()
+    outputs = _outputs(source, batch)
+    full = source(batch, outputs)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        mixed = source(batch, outputs)  # the decoder runs in bf16, the loss must not
+    for key in full:
+        assert mixed[key].dtype == torch.float32, key
+        torch.testing.assert_close(mixed[key], full[key], rtol=5e-2, atol=1e-3)
+    # the loss math alone: bf16 logits give exactly the float32 loss of the same (rounded) values
+    labels = batch.voxel_labels.long()
+    counted = source.counted(batch, labels)
+    with torch.no_grad():
+        low = [
+            MaskDecoderOutput([c.bfloat16() for c in out.cls_logits], out.mask_logits.bfloat16())
+            for out in source.decoder(outputs.scene.features)
+        ]
+    high = [MaskDecoderOutput([c.float() for c in out.cls_logits], out.mask_logits.float()) for out in low]
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = source.loss(low, labels, counted)
+    want = source.loss(high, labels, counted)
+    for key in want:
+        assert got[key].dtype == torch.float32, key
+        torch.testing.assert_close(got[key], want[key], rtol=1e-5, atol=1e-6)
 
 
 def test_focal_and_dice_equal_hand_computed_values():
