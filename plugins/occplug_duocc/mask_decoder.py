@@ -37,8 +37,11 @@ Where the notes are silent (or the data flow here differs), the choices are:
   first layer;
 * normalisation (as Mask2Former's): CE is the class-weighted mean over the queries of the samples with visible
   voxels; focal is averaged over visible voxels per mask, focal and dice are summed over matched masks and
-  divided by the number of matched masks of the group in the batch (at least 1); matching and losses use every
-  visible voxel (no point sampling);
+  divided by the number of matched masks of the group in the batch (at least 1), where the code normalises each
+  sample on its own and divides the sum by the batch size; matching and losses use every visible voxel (no point
+  sampling);
+* a sample's ground-truth classes are those of its counted (camera-visible) voxels only; the code builds them over
+  the whole grid, so a class seen only outside the camera mask becomes an empty matched mask there;
 * the losses and the matching costs are computed in float32 with autocast off (under ``bf16-mixed`` the mask
   logits arrive in bfloat16, and sums over ~1e5 voxels would lose precision).
 """
