@@ -141,9 +141,8 @@ def test_rank_zero_follows_the_launcher_environment(
     assert (runner.default_run_dir(["baseline.yaml"]) == Path("/some/run")) is (not expected)
 
 
-# A stateful model (dense_voxels_history) read sequentially: 3 validation scenes of 2 frames, batch 2.
+# A stateful model read sequentially: 3 validation scenes of 2 frames, batch 2.
 STREAM = [
-    "model.scene.type=dense_voxels_history",
     "data.sequential=true",
     "data.preset=tiny",
     "data.train_scenes=1",
@@ -153,7 +152,21 @@ STREAM = [
 ]
 
 
-def test_ddp_streaming_validation_counts_every_frame_once_and_equals_one_process(tmp_path: Path) -> None:
+# DuOcc's recipes on a 20 x 20 x 8 grid (V_curr 10 x 10 x 4) with a narrower encoder, as in its plugin tests.
+DUOCC_SMALL = ["grid.range=[-8.0,-8.0,-1.0,8.0,8.0,5.4]", "model.encoder.out_channels=16", "model.encoder.width=16"]
+STREAMING_MODELS = [
+    pytest.param(BASELINE, ["model.scene.type=dense_voxels_history"], id="dense_voxels_history"),
+    # StreamAgg: V_fin per batch slot, warped into the next frame (reset: V_curr itself)
+    pytest.param("duocc/stream_agg", DUOCC_SMALL, id="duocc_stream_agg"),
+    # + QueryAgg: a dict state, {voxels: V_fin, detector: the top-k instances}, in one StreamState
+    pytest.param("duocc/full", DUOCC_SMALL, id="duocc_full"),
+]
+
+
+@pytest.mark.parametrize("config, model", STREAMING_MODELS)
+def test_ddp_streaming_validation_counts_every_frame_once_and_equals_one_process(
+    tmp_path: Path, config: str, model: list[str]
+) -> None:
     run = tmp_path / "run"
     torch_threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as in each DDP worker
@@ -163,7 +176,8 @@ def test_ddp_streaming_validation_counts_every_frame_once_and_equals_one_process
                 [
                     "fit",
                     "-c",
-                    BASELINE,
+                    config,
+                    *model,
                     *STREAM,
                     "trainer.accelerator=cpu",
                     "trainer.enable_progress_bar=false",
