@@ -127,6 +127,20 @@ def test_export_parity(checkpoint, fmt, tmp_path, capsys):
         import onnxruntime
 
         assert report["versions"]["onnxruntime"] == onnxruntime.__version__
+        _assert_deterministic_across_threads(checkpoint, out)
+
+
+def _assert_deterministic_across_threads(checkpoint: Path, artefact: Path) -> None:
+    """The splat's scatter-add runs in onnxruntime with several threads: the same bits every run."""
+    import onnxruntime as ort
+
+    model, (batch,) = _restored(checkpoint, frames=1)
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 4
+    session = ort.InferenceSession(str(artefact), options, providers=["CPUExecutionProvider"])
+    feed = {i.name: a.numpy() for i, a in zip(session.get_inputs(), ex.example_inputs(model, batch), strict=True)}
+    first = session.run(None, feed)[1]
+    assert all((session.run(None, feed)[1] == first).all() for _ in range(8))
 
 
 def test_exported_graph_takes_the_calibration(checkpoint, tmp_path):
@@ -296,23 +310,6 @@ def test_racy_accumulation_is_refused_with_one_line(baseline_checkpoint, monkeyp
     assert str(err.value).startswith("export to onnx: ScatterND(reduction=add) ")
     assert "races on duplicate indices" in str(err.value) and "\n" not in str(err.value)
     assert list(tmp_path.iterdir()) == []  # nothing half-written
-
-
-def test_onnx_artefact_is_deterministic_across_threads(checkpoint, tmp_path):
-    """The splat's scatter-add of every recipe runs in onnxruntime with several threads: the same bits every run."""
-    if importlib.util.find_spec("onnxruntime") is None:
-        pytest.skip("the export extra (onnx, onnxruntime, onnxscript) is not installed")
-    import onnxruntime as ort
-
-    model, (batch,) = _restored(checkpoint, frames=1)
-    out = tmp_path / "model.onnx"
-    ex.export_model(model, batch, "onnx", out)
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = 4
-    session = ort.InferenceSession(str(out), options, providers=["CPUExecutionProvider"])
-    feed = {i.name: a.numpy() for i, a in zip(session.get_inputs(), ex.example_inputs(model, batch), strict=True)}
-    first = session.run(None, feed)[1]
-    assert all((session.run(None, feed)[1] == first).all() for _ in range(8))
 
 
 def test_inverse3_matches_linalg_inv():
