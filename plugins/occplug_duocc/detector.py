@@ -98,6 +98,7 @@ __all__ = [
     "propagate_state",
     "sample_image_features",
     "select_detections",
+    "sigmoid_focal",
 ]
 
 #: Width of the encoded box / anchor: ``[cx, cy, cz, log l, log w, log h, sin, cos, vx, vy]``.
@@ -731,7 +732,8 @@ def select_detections(
 # ---------------------------------------------------------------------------------------------- loss
 
 
-def _sigmoid_focal(logits: Tensor, targets: Tensor, alpha: float, gamma: float) -> Tensor:
+def sigmoid_focal(logits: Tensor, targets: Tensor, alpha: float, gamma: float) -> Tensor:
+    """Sigmoid focal loss (Lin et al.), summed over every element of ``logits`` and the same-shape ``targets``."""
     p = logits.sigmoid()
     ce = F.binary_cross_entropy_with_logits(logits, targets, reduction="none")
     p_t = p * targets + (1 - p) * (1 - targets)
@@ -819,7 +821,7 @@ def detection_loss(
             diff = (pred[b, qi] - torch.nan_to_num(tgt, nan=0.0)).abs()
             box_loss = box_loss + (diff * w).sum()
         norm = max(num_pos, 1)
-        total_cls = total_cls + w_layer * cls_weight * _sigmoid_focal(logits, cls_target, alpha, gamma) / norm
+        total_cls = total_cls + w_layer * cls_weight * sigmoid_focal(logits, cls_target, alpha, gamma) / norm
         total_box = total_box + w_layer * box_weight * box_loss / norm
     return {"det_cls": total_cls, "det_box": total_box}
 

@@ -61,7 +61,7 @@ from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces import ModelOutputs
 
-from .detector import VoxelToQuery, _sigmoid_focal
+from .detector import VoxelToQuery, sigmoid_focal
 from .matching import linear_assignment
 from .scene import StreamVoxelScene, coarse_grid
 from .supervision import _AuxLoss
@@ -137,7 +137,7 @@ def mask_focal_cost(logits: Tensor, targets: Tensor, alpha: float = 0.25, gamma:
         alpha, gamma: focal weights (code: 0.25, 2).
 
     Returns:
-        ``(Q, M)``; entry ``[q, m]`` equals ``_sigmoid_focal(logits[q], targets[m]) / V`` (the loss of the pair).
+        ``(Q, M)``; entry ``[q, m]`` equals ``sigmoid_focal(logits[q], targets[m]) / V`` (the loss of the pair).
     """
     p = logits.sigmoid()
     pos = alpha * (1 - p).pow(gamma) * F.softplus(-logits)  # -log p, stably
@@ -506,7 +506,7 @@ class DuOccMask(_AuxLoss):
                 self.dice_eps,
             )  # fmt: skip
             target[i, qi] = gt_labels[gi]
-            focal = focal + _sigmoid_focal(pred[qi], gt_masks[gi], 0.25, 2.0) / pred.shape[1]
+            focal = focal + sigmoid_focal(pred[qi], gt_masks[gi], 0.25, 2.0) / pred.shape[1]
             dice = dice + mask_dice_loss(pred[qi], gt_masks[gi], self.dice_eps).sum()
             matched += int(qi.numel())
         if not seen:

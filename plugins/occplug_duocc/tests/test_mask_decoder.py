@@ -12,7 +12,7 @@ from occplug.interfaces import ModelOutputs
 from occplug.streams import set_stream_stage
 from occplug.testing import check_component, make_tiny_batch
 from occplug.testing.conformance import label_grid
-from occplug_duocc.detector import _sigmoid_focal
+from occplug_duocc.detector import sigmoid_focal
 from occplug_duocc.mask_decoder import (
     OCC3D_GROUP_SPLIT,
     DuOccMask,
@@ -205,7 +205,7 @@ def test_focal_and_dice_equal_hand_computed_values():
     # the matching costs are the losses of each pair: the diagonal of a square case equals the paired losses
     gen = torch.Generator().manual_seed(0)
     pred, gt = torch.randn(3, 50, generator=gen), (torch.rand(3, 50, generator=gen) > 0.5).float()
-    focal_pairs = torch.stack([_sigmoid_focal(pred[i], gt[i], 0.25, 2.0) / 50 for i in range(3)])
+    focal_pairs = torch.stack([sigmoid_focal(pred[i], gt[i], 0.25, 2.0) / 50 for i in range(3)])
     torch.testing.assert_close(mask_focal_cost(pred, gt).diagonal(), focal_pairs)
     torch.testing.assert_close(mask_dice_cost(pred, gt).diagonal(), mask_dice_loss(pred, gt))
 
