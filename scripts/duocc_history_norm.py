@@ -24,8 +24,8 @@ from occplug.streams import find_streams, set_stream_stage
 def norms_along_stream(run: Path, max_batches: int) -> dict[int, tuple[float, float]]:
     """``{position in scene: (mean |V_curr|, mean |V_S.A|)}`` over the first ``max_batches`` validation batches."""
     ckpt = run / "checkpoints" / "last.ckpt"
-    cfg = runner.resolve_run_config([], [], ckpt)
-    dm, model = runner._restore(cfg, runner.load_checkpoint(ckpt), ckpt)
+    dm, model = runner.build_run(runner.resolve_run_config([], [], ckpt))
+    model.load_state_dict(runner.load_checkpoint(ckpt)["state_dict"])
     model.eval()
     agg = model.scene.agg
     if agg is None:
