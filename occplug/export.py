@@ -17,6 +17,11 @@ The parity check runs the eager model with its own (cached) path on
 the original frames and on frames with perturbed intrinsics, extrinsics and image augmentation,
 so an export that baked one rig's geometry in would fail it.
 
+A model that reads **LiDAR** (a point encoder) also takes :data:`POINT_INPUTS`: the points, NaN-padded to
+the longest cloud of the batch, with the point count a dynamic dimension, and the LiDAR -> ego pose. Its point
+encoders must trace with any point count: drop points by pooling them into a discard row, not by boolean
+indexing (the core's ``voxel_points`` does so), and treat non-finite rows as no point.
+
 A **streaming** model (a component holding a :class:`occplug.streams.StreamState`) exports as
 :class:`StreamingWrapper`: one step of the stream, its state an explicit input and output. Besides
 :data:`INPUTS` the graph takes :data:`STREAM_INPUTS` (this frame's and the previous frame's pose,
@@ -70,6 +75,7 @@ from occplug.streams import StreamRead, StreamState, _leaves, _map, is_stateful,
 __all__ = [
     "FORMATS",
     "INPUTS",
+    "POINT_INPUTS",
     "STREAM_INPUTS",
     "ExplicitStream",
     "ExportError",
@@ -79,11 +85,15 @@ __all__ = [
     "export_checkpoint",
     "export_model",
     "export_ready",
+    "graph_inputs",
+    "inputs_of",
     "is_streaming",
     "load_exported",
     "occupancy_logits",
+    "pad_points",
     "parity",
     "perturb",
+    "reads_points",
     "report_path",
     "stream_inputs",
     "stream_parity",
@@ -109,8 +119,14 @@ STREAM_INPUTS = (
     "ego_to_global", "timestamp", "frame_index", "is_start", "prev_ego_to_global", "prev_timestamp", "prev_frame_index"
 )
 
+#: Extra graph inputs of a model that reads LiDAR (an inference component requiring ``points``), right after
+#: :data:`INPUTS`: ``points (B, P, F)`` float32 in the lidar frame (x, y, z, intensity, ...; a cloud with fewer
+#: than ``P`` points is padded with NaN rows, which point encoders treat as no point; ``P`` is a dynamic
+#: dimension of the graph) and ``lidar_to_ego (B, 4, 4)`` float32 (:func:`pad_points` builds ``points``).
+POINT_INPUTS = ("points", "lidar_to_ego")
+
 #: Fields of a batch the exported graph takes as inputs; a model reading any other optional field is refused.
-_SUPPORTED_FIELDS = frozenset(INPUTS)
+_SUPPORTED_FIELDS = frozenset(INPUTS) | frozenset(POINT_INPUTS)
 
 
 class ExportError(UserError):
@@ -141,6 +157,38 @@ def occupancy_logits(model: nn.Module, outputs: Any) -> Tensor:
     return heads[head_name].occupancy_logits(outputs.scene, model.grid)
 
 
+def reads_points(model: nn.Module) -> bool:
+    """Whether an inference component of ``model`` (not its supervision) requires the batch's LiDAR ``points``."""
+    supervision = {id(m) for s in (getattr(model, "supervision", None) or {}).values() for m in s.modules()}
+    return any(
+        "points" in (getattr(sub, "requires", ()) or ()) and id(sub) not in supervision for sub in model.modules()
+    )
+
+
+def graph_inputs(model: nn.Module) -> tuple[str, ...]:
+    """The graph's inputs of ``model`` before any stream inputs: :data:`INPUTS`, then :data:`POINT_INPUTS` when
+    it reads LiDAR (:func:`reads_points`)."""
+    return (*INPUTS, *POINT_INPUTS) if reads_points(model) else INPUTS
+
+
+def pad_points(clouds: Sequence[Tensor]) -> Tensor:
+    """``B`` point clouds ``(P_b, F)`` -> ``(B, max P_b, F)`` float32, the shorter ones padded with NaN rows."""
+    size = max(int(c.shape[0]) for c in clouds)
+    out = torch.full((len(clouds), size, int(clouds[0].shape[1])), float("nan"), dtype=torch.float32)
+    for b, cloud in enumerate(clouds):
+        out[b, : cloud.shape[0]] = cloud.float()
+    return out
+
+
+def _batch_of(template: Batch, names: Sequence[str], args: Sequence[Tensor], **fields: Any) -> Batch:
+    """``template`` with the graph inputs ``args`` (named ``names``) and ``fields`` in place (``points`` back to
+    one ``(P, F)`` tensor per frame, NaN padding rows included)."""
+    given = dict(zip(names, args, strict=True))
+    if "points" in given:
+        given["points"] = list(given["points"].unbind(0))
+    return dataclasses.replace(template, **given, **fields)
+
+
 class InferenceWrapper(nn.Module):
     """The exported function: one model's inference path on plain tensors (see :data:`INPUTS`, :data:`OUTPUTS`).
 
@@ -148,28 +196,31 @@ class InferenceWrapper(nn.Module):
         model: an :class:`~occplug.interfaces.model.OccupancyModel` (e.g. ``OccModel``) in eval mode.
         template: a :class:`~occplug.data.Batch` supplying every field that is not an input (scene
             names, tokens, frame indices, ...); its tensor inputs only fix the shapes.
+        names: the inputs, in order (:func:`graph_inputs`; default :data:`INPUTS`).
 
     Forward:
-        ``images, intrinsics, cam_to_ego, img_aug`` -> ``(class_ids (B, X, Y, Z) int64, logits
-        (B, K, X, Y, Z) float32)`` on the evaluation grid in the ego frame.
+        ``images, intrinsics, cam_to_ego, img_aug`` (then ``points, lidar_to_ego`` when ``names`` has them) ->
+        ``(class_ids (B, X, Y, Z) int64, logits (B, K, X, Y, Z) float32)`` on the evaluation grid in the ego frame.
     """
 
-    def __init__(self, model: nn.Module, template: Batch) -> None:
+    def __init__(self, model: nn.Module, template: Batch, names: Sequence[str] = INPUTS) -> None:
         super().__init__()
         self.model = model
         self.template = template
+        self.names = tuple(names)
 
-    def forward(self, images: Tensor, intrinsics: Tensor, cam_to_ego: Tensor, img_aug: Tensor) -> tuple[Tensor, Tensor]:
-        batch = dataclasses.replace(
-            self.template, images=images, intrinsics=intrinsics, cam_to_ego=cam_to_ego, img_aug=img_aug
-        )
+    def forward(self, *args: Tensor) -> tuple[Tensor, Tensor]:
+        batch = _batch_of(self.template, self.names, args)
         logits = occupancy_logits(self.model, self.model(batch))
         return logits.argmax(dim=1), logits
 
 
-def inputs_of(batch: Batch) -> tuple[Tensor, ...]:
-    """The graph inputs (:data:`INPUTS`) of ``batch``, float32 and contiguous."""
-    return tuple(getattr(batch, name).float().contiguous() for name in INPUTS)
+def inputs_of(batch: Batch, names: Sequence[str] = INPUTS) -> tuple[Tensor, ...]:
+    """The graph inputs ``names`` (:func:`graph_inputs`; default :data:`INPUTS`) of ``batch``, float32 and
+    contiguous (``points`` padded by :func:`pad_points`)."""
+    return tuple(
+        pad_points(batch.points) if name == "points" else getattr(batch, name).float().contiguous() for name in names
+    )
 
 
 # ---------------------------------------------------------------------------------------------- streaming
@@ -278,21 +329,28 @@ def _explicit_streams(model: nn.Module) -> Iterator[list[tuple[str, ExplicitStre
 class StreamingWrapper(nn.Module):
     """The exported function of a streaming model: one step, the state an explicit input and output.
 
-    Forward: :data:`INPUTS`, :data:`STREAM_INPUTS`, then the previous state tensors (``prev_state.<name>``)
-    -> ``(class_ids, logits, *state)``: the new state tensors (``state.<name>``) in the same order.
-    Built inside :func:`_explicit_streams` (``streams`` are its stand-ins).
+    Forward: ``names`` (:func:`graph_inputs`), :data:`STREAM_INPUTS`, then the previous state tensors
+    (``prev_state.<name>``) -> ``(class_ids, logits, *state)``: the new state tensors (``state.<name>``) in the
+    same order. Built inside :func:`_explicit_streams` (``streams`` are its stand-ins).
     """
 
-    def __init__(self, model: nn.Module, template: Batch, streams: list[ExplicitStream], sizes: list[int]) -> None:
+    def __init__(
+        self,
+        model: nn.Module,
+        template: Batch,
+        streams: list[ExplicitStream],
+        sizes: list[int],
+        names: Sequence[str] = INPUTS,
+    ) -> None:
         super().__init__()
         self.model = model
         self.template = template
         self.streams = streams
         self.sizes = sizes
+        self.names = tuple(names)
 
     def forward(self, *args: Tensor) -> tuple[Tensor, ...]:
-        n, m = len(INPUTS), len(STREAM_INPUTS)
-        images, intrinsics, cam_to_ego, img_aug = args[:n]
+        n, m = len(self.names), len(STREAM_INPUTS)
         ego, timestamp, frame_index, is_start, prev_ego, prev_timestamp, prev_frame_index = args[n : n + m]
         state = list(args[n + m :])
         previous = self.streams[0].previous
@@ -300,8 +358,8 @@ class StreamingWrapper(nn.Module):
         previous.timestamp, previous.frame_index = prev_timestamp, prev_frame_index
         for stream, size in zip(self.streams, self.sizes, strict=True):
             stream.prev, state = state[:size], state[size:]
-        batch = dataclasses.replace(
-            self.template, images=images, intrinsics=intrinsics, cam_to_ego=cam_to_ego, img_aug=img_aug,
+        batch = _batch_of(
+            self.template, self.names, args[:n],
             ego_to_global=ego, timestamp=timestamp, frame_index=frame_index, is_sequence_start=is_start,
         )
         logits = occupancy_logits(self.model, self.model(batch))
@@ -353,14 +411,25 @@ class _Graph:
     state_names: list[str] = dataclasses.field(default_factory=list)
     initial_state: list[Tensor] = dataclasses.field(default_factory=list)
 
+    @property
+    def dynamic_shapes(self) -> tuple[tuple[dict[int, Any] | None, ...]] | None:
+        """``torch.export``'s ``dynamic_shapes``: the point count of ``points`` (None without a point input)."""
+        if "points" not in self.input_names:
+            return None
+        count = torch.export.Dim("points", min=2)
+        # the wrappers take *args: one entry, the specs of all positional inputs
+        return (tuple({1: count} if name == "points" else None for name in self.input_names),)
+
 
 @contextlib.contextmanager
 def _graph(model: nn.Module, template: Batch) -> Iterator[_Graph]:
     """The :class:`_Graph` of ``model`` on ``template``'s shapes, ready to trace inside (raises ExportError)."""
     check_exportable(model)
+    inputs = graph_inputs(model)
     with export_ready(model), _explicit_streams(model) as named:
         if not named:
-            yield _Graph(InferenceWrapper(model, template).eval(), inputs_of(template), list(INPUTS), list(OUTPUTS))
+            wrapper = InferenceWrapper(model, template, inputs).eval()
+            yield _Graph(wrapper, inputs_of(template, inputs), list(inputs), list(OUTPUTS))
             return
         streams = [s for _, s in named]
         with torch.no_grad(), _quiet():  # the probe: one restarting step gives each state's structure
@@ -373,10 +442,10 @@ def _graph(model: nn.Module, template: Batch) -> Iterator[_Graph]:
             names += [name if len(stream.new) == 1 else f"{name}.{i}" for i in range(len(stream.new))]
             initial += [torch.zeros_like(t) for t in stream.new]
             stream.new = None
-        wrapper = StreamingWrapper(model, template, streams, sizes).eval()
+        wrapper = StreamingWrapper(model, template, streams, sizes, inputs).eval()
         yield _Graph(
-            wrapper, (*inputs_of(template), *stream_inputs(template, None), *initial),
-            [*INPUTS, *STREAM_INPUTS, *(f"prev_state.{n}" for n in names)],
+            wrapper, (*inputs_of(template, inputs), *stream_inputs(template, None), *initial),
+            [*inputs, *STREAM_INPUTS, *(f"prev_state.{n}" for n in names)],
             [*OUTPUTS, *(f"state.{n}" for n in names)], names, initial,
         )
 
@@ -420,7 +489,7 @@ def check_exportable(model: nn.Module) -> None:
         if extra and id(sub) not in supervision:  # supervision is not part of inference
             raise ExportError(
                 f"model.{name} ({type(sub).__name__}) reads batch field(s) {', '.join(sorted(extra))}; the exported "
-                f"graph takes only {', '.join(INPUTS)}"
+                f"graph takes only {', '.join(sorted(_SUPPORTED_FIELDS))}"
             )
 
 
@@ -569,7 +638,7 @@ def trace(model: OccupancyModel, template: Batch) -> torch.export.ExportedProgra
 def _trace(graph: _Graph, model: nn.Module) -> torch.export.ExportedProgram:
     with torch.no_grad(), _quiet():
         try:
-            return torch.export.export(graph.wrapper, graph.args)
+            return torch.export.export(graph.wrapper, graph.args, dynamic_shapes=graph.dynamic_shapes)
         except ExportError:
             raise
         except Exception as exc:  # torch.export raises many types; all mean "this code cannot be traced"
@@ -763,6 +832,7 @@ def parity(
     if is_streaming(model):
         return stream_parity(model, exported, batches, fmt, repeats)
     model.eval()
+    names = graph_inputs(model)
     frames = [f for i, batch in enumerate(batches) for f in (batch, perturb(batch, seed=i))]
     max_diff, agree, voxels = 0.0, 0, 0
     eager_ms: list[float] = []
@@ -770,9 +840,9 @@ def parity(
     with torch.no_grad():
         for batch in frames[:1]:  # warm-up (first calls allocate, build plans)
             model.predict_occupancy(batch)
-            exported(*inputs_of(batch))
+            exported(*inputs_of(batch, names))
         for batch in frames:
-            args = inputs_of(batch)
+            args = inputs_of(batch, names)
             eager_t, got_t = [], []
             for _ in range(max(1, repeats)):
                 t0 = time.perf_counter()
@@ -839,18 +909,19 @@ def stream_parity(
     max_diff, state_diff, agree, voxels, starts = 0.0, 0.0, 0, 0, 0
     eager_ms: list[float] = []
     exported_ms: list[float] = []
-    start_at = len(INPUTS) + STREAM_INPUTS.index("is_start")
+    inputs = graph_inputs(model)
+    start_at = len(inputs) + STREAM_INPUTS.index("is_start")
     try:
         set_stream_stage(model, "predict")
         with torch.no_grad():
             _eager_outputs(model, batches[0])  # warm-up (first calls allocate, build plans)
-            exported(*inputs_of(batches[0]), *stream_inputs(batches[0], None), *initial)
+            exported(*inputs_of(batches[0], inputs), *stream_inputs(batches[0], None), *initial)
             for sequence in sequences:
                 for state in states:
                     state.clear("predict")
                 carried, previous = list(initial), None
                 for batch in sequence:
-                    args = (*inputs_of(batch), *stream_inputs(batch, previous), *carried)
+                    args = (*inputs_of(batch, inputs), *stream_inputs(batch, previous), *carried)
                     starts += int(args[start_at].sum())
                     before = [state.state_dict() for state in states]
                     eager_t, got_t = [], []

@@ -31,6 +31,9 @@ STREAMING = ("data.sequential=true", "model.scene.type=dense_voxels_history")
 #: A plugin by (entry point name, source folder, hook module): loaded from its source tree when not installed.
 EXAMPLE = ("example", ROOT / "plugins" / "example" / "src", "occplug_example.plugin")
 
+#: OccLE on 8 x 8 x 4 voxels, 2 Dual Mamba levels, scan chunks of 16: the traced graph stays small.
+OCCLE_SMALL = ("grid.range=[0.0,-3.2,-1.0,6.4,3.2,2.2]", "model.scene.mamba_channels=[16,24]", "model.scene.mamba_chunk=16")
+
 #: (config refs, overrides, plugin or None) of every model whose export is checked; one line per model.
 RECIPES = [
     pytest.param(((BASELINE,), (), None), id="baseline"),
@@ -41,6 +44,8 @@ RECIPES = [
     # DuOcc: the stateful StreamAgg scene (its history an explicit input and output), and the stacking baseline
     pytest.param((("duocc/stream_agg",), (), None), id="duocc_stream_agg"),
     pytest.param((("duocc/stacking",), (), None), id="duocc_stacking"),
+    # OccLE: LiDAR points as a graph input (dynamic point count), the Hilbert-serialised Dual Mamba
+    pytest.param((("occle/base",), OCCLE_SMALL, None), id="occle"),
 ]
 
 
@@ -152,13 +157,62 @@ def test_exported_graph_takes_the_calibration(checkpoint, tmp_path):
     other = ex.perturb(batch, seed=3)
     args = ex.example_inputs(model, batch)  # a streaming model: the first frame of a stream
     same = run(*args)[1]
-    moved = run(*ex.inputs_of(other), *args[len(ex.INPUTS) :])[1]
+    names = ex.graph_inputs(model)
+    moved = run(*ex.inputs_of(other, names), *args[len(names) :])[1]
     with torch.no_grad():
         eager = ex.occupancy_logits(model, model(other))
     change, error = float((moved - same).abs().max()), float((moved - eager).abs().max())
     assert error <= 1e-4
     # the geometry is an input, not a constant: the rig moves the output far beyond the export's error
     assert change > max(100 * error, 1e-5)
+
+
+@pytest.fixture(scope="module")
+def occle_checkpoint(tmp_path_factory) -> Path:
+    return _fitted((("occle/base",), OCCLE_SMALL, None), tmp_path_factory)
+
+
+def test_lidar_graph_takes_any_point_count_and_ignores_nan_padding(occle_checkpoint, tmp_path):
+    """A model reading LiDAR: points (NaN-padded, the count dynamic) and lidar_to_ego are graph inputs."""
+    model, (batch, other) = _restored(occle_checkpoint)
+    names = ex.graph_inputs(model)
+    assert names == (*ex.INPUTS, "points", "lidar_to_ego")
+    out = tmp_path / "model.pt2"
+    ex.export_model(model, batch, "torch_export", out)
+    run = ex.load_exported(out, "torch_export")
+    # another frame's cloud (another count), then the same cloud cut to 60 % and padded back with NaN rows
+    count = int(other.points[0].shape[0])
+    assert count != int(batch.points[0].shape[0])
+    cut = dataclasses.replace(other, points=[other.points[0][: count * 3 // 5]])
+    with torch.no_grad():
+        eager_other = ex.occupancy_logits(model, model(other))
+        eager_cut = ex.occupancy_logits(model, model(cut))
+    got_other = run(*ex.inputs_of(other, names))[1]
+    args = list(ex.inputs_of(cut, names))
+    args[names.index("points")] = ex.pad_points([cut.points[0], other.points[0]])[:1]  # padded to `count` rows
+    assert args[names.index("points")].shape[1] == count and torch.isnan(args[names.index("points")]).any()
+    got_cut = run(*args)[1]
+    assert float((got_other - eager_other).abs().max()) <= 1e-4
+    assert float((got_cut - eager_cut).abs().max()) <= 1e-4
+    assert float((eager_cut - eager_other).abs().max()) > 1e-3  # the points are an input, not a constant
+
+
+def test_component_reading_a_field_that_is_no_graph_input_is_refused(baseline_checkpoint, monkeypatch):
+    model, _ = _restored(baseline_checkpoint, frames=1)
+    assert ex.graph_inputs(model) == ex.INPUTS  # reads no points: the camera inputs only
+    monkeypatch.setattr(model.scene, "requires", frozenset({"boxes"}), raising=False)
+    with pytest.raises(ex.ExportError, match=r"^model\.scene \(\w+\) reads batch field\(s\) boxes; the exported graph"):
+        ex.check_exportable(model)
+    monkeypatch.setattr(model.scene, "requires", frozenset({"points"}), raising=False)
+    ex.check_exportable(model)  # LiDAR is a graph input
+    assert ex.graph_inputs(model) == (*ex.INPUTS, *ex.POINT_INPUTS)
+
+
+def test_pad_points_pads_with_nan_rows():
+    a, b = torch.arange(8.0).view(2, 4), torch.ones(3, 4)
+    padded = ex.pad_points([a, b])
+    assert padded.shape == (2, 3, 4) and padded.dtype == torch.float32
+    assert torch.equal(padded[0, :2], a) and torch.isnan(padded[0, 2]).all() and torch.equal(padded[1], b)
 
 
 def test_cached_splat_plan_cannot_be_traced(checkpoint, monkeypatch):

@@ -22,7 +22,8 @@ def voxel_point_statistics(points: Tensor, intensity: Tensor, grid: GridSpec) ->
     """Per-voxel point statistics of one sample, dense on ``grid``.
 
     Args:
-        points: ``(P, 3)`` ego-frame points, metres.
+        points: ``(P, 3)`` ego-frame points, metres (non-finite rows, e.g. the padding of an exported graph's
+            point input, count as no point).
         intensity: ``(P,)`` intensities in [0, 1].
         grid: the target grid (points outside it are dropped).
 
@@ -32,17 +33,19 @@ def voxel_point_statistics(points: Tensor, intensity: Tensor, grid: GridSpec) ->
         voxel holds no point.
     """
     shape = grid.shape
-    inside = grid.contains(points)
-    pts, inten = points[inside], intensity[inside]
-    idx = grid.coord_to_index(pts)
-    flat = (idx[:, 0] * shape[1] + idx[:, 1]) * shape[2] + idx[:, 2]
-    size = torch.tensor(grid.voxel_size, dtype=pts.dtype, device=pts.device)
-    offset = (pts - grid.index_to_coord(idx).to(pts.dtype)) / size
-    values = torch.cat([torch.ones_like(inten)[:, None], offset, inten[:, None]], dim=1).float()
     n = shape[0] * shape[1] * shape[2]
-    sums = torch.zeros(n, values.shape[1], dtype=torch.float32, device=pts.device).index_add_(0, flat, values)
-    count = sums[:, :1]
-    means = sums[:, 1:] / count.clamp(min=1.0)
+    # dropped points are pooled into one extra row, not indexed away: fixed shapes, so this traces for export
+    idx = grid.coord_to_index(points)
+    inside = grid.contains(points) & grid.index_in_bounds(idx) & torch.isfinite(intensity)
+    idx = torch.where(inside[:, None], idx, torch.zeros_like(idx))
+    flat = torch.where(inside, (idx[:, 0] * shape[1] + idx[:, 1]) * shape[2] + idx[:, 2], n)
+    size = torch.tensor(grid.voxel_size, dtype=points.dtype, device=points.device)
+    offset = (points - grid.index_to_coord(idx).to(points.dtype)) / size
+    values = torch.cat([torch.ones_like(intensity)[:, None], offset, intensity[:, None]], dim=1).float()
+    values = torch.where(inside[:, None], values, torch.zeros_like(values))
+    sums = torch.zeros(n + 1, values.shape[1], dtype=torch.float32, device=points.device).index_add_(0, flat, values)
+    count = sums[:n, :1]
+    means = sums[:n, 1:] / count.clamp(min=1.0)
     out = torch.cat([torch.log1p(count), means], dim=1)
     return out.t().reshape(len(STATISTICS), *shape)
 
@@ -60,7 +63,8 @@ class VoxelPoints(PointEncoder):
         num_layers: 3D conv layers (>= 1).
 
     Shapes:
-        reads ``batch.points`` (per sample ``(P, 4)`` lidar-frame x, y, z, intensity) and
+        reads ``batch.points`` (per sample ``(P, 4)`` lidar-frame x, y, z, intensity; non-finite rows are
+        padding) and
         ``batch.lidar_to_ego`` ``(B, 4, 4)``; returns ``(B, out_channels, X, Y, Z)`` in the ego frame.
     """
 

@@ -54,7 +54,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import torch
 import torch.nn.functional as F
@@ -548,19 +548,38 @@ def voxelize_points(points: Sequence[Tensor], grid: GridSpec | dict, max_points:
     )
 
 
+#: Knuth's multiplicative hash constant (odd, so ``i -> i * HASH mod 2^32`` is a bijection on 32-bit indices).
+_INDEX_HASH = 2654435761
+
+#: How a voxel with more than ``max_points`` points picks the ones it keeps (:class:`LidarVoxelEncoder`).
+PointSampling = Literal["random", "first"]
+
+
 class LidarVoxelEncoder(nn.Module):
     """LiDAR points -> a dense feature grid: VoxelNet voxel feature encoding (§3.2's dense 3D input path).
 
-    Points are grouped by :func:`voxelize_points`; each voxel's points go through a shared point MLP
-    (``Linear -> LayerNorm -> ReLU``), get the voxel's max-pooled feature appended (VoxelNet's VFE), pass a
-    second ``Linear -> LayerNorm -> ReLU`` and are max-pooled again into the voxel feature, which is scattered
-    into a zero grid. A voxel's feature depends only on its own (kept) points, in any order.
+    Every point gets its voxel of ``grid`` (points outside it, and non-finite rows -- the padding of an exported
+    graph's point input -- go nowhere); a voxel keeps at most ``max_points`` of its points; the kept points go
+    through a shared point MLP (``Linear -> LayerNorm -> ReLU``), get the voxel's max-pooled feature appended
+    (VoxelNet's VFE), pass a second ``Linear -> LayerNorm -> ReLU`` and are max-pooled again into the voxel
+    feature on a zero grid. A voxel's feature depends only on its own kept points, in any order.
+
+    Which points a voxel keeps (``sampling``): ``"random"`` (§3.2: "randomly samples up to 35 points per
+    voxel") -- a fresh random subset every training step, and in eval a fixed pseudo-random one (points ranked
+    by a multiplicative hash of their input index, so the subset does not follow the scan order of the sensor,
+    and the same points are kept in an exported graph); ``"first"``: the first ones in input order
+    (:func:`voxelize_points`'s rule).
+
+    The pooling runs over one slot per voxel of the batch plus one discard slot, with fixed shapes (no
+    data-dependent indexing), so the encoder traces for export with any number of points; it equals the
+    VoxelNet computation on :func:`voxelize_points` (tested).
 
     Args:
         grid: the output grid (a :class:`GridSpec` or ``{range, voxel_size}``).
         point_features: ``F``, features per point after ``x, y, z`` (1 for intensity).
         out_channels: ``C`` of the output; hidden: width of the first point layer.
         max_points: points kept per voxel (§3.2: 35).
+        sampling: ``"random"`` or ``"first"`` (above).
 
     Forward: ``B`` tensors ``(P_b, 3 + F)`` of ego-frame points -> ``(B, C, X, Y, Z)`` (zero in empty voxels).
     """
@@ -572,30 +591,76 @@ class LidarVoxelEncoder(nn.Module):
         out_channels: Annotated[int, Positive] = 32,
         hidden: Annotated[int, Positive] = 32,
         max_points: Annotated[int, Positive] = 35,
+        sampling: PointSampling = "random",
     ) -> None:
         super().__init__()
+        if sampling not in ("random", "first"):
+            raise ValueError(f"lidar voxel encoder: sampling must be 'random' or 'first', got {sampling!r}")
         self.grid = GridSpec.from_config(grid)
         self.point_features, self.out_channels, self.max_points = int(point_features), int(out_channels), max_points
+        self.sampling = sampling
         self.point_net = nn.Sequential(nn.Linear(6 + self.point_features, hidden), nn.LayerNorm(hidden), nn.ReLU())
         self.voxel_net = nn.Sequential(nn.Linear(2 * hidden, out_channels), nn.LayerNorm(out_channels), nn.ReLU())
 
+    def _order_within_voxel(self, count: int, device: torch.device) -> Tensor:
+        """``(count,)`` int64 in ``[0, 2^32)``, distinct: the rank key of a sample's points inside their voxel."""
+        index = torch.arange(count, device=device, dtype=torch.int64)
+        if self.sampling == "first":
+            return index
+        if self.training:
+            return torch.randperm(count, device=device)
+        return index * _INDEX_HASH % (1 << 32)
+
+    def slots(self, points: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
+        """Each point's features and pooling slot, sorted by voxel (fixed shapes: every point has a row).
+
+        Returns:
+            ``features`` ``(N, 6 + F)`` (ego-frame ``x, y, z``, the ``F`` extra features, offset from the voxel
+            centre; zero for a point that is dropped) and ``slot`` ``(N,)`` int64: ``b * X * Y * Z + flat
+            voxel index`` for a kept point, ``B * X * Y * Z`` (the discard slot) for a point outside the grid,
+            non-finite, or past its voxel's ``max_points``. ``N = sum P_b``.
+        """
+        x, y, z = self.grid.shape
+        cells = x * y * z
+        discard = len(points) * cells
+        feats, keys = [], []
+        for b, pts in enumerate(points):
+            if pts.dim() != 2 or pts.shape[1] != 3 + self.point_features:
+                raise ValueError(
+                    f"lidar voxel encoder: sample {b}: expected (P, {3 + self.point_features}) points, got "
+                    f"{tuple(pts.shape)}"
+                )
+            xyz = pts[:, :3]
+            idx = self.grid.coord_to_index(xyz)
+            valid = self.grid.contains(xyz) & self.grid.index_in_bounds(idx) & torch.isfinite(pts).all(dim=1)
+            idx = torch.where(valid[:, None], idx, torch.zeros_like(idx))
+            centre = self.grid.index_to_coord(idx).to(pts.dtype)
+            feat = torch.cat([pts, xyz - centre], dim=1)
+            feats.append(torch.where(valid[:, None], feat, torch.zeros_like(feat)))
+            flat = b * cells + (idx[:, 0] * y + idx[:, 1]) * z + idx[:, 2]
+            voxel = torch.where(valid, flat, torch.full_like(flat, discard))
+            keys.append(voxel * (1 << 32) + self._order_within_voxel(pts.shape[0], pts.device))
+        feat, key = torch.cat(feats), torch.cat(keys)
+        key, order = torch.sort(key)  # the keys are distinct: voxel-major, the sampling's rank within a voxel
+        voxel = key // (1 << 32)
+        position = torch.arange(key.shape[0], device=key.device)
+        first = torch.full((discard + 1,), key.shape[0], dtype=torch.int64, device=key.device)
+        first = first.scatter_reduce(0, voxel, position, reduce="amin")  # each voxel's first sorted position
+        kept = (position - first[voxel] < self.max_points) & (voxel < discard)
+        return feat[order], torch.where(kept, voxel, torch.full_like(voxel, discard))
+
     @staticmethod
-    def _voxel_max(h: Tensor, voxel: Tensor, num_voxels: int) -> Tensor:
-        """``(N, D)`` point features -> ``(V, D)``: the max over each voxel's points (every voxel has one)."""
-        out = h.new_zeros(num_voxels, h.shape[1])
-        return out.scatter_reduce(0, voxel[:, None].expand_as(h), h, reduce="amax", include_self=False)
+    def _slot_max(h: Tensor, slot: Tensor, slots: int) -> Tensor:
+        """``(N, D)`` point features -> ``(slots, D)``: the max over each slot's points (0 where it has none)."""
+        out = h.new_zeros(slots, h.shape[1])
+        return out.scatter_reduce(0, slot[:, None].expand_as(h), h, reduce="amax", include_self=False)
 
     def forward(self, points: Sequence[Tensor]) -> Tensor:
-        vox = voxelize_points(points, self.grid, self.max_points)
-        v = len(vox.counts)
-        # only the kept points go through the MLPs (the padded (V, M, D) block is mostly empty)
-        voxel_of = torch.arange(v, device=vox.counts.device).repeat_interleave(vox.counts)
-        h = self.point_net(vox.features[vox.mask])  # (N, hidden), voxel-major like voxel_of
-        pooled = self._voxel_max(h, voxel_of, v)
-        h = self.voxel_net(torch.cat([h, pooled[voxel_of]], dim=-1))
-        voxel = self._voxel_max(h, voxel_of, v)  # (V, C)
+        feat, slot = self.slots(points)
         x, y, z = self.grid.shape
-        dense = voxel.new_zeros(vox.batch_size * x * y * z, self.out_channels)
-        b, i, j, k = vox.coords.unbind(1)
-        dense[((b * x + i) * y + j) * z + k] = voxel
-        return dense.view(vox.batch_size, x, y, z, self.out_channels).permute(0, 4, 1, 2, 3)
+        slots = len(points) * x * y * z + 1
+        h = self.point_net(feat)  # (N, hidden)
+        pooled = self._slot_max(h, slot, slots)
+        h = self.voxel_net(torch.cat([h, pooled[slot]], dim=-1))
+        voxel = self._slot_max(h, slot, slots)[:-1]  # (B * X * Y * Z, C): the discard slot dropped
+        return voxel.view(len(points), x, y, z, self.out_channels).permute(0, 4, 1, 2, 3)

@@ -12,7 +12,7 @@ from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, transform_points
 from occplug.interfaces import PointEncoder
 
-from .geometry_branch import LidarVoxelEncoder
+from .geometry_branch import LidarVoxelEncoder, PointSampling
 
 __all__ = ["OccleLidarVoxels"]
 
@@ -28,12 +28,15 @@ class OccleLidarVoxels(PointEncoder):
         grid: the output grid (the evaluation grid when left out).
         out_channels: ``C`` of the output volume.
         hidden: width of the first point layer.
-        max_points: points kept per voxel (§3.2: 35; the first ones in input order, deterministic).
+        max_points: points kept per voxel (§3.2: 35).
         point_features: feature columns per point after ``x, y, z`` (1: intensity).
+        sampling: which points a fuller voxel keeps: ``random`` (§3.2; a fresh subset every training step, a
+            fixed pseudo-random one in eval and export) or ``first`` (input order).
 
     Forward:
-        ``batch.points`` (per sample ``(P, 3 + F)`` lidar frame) and ``batch.lidar_to_ego`` ``(B, 4, 4)``
-        -> ``(B, out_channels, X, Y, Z)`` ego frame, zero in voxels without a point.
+        ``batch.points`` (per sample ``(P, 3 + F)`` lidar frame; non-finite rows are padding, no point) and
+        ``batch.lidar_to_ego`` ``(B, 4, 4)`` -> ``(B, out_channels, X, Y, Z)`` ego frame, zero in voxels without
+        a point.
     """
 
     requires = frozenset({"points"})
@@ -45,9 +48,10 @@ class OccleLidarVoxels(PointEncoder):
         hidden: Annotated[int, Positive] = 32,
         max_points: Annotated[int, Positive] = 35,
         point_features: Annotated[int, NonNegative] = 1,
+        sampling: PointSampling = "random",
     ) -> None:
         super().__init__()
-        self.encoder = LidarVoxelEncoder(grid, point_features, out_channels, hidden, max_points)
+        self.encoder = LidarVoxelEncoder(grid, point_features, out_channels, hidden, max_points, sampling)
         self.grid = self.encoder.grid
         self.out_channels = int(out_channels)
         self.point_features = int(point_features)

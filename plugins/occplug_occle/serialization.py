@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import functools
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -109,7 +110,8 @@ def _check_shape(shape: tuple[int, ...]) -> tuple[int, int, int]:
 
 
 @functools.lru_cache(maxsize=64)
-def _curve(shape: tuple[int, int, int]) -> Tensor:
+def _curve(shape: tuple[int, int, int]) -> np.ndarray:
+    # numpy, not torch: a cached torch tensor made while torch.export traces would be a fake tensor
     sx, sy, sz = shape
     runs: list[tuple[_Vec, _Vec, int]] = []
     # the longest side is the major axis, as in the reference algorithm
@@ -119,13 +121,15 @@ def _curve(shape: tuple[int, int, int]) -> Tensor:
         _gilbert((0, 0, 0), (0, sy, 0), (sx, 0, 0), (0, 0, sz), runs)
     else:
         _gilbert((0, 0, 0), (0, 0, sz), (sx, 0, 0), (0, sy, 0), runs)
-    start = torch.tensor([r[0] for r in runs], dtype=torch.long)  # (R, 3)
-    step = torch.tensor([r[1] for r in runs], dtype=torch.long)
-    count = torch.tensor([r[2] for r in runs], dtype=torch.long)
-    run_of_cell = torch.repeat_interleave(torch.arange(len(runs)), count)
-    first_cell = torch.cumsum(count, 0) - count
-    offset = torch.arange(int(count.sum())) - first_cell[run_of_cell]
-    return start[run_of_cell] + step[run_of_cell] * offset[:, None]
+    start = np.array([r[0] for r in runs], dtype=np.int64)  # (R, 3)
+    step = np.array([r[1] for r in runs], dtype=np.int64)
+    count = np.array([r[2] for r in runs], dtype=np.int64)
+    run_of_cell = np.repeat(np.arange(len(runs)), count)
+    first_cell = np.cumsum(count) - count
+    offset = np.arange(int(count.sum())) - first_cell[run_of_cell]
+    xyz = start[run_of_cell] + step[run_of_cell] * offset[:, None]
+    xyz.flags.writeable = False
+    return xyz
 
 
 def hilbert_curve(shape: tuple[int, int, int]) -> Tensor:
@@ -136,17 +140,18 @@ def hilbert_curve(shape: tuple[int, int, int]) -> Tensor:
 
     Returns:
         ``(X * Y * Z, 3)`` int64 cell indices ``(x, y, z)``; row ``i`` is the ``i``-th cell visited.
-        Cached per shape: treat it as read-only.
+        Computed once per shape (a fresh copy each call).
     """
-    return _curve(_check_shape(tuple(shape)))
+    return torch.from_numpy(_curve(_check_shape(tuple(shape))).copy())
 
 
 @functools.lru_cache(maxsize=64)
-def _permutation(shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
+def _permutation(shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
     xyz = _curve(shape)
     perm = (xyz[:, 0] * shape[1] + xyz[:, 1]) * shape[2] + xyz[:, 2]
-    inverse = torch.empty_like(perm)
-    inverse[perm] = torch.arange(perm.numel())
+    inverse = np.empty_like(perm)
+    inverse[perm] = np.arange(perm.size)
+    perm.flags.writeable = inverse.flags.writeable = False
     return perm, inverse
 
 
@@ -160,16 +165,17 @@ def hilbert_permutation(shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
         ``(perm, inverse)``, both ``(X * Y * Z,)`` int64 on the CPU: ``perm[i]`` is the flat 3D index
         ``x * Y * Z + y * Z + z`` of the ``i``-th cell along the curve (1D order -> 3D), and
         ``inverse[j]`` is the position along the curve of flat cell ``j`` (3D -> 1D), so
-        ``perm[inverse] == inverse[perm] == arange``. Cached per shape (they are reused every
-        forward): treat them as read-only.
+        ``perm[inverse] == inverse[perm] == arange``. Computed once per shape (fresh copies each
+        call).
     """
-    return _permutation(_check_shape(tuple(shape)))
+    perm, inverse = _permutation(_check_shape(tuple(shape)))
+    return torch.from_numpy(perm.copy()), torch.from_numpy(inverse.copy())
 
 
-@functools.lru_cache(maxsize=64)
 def _permutation_on(shape: tuple[int, int, int], device: torch.device) -> tuple[Tensor, Tensor]:
+    # a fresh tensor per call (two 8k-element copies): while torch.export traces, it becomes a graph constant
     perm, inverse = _permutation(shape)
-    return perm.to(device), inverse.to(device)
+    return torch.tensor(perm, device=device), torch.tensor(inverse, device=device)
 
 
 def serialize(x: Tensor) -> Tensor:

@@ -147,6 +147,10 @@ def test_voxel_point_statistics_known_values():
         out[:, 1, 1, 0], torch.tensor([np.log(2.0), 0.0, 0.0, 0.4, 1.0], dtype=torch.float32), rtol=0, atol=1e-6
     )
     assert out[:, 0, 1].abs().sum() == 0 and out[:, 1, 0].abs().sum() == 0  # empty voxels; the far point dropped
+    # non-finite rows (an exported graph's point padding) are no points: the same statistics
+    nan = torch.full((2, 3), float("nan"))
+    padded = voxel_point_statistics(torch.cat([pts, nan]), torch.tensor([0.2, 0.4, 1.0, 0.7, 0.5, float("nan")]), grid)
+    torch.testing.assert_close(padded, out, rtol=0, atol=0)
 
 
 def test_voxel_points_declares_points_and_runs_on_a_tiny_batch():

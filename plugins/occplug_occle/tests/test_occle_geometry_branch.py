@@ -285,7 +285,7 @@ def test_a_voxel_with_40_points_keeps_its_first_35():
 
 def test_voxel_encoder_scatters_voxel_features_and_ignores_point_order():
     torch.manual_seed(0)
-    enc = LidarVoxelEncoder(GRID, point_features=1, out_channels=6, hidden=8)
+    enc = LidarVoxelEncoder(GRID, point_features=1, out_channels=6, hidden=8).eval()
     g = torch.Generator().manual_seed(0)
     scale, low = torch.tensor([6.0, 6.0, 4.0, 1.0]), torch.tensor([0.0, -3.0, -1.0, 0.0])
     pts = torch.rand(300, 4, generator=g) * scale + low  # x in [0, 6): voxels i < 6
@@ -303,6 +303,68 @@ def test_voxel_encoder_scatters_voxel_features_and_ignores_point_order():
     assert torch.allclose(shuffled[0], grids[0], atol=1e-6) and torch.allclose(shuffled[1], grids[0], atol=1e-6)
     grids.square().sum().backward()
     assert all(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in enc.parameters())
+
+
+def _voxelnet_on_voxelized(enc: LidarVoxelEncoder, points: list[torch.Tensor]) -> torch.Tensor:
+    """VoxelNet written on :func:`voxelize_points`' padded ``(V, M, D)`` block (the textbook layout): the reference."""
+    vox = voxelize_points(points, GRID, enc.max_points)
+    mask = vox.mask.unsqueeze(-1)
+    h = enc.point_net(vox.features)
+    pooled = h.masked_fill(~mask, float("-inf")).amax(1, keepdim=True)
+    h = enc.voxel_net(torch.cat([h, pooled.expand_as(h)], dim=-1))
+    voxel = h.masked_fill(~mask, float("-inf")).amax(1)
+    dense = torch.zeros(len(points), X, Y, Z, enc.out_channels)
+    dense[tuple(vox.coords.t())] = voxel
+    return dense.permute(0, 4, 1, 2, 3)
+
+
+def _crowded(seed: int) -> list[torch.Tensor]:
+    """Two clouds with crowded voxels (up to ~80 points), points outside the grid, and a NaN padding row."""
+    g = torch.Generator().manual_seed(seed)
+    scale, low = torch.tensor([4.0, 3.0, 2.0, 1.0]), torch.tensor([-1.0, -1.5, -1.5, 0.0])
+    a = torch.rand(900, 4, generator=g) * scale + low  # 24 voxels inside (x >= 0), the rest outside
+    b = torch.rand(200, 4, generator=g) * torch.tensor([8.0, 6.0, 4.0, 1.0]) + torch.tensor([0.0, -3.0, -1.0, 0.0])
+    b = torch.cat([b, torch.full((3, 4), float("nan"))])
+    return [a, b]
+
+
+def test_voxel_encoder_equals_voxelnet_on_voxelize_points_when_keeping_the_first_points():
+    torch.manual_seed(0)
+    enc = LidarVoxelEncoder(GRID, point_features=1, out_channels=6, hidden=8, max_points=35, sampling="first")
+    points = _crowded(1)
+    assert int(voxelize_points(points, GRID, 1000).counts.max()) > 35  # the cap matters here
+    got, ref = enc(points), _voxelnet_on_voxelized(enc, points)
+    assert torch.isfinite(got).all()
+    torch.testing.assert_close(got, ref, atol=1e-6, rtol=0)
+    (got - 1).square().sum().backward()  # the discard slot and NaN rows leave the gradients finite
+    assert all(torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0 for p in enc.parameters())
+
+
+def test_voxel_encoder_random_sampling_keeps_35_random_points_in_training_and_a_fixed_set_in_eval():
+    torch.manual_seed(0)
+    enc = LidarVoxelEncoder(GRID, point_features=1, out_channels=6, hidden=8, sampling="random")
+    g = torch.Generator().manual_seed(0)
+    inside = torch.rand(60, 3, generator=g) * 0.9 + torch.tensor([2.05, 0.05, 0.05])  # one voxel, 60 points
+    pts = torch.cat([inside, torch.arange(60.0)[:, None]], dim=1)  # intensity = input position
+    discard = X * Y * Z  # one cloud: slots 0 .. X*Y*Z - 1, then the discard slot
+
+    def kept_points() -> frozenset:
+        feat, slot = enc.slots([pts])
+        chosen = feat[slot < discard, 3].tolist()
+        assert len(chosen) == 35 and len(set(chosen)) == 35 and int((slot == discard).sum()) == 25
+        return frozenset(chosen)
+
+    enc.train()
+    kept = [kept_points() for _ in range(20)]
+    assert len(set(kept)) == 20  # a fresh subset every step
+    share_late = sum(sum(i >= 35 for i in k) for k in kept) / (20 * 35)
+    assert 0.25 < share_late < 0.5  # 25 of 60 points come after the first 35: ~42 % of a random subset
+    enc.eval()
+    fixed = [kept_points() for _ in range(2)]
+    assert fixed[0] == fixed[1] and fixed[0] != frozenset(range(35))
+    # padding (NaN rows) and the order of the other points do not change which points are kept
+    padded = torch.cat([pts, torch.full((5, 4), float("nan"))])
+    torch.testing.assert_close(enc([padded]), enc([pts]))
 
 
 def test_cross_plane_branch_loss_falls_on_a_toy_target():

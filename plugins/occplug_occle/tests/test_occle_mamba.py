@@ -37,7 +37,8 @@ def test_hilbert_order_is_a_bijection(shape):
     xyz = hilbert_curve(shape)
     assert bool((xyz >= 0).all()) and bool((xyz < torch.tensor(shape)).all())
     assert torch.equal((xyz[:, 0] * shape[1] + xyz[:, 1]) * shape[2] + xyz[:, 2], perm)
-    assert hilbert_permutation(shape)[0] is perm  # cached: reused every forward
+    again = hilbert_permutation(shape)[0]
+    assert torch.equal(again, perm) and again is not perm  # a fresh copy: callers cannot alter the cached order
 
 
 def test_hilbert_steps_are_face_neighbours_on_even_shapes():
