@@ -622,7 +622,9 @@ class SparseDetector(nn.Module):
             )
             if reset is not None:
                 valid = valid & ~reset.to(valid.device)
-            if not bool(valid.any()):
+            # no valid state anywhere: skip its work (an eager shortcut: the masked path below gives the same
+            # result, and an exported graph cannot branch on data)
+            if not torch.compiler.is_exporting() and not bool(valid.any()):
                 state, valid = None, None
             else:
                 temporal = (state.features, self.anchor_encoder(state.anchors), valid)

@@ -94,6 +94,28 @@ def test_detector_output_shapes_and_state_over_two_frames():
     torch.testing.assert_close(encode_boxes(nxt.boxes[-1]), torch.cat([enc[..., :6], unit, enc[..., 8:]], -1))
 
 
+def test_a_state_reset_everywhere_gives_the_stateless_output_on_the_masked_path(monkeypatch):
+    """Eager skips an all-invalid state; an exported graph cannot branch and runs the masked path: the same result."""
+    torch.manual_seed(0)
+    det = _detector().eval()
+    k, c2e, a = _cameras(b=2)
+    t0 = torch.zeros(2, dtype=torch.float64)
+    with torch.no_grad():
+        state = det(_levels(2), (H, W), k, c2e, a, ego_to_global=_pose(b=2), timestamp=t0).state
+        levels, pose, t1 = _levels(2, seed=1), _pose(t=(1.0, 0.0, 0.0), b=2), torch.full((2,), 0.5, dtype=torch.float64)
+        fresh = det(levels, (H, W), k, c2e, a, ego_to_global=pose, timestamp=t1)
+        reset = torch.tensor([True, True])
+        skipped = det(levels, (H, W), k, c2e, a, state=state, ego_to_global=pose, timestamp=t1, reset=reset)
+        monkeypatch.setattr(torch.compiler, "is_exporting", lambda: True)
+        masked = det(levels, (H, W), k, c2e, a, state=state, ego_to_global=pose, timestamp=t1, reset=reset)
+        kept = det(levels, (H, W), k, c2e, a, state=state, ego_to_global=pose, timestamp=t1)
+    for out in (skipped, masked):
+        for got, want in zip((*out.cls_logits, *out.boxes), (*fresh.cls_logits, *fresh.boxes), strict=True):
+            torch.testing.assert_close(got, want, rtol=0, atol=1e-6)
+        torch.testing.assert_close(out.state.anchors, fresh.state.anchors, rtol=0, atol=1e-6)
+    assert float((kept.cls_logits[-1] - fresh.cls_logits[-1]).abs().max()) > 1e-4  # a valid state does matter
+
+
 def test_key_point_of_an_anchor_projects_onto_the_pixel_of_project_to_image_and_reads_it():
     k, c2e, a = _cameras(aug=True)
     u, v, depth = 17.0, 9.0, 7.25  # an augmented-image pixel centre and its depth
