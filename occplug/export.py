@@ -158,10 +158,12 @@ def occupancy_logits(model: nn.Module, outputs: Any) -> Tensor:
 
 
 def reads_points(model: nn.Module) -> bool:
-    """Whether an inference component of ``model`` (not its supervision) requires the batch's LiDAR ``points``."""
+    """Whether an inference component of ``model`` (not its supervision) requires the batch's LiDAR ``points`` or
+    ``lidar_to_ego`` (then both are graph inputs: a LiDAR pose read alone would otherwise become a constant)."""
     supervision = {id(m) for s in (getattr(model, "supervision", None) or {}).values() for m in s.modules()}
     return any(
-        "points" in (getattr(sub, "requires", ()) or ()) and id(sub) not in supervision for sub in model.modules()
+        set(getattr(sub, "requires", ()) or ()) & set(POINT_INPUTS) and id(sub) not in supervision
+        for sub in model.modules()
     )
 
 
@@ -172,9 +174,14 @@ def graph_inputs(model: nn.Module) -> tuple[str, ...]:
 
 
 def pad_points(clouds: Sequence[Tensor]) -> Tensor:
-    """``B`` point clouds ``(P_b, F)`` -> ``(B, max P_b, F)`` float32, the shorter ones padded with NaN rows."""
-    size = max(int(c.shape[0]) for c in clouds)
-    out = torch.full((len(clouds), size, int(clouds[0].shape[1])), float("nan"), dtype=torch.float32)
+    """``B`` point clouds ``(P_b, F)`` -> ``(B, P, F)`` float32 on the first cloud's device, ``P = max(2, max P_b)``,
+    the shorter ones padded with NaN rows (at least 2 rows: the graph's dynamic point count starts at 2)."""
+    if not clouds:
+        raise ValueError("pad_points: no point cloud given (a batch has at least one frame)")
+    size = max(2, *(int(c.shape[0]) for c in clouds))
+    out = torch.full(
+        (len(clouds), size, int(clouds[0].shape[1])), float("nan"), dtype=torch.float32, device=clouds[0].device
+    )
     for b, cloud in enumerate(clouds):
         out[b, : cloud.shape[0]] = cloud.float()
     return out
@@ -489,7 +496,7 @@ def check_exportable(model: nn.Module) -> None:
         if extra and id(sub) not in supervision:  # supervision is not part of inference
             raise ExportError(
                 f"model.{name} ({type(sub).__name__}) reads batch field(s) {', '.join(sorted(extra))}; the exported "
-                f"graph takes only {', '.join(sorted(_SUPPORTED_FIELDS))}"
+                f"graph takes only {', '.join(INPUTS)} (and {', '.join(POINT_INPUTS)} for a model that reads LiDAR)"
             )
 
 
@@ -746,7 +753,8 @@ def perturb(batch: Batch, seed: int) -> Batch:
     """``batch`` seen by another rig: perturbed intrinsics and extrinsics, and an image augmentation.
 
     Focal lengths scale by up to +-8 %, the principal point moves by up to 4 % of the image size,
-    every camera turns by up to 2 degrees of yaw and moves by up to 0.2 m, and the images are
+    every camera (and the LiDAR, where the batch has one) turns by up to 2 degrees of yaw and moves by up to
+    0.2 m, and the images are
     flipped left-right and rescaled about the centre by up to 10 %, recorded in ``img_aug`` (the
     flip mirrors the image tensor too, so image and calibration stay consistent).
     """
@@ -772,8 +780,17 @@ def perturb(batch: Batch, seed: int) -> Batch:
     aug[..., 0, 0], aug[..., 0, 2] = -scale, (w - 1) / 2 * (1 + scale)
     aug[..., 1, 1], aug[..., 1, 2] = scale, (h - 1) / 2 * (1 - scale)
     img_aug = aug @ batch.img_aug.float()
+    lidar = {}
+    if batch.lidar_to_ego is not None:  # the LiDAR turns and moves like a camera
+        lyaw = math.radians(2.0) * u(b)
+        lturn = torch.eye(4).repeat(b, 1, 1)
+        lturn[:, 0, 0], lturn[:, 0, 1] = torch.cos(lyaw), -torch.sin(lyaw)
+        lturn[:, 1, 0], lturn[:, 1, 1] = torch.sin(lyaw), torch.cos(lyaw)
+        lturn[:, :3, 3] = 0.2 * u(b, 3)
+        lidar["lidar_to_ego"] = (lturn.to(batch.lidar_to_ego.dtype) @ batch.lidar_to_ego)
     return dataclasses.replace(
-        batch, images=batch.images.flip(-1).contiguous(), intrinsics=k, cam_to_ego=cam_to_ego, img_aug=img_aug
+        batch, images=batch.images.flip(-1).contiguous(), intrinsics=k, cam_to_ego=cam_to_ego, img_aug=img_aug,
+        **lidar,
     )
 
 

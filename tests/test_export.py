@@ -197,6 +197,12 @@ def test_lidar_graph_takes_any_point_count_and_ignores_nan_padding(occle_checkpo
     assert float((got_other - eager_other).abs().max()) <= 1e-4
     assert float((got_cut - eager_cut).abs().max()) <= 1e-4
     assert float((eager_cut - eager_other).abs().max()) > 1e-3  # the points are an input, not a constant
+    # so is the LiDAR pose: another lidar_to_ego moves the output, eager and exported alike
+    turned = dataclasses.replace(other, lidar_to_ego=ex.perturb(other, seed=5).lidar_to_ego)
+    with torch.no_grad():
+        eager_turned = ex.occupancy_logits(model, model(turned))
+    assert float((run(*ex.inputs_of(turned, names))[1] - eager_turned).abs().max()) <= 1e-4
+    assert float((eager_turned - eager_other).abs().max()) > 1e-3
 
 
 def test_component_reading_a_field_that_is_no_graph_input_is_refused(baseline_checkpoint, monkeypatch):
@@ -215,6 +221,10 @@ def test_pad_points_pads_with_nan_rows():
     padded = ex.pad_points([a, b])
     assert padded.shape == (2, 3, 4) and padded.dtype == torch.float32
     assert torch.equal(padded[0, :2], a) and torch.isnan(padded[0, 2]).all() and torch.equal(padded[1], b)
+    single = ex.pad_points([torch.ones(1, 4)])  # at least 2 rows: the graph's point count starts at 2
+    assert single.shape == (1, 2, 4) and torch.isnan(single[0, 1]).all()
+    with pytest.raises(ValueError, match="no point cloud"):
+        ex.pad_points([])
 
 
 def test_cached_splat_plan_cannot_be_traced(checkpoint, monkeypatch):

@@ -623,8 +623,8 @@ class SparseDetector(nn.Module):
             if reset is not None:
                 valid = valid & ~reset.to(valid.device)
             # no valid state anywhere: skip its work (an eager shortcut: the masked path below gives the same
-            # result, and an exported graph cannot branch on data)
-            if not torch.compiler.is_exporting() and not bool(valid.any()):
+            # result, and a traced graph -- export, torch.compile -- cannot branch on data)
+            if not torch.compiler.is_compiling() and not bool(valid.any()):
                 state, valid = None, None
             else:
                 temporal = (state.features, self.anchor_encoder(state.anchors), valid)

@@ -548,8 +548,17 @@ def voxelize_points(points: Sequence[Tensor], grid: GridSpec | dict, max_points:
     )
 
 
-#: Knuth's multiplicative hash constant (odd, so ``i -> i * HASH mod 2^32`` is a bijection on 32-bit indices).
-_INDEX_HASH = 2654435761
+def _mix32(x: Tensor) -> Tensor:
+    """murmur3's 32-bit finaliser on int64 ``x`` in ``[0, 2^32)``: a bijection there, every input bit spread over
+    every output bit (a plain multiplicative hash ranks strided indices in long runs). Plain int64 arithmetic, so
+    it traces."""
+    mask = (1 << 32) - 1
+    x = x ^ (x >> 16)
+    x = (x * 0x85EBCA6B) & mask
+    x = x ^ (x >> 13)
+    x = (x * 0xC2B2AE35) & mask
+    return x ^ (x >> 16)
+
 
 #: How a voxel with more than ``max_points`` points picks the ones it keeps (:class:`LidarVoxelEncoder`).
 PointSampling = Literal["random", "first"]
@@ -566,7 +575,7 @@ class LidarVoxelEncoder(nn.Module):
 
     Which points a voxel keeps (``sampling``): ``"random"`` (§3.2: "randomly samples up to 35 points per
     voxel") -- a fresh random subset every training step, and in eval a fixed pseudo-random one (points ranked
-    by a multiplicative hash of their input index, so the subset does not follow the scan order of the sensor,
+    by a 32-bit mixing hash of their input index, so the subset does not follow the scan order of the sensor,
     and the same points are kept in an exported graph); ``"first"``: the first ones in input order
     (:func:`voxelize_points`'s rule).
 
@@ -609,14 +618,14 @@ class LidarVoxelEncoder(nn.Module):
             return index
         if self.training:
             return torch.randperm(count, device=device)
-        return index * _INDEX_HASH % (1 << 32)
+        return _mix32(index)
 
     def slots(self, points: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
         """Each point's features and pooling slot, sorted by voxel (fixed shapes: every point has a row).
 
         Returns:
             ``features`` ``(N, 6 + F)`` (ego-frame ``x, y, z``, the ``F`` extra features, offset from the voxel
-            centre; zero for a point that is dropped) and ``slot`` ``(N,)`` int64: ``b * X * Y * Z + flat
+            centre; zero for a point outside the grid or non-finite) and ``slot`` ``(N,)`` int64: ``b * X * Y * Z + flat
             voxel index`` for a kept point, ``B * X * Y * Z`` (the discard slot) for a point outside the grid,
             non-finite, or past its voxel's ``max_points``. ``N = sum P_b``.
         """
@@ -641,7 +650,7 @@ class LidarVoxelEncoder(nn.Module):
             voxel = torch.where(valid, flat, torch.full_like(flat, discard))
             keys.append(voxel * (1 << 32) + self._order_within_voxel(pts.shape[0], pts.device))
         feat, key = torch.cat(feats), torch.cat(keys)
-        key, order = torch.sort(key)  # the keys are distinct: voxel-major, the sampling's rank within a voxel
+        key, order = torch.sort(key)  # voxel-major, then the sampling's rank (distinct within a voxel)
         voxel = key // (1 << 32)
         position = torch.arange(key.shape[0], device=key.device)
         first = torch.full((discard + 1,), key.shape[0], dtype=torch.int64, device=key.device)

@@ -172,10 +172,17 @@ def hilbert_permutation(shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
     return torch.from_numpy(perm.copy()), torch.from_numpy(inverse.copy())
 
 
-def _permutation_on(shape: tuple[int, int, int], device: torch.device) -> tuple[Tensor, Tensor]:
-    # a fresh tensor per call (two 8k-element copies): while torch.export traces, it becomes a graph constant
+@functools.lru_cache(maxsize=64)
+def _cached_on(shape: tuple[int, int, int], device: torch.device) -> tuple[Tensor, Tensor]:
     perm, inverse = _permutation(shape)
     return torch.tensor(perm, device=device), torch.tensor(inverse, device=device)
+
+
+def _permutation_on(shape: tuple[int, int, int], device: torch.device) -> tuple[Tensor, Tensor]:
+    if torch.compiler.is_compiling():  # while tracing, fresh tensors (graph constants), never cached fake ones
+        perm, inverse = _permutation(shape)
+        return torch.tensor(perm, device=device), torch.tensor(inverse, device=device)
+    return _cached_on(shape, device)
 
 
 def serialize(x: Tensor) -> Tensor:

@@ -362,9 +362,26 @@ def test_voxel_encoder_random_sampling_keeps_35_random_points_in_training_and_a_
     enc.eval()
     fixed = [kept_points() for _ in range(2)]
     assert fixed[0] == fixed[1] and fixed[0] != frozenset(range(35))
-    # padding (NaN rows) and the order of the other points do not change which points are kept
+    # padding (NaN rows) after the cloud changes nothing
     padded = torch.cat([pts, torch.full((5, 4), float("nan"))])
     torch.testing.assert_close(enc([padded]), enc([pts]))
+
+
+@pytest.mark.parametrize("stride", [1, 34, 55, 89, 144, 233])
+def test_eval_subset_does_not_follow_the_input_order_at_any_stride(stride):
+    """A voxel's 70 points at every ``stride``-th input index: its fixed eval subset takes both halves alike."""
+    enc = LidarVoxelEncoder(GRID, point_features=1, out_channels=4, hidden=4, sampling="random").eval()
+    shares = []
+    for offset in range(0, 21):
+        pts = torch.tensor([[-5.0, 0.0, 0.0, -1.0]]).repeat(70 * stride + offset, 1)  # outside the grid
+        where = offset + stride * torch.arange(70)
+        pts[where] = torch.tensor([[2.5, 0.5, 0.5, 0.0]]).repeat(70, 1)
+        pts[where, 3] = torch.arange(70.0)  # intensity = order among the voxel's points
+        feat, slot = enc.slots([pts])
+        kept = feat[slot < X * Y * Z, 3]
+        assert len(kept) == 35
+        shares.append(float((kept < 35).float().mean()))
+    assert 0.35 < sum(shares) / len(shares) < 0.65 and min(shares) > 0.2 and max(shares) < 0.8
 
 
 def test_cross_plane_branch_loss_falls_on_a_toy_target():
