@@ -175,7 +175,8 @@ def hilbert_permutation(shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
 @functools.lru_cache(maxsize=64)
 def _cached_on(shape: tuple[int, int, int], device: torch.device) -> tuple[Tensor, Tensor]:
     perm, inverse = _permutation(shape)
-    return torch.tensor(perm, device=device), torch.tensor(inverse, device=device)
+    with torch.inference_mode(False):  # made under inference_mode, a cached index could not serve training later
+        return torch.tensor(perm, device=device), torch.tensor(inverse, device=device)
 
 
 def _permutation_on(shape: tuple[int, int, int], device: torch.device) -> tuple[Tensor, Tensor]:

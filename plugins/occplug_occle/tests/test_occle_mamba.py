@@ -300,3 +300,14 @@ def test_dual_mamba_unet_runs_anisotropic_grids(shape, bottom):
     assert sizes == bottom  # four down stages; stride 1 along an axis once it is short
     out.square().mean().backward()
     assert float(a.grad.abs().sum()) > 0 and float(b.grad.abs().sum()) > 0
+
+
+def test_a_grid_serialised_first_under_inference_mode_still_trains():
+    """The Hilbert order is cached per shape; a first call under inference_mode (a benchmark, predict) must not
+    leave an inference tensor that a later training step would save for backward."""
+    shape = (3, 5, 7)  # a shape no other test serialises first
+    with torch.inference_mode():
+        serialize(torch.randn(1, 2, *shape))
+    x = torch.randn(1, 2, *shape, requires_grad=True)
+    deserialize(serialize(x) * 2, shape).sum().backward()
+    assert torch.equal(x.grad, torch.full_like(x, 2.0))
