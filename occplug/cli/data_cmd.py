@@ -43,6 +43,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     synth.add_argument("knobs", nargs="*", metavar="key=value", help="synthetic data-module arguments, e.g. seed=3")
     synth.set_defaults(func=cmd_synth)
+    add_stats_parser(actions)
 
     prepare = actions.add_parser("prepare", help="index a real data set once, so training never walks its tables")
     datasets = prepare.add_subparsers(dest="dataset", required=True, metavar="DATASET")
@@ -129,6 +130,50 @@ def _check_common(p: argparse.ArgumentParser, default_shape: str) -> None:
     )
     p.add_argument("--no-lidar", action="store_true", help="camera-only data: do not check LiDAR files")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (shown on large trees)")
+
+
+def add_stats_parser(actions: argparse._SubParsersAction) -> None:
+    stats = actions.add_parser(
+        "stats",
+        help="voxels per class of a config's data split (the counts class_frequencies takes)",
+        description="Count the voxel labels per class over a split of the config's data (frames whose voxel labels "
+        "training may not use, e.g. a label fraction's unlabelled ones, are skipped) and print them per class and "
+        "as one class_frequencies: [...] line to paste into a loss's config.",
+    )
+    stats.add_argument("-c", "--config", action="append", required=True, metavar="REF", help="config (repeat to merge)")
+    stats.add_argument("--split", default="train", help="train, val or test (default: train)")
+    stats.add_argument("--mask", default="none", choices=["none", "camera"], help="count every voxel or camera-visible ones")
+    stats.add_argument("--max-frames", type=int, default=None, metavar="N", help="count at most N frames")
+    stats.add_argument("overrides", nargs="*", metavar="key=value", help="dotlist overrides applied last")
+    stats.set_defaults(func=cmd_stats)
+
+
+def cmd_stats(args: argparse.Namespace) -> int:
+    from occplug import runner
+    from occplug.data.stats import class_counts
+
+    if args.max_frames is not None and args.max_frames < 1:
+        raise UsageError(f"--max-frames: expected a positive number of frames, got {args.max_frames}")
+    cfg = runner.load_config(args.config, args.overrides)
+    dm = runner.build_datamodule(cfg)
+    if args.split not in ("train", "val", "test"):
+        raise UsageError(f"--split: expected train, val or test, got {args.split!r}")
+    names = list(dm.class_names)
+    if not names:
+        raise UsageError(f"data of {', '.join(args.config)}: the data module names no classes; nothing to count")
+    with runner._data_errors():
+        result = class_counts(dm.dataset(args.split), len(names), mask=args.mask, max_frames=args.max_frames)
+    if result.frames == 0:
+        raise UsageError(f"--split {args.split}: no frame with usable voxel labels ({result.skipped} skipped)")
+    total = int(result.counts.sum())
+    print(
+        f"voxels per class, {args.split} split, {result.frames} frames ({result.skipped} without usable voxel labels "
+        f"skipped), mask {args.mask}:"
+    )
+    for k, (name, count) in enumerate(zip(names, result.counts.tolist(), strict=True)):
+        print(f"  {k:3d} {name:<24s} {count:>14d}  {100 * count / max(total, 1):6.2f} %")
+    print(f"class_frequencies: [{', '.join(str(int(c)) for c in result.counts)}]")
+    return 0
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
