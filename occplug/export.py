@@ -479,10 +479,16 @@ def check_exportable(model: nn.Module) -> None:
     """Refuse, in one line, a model the exported graph cannot represent.
 
     Raises:
-        ExportError: a stateful component keeping its state outside a :class:`~occplug.streams.StreamState`
+        ExportError: a model that encodes past frames (``input_history``), a stateful component keeping its state
+            outside a :class:`~occplug.streams.StreamState`
             (the graph's state inputs and outputs are those of the stream states), or an inference
             component reading a batch field that is no graph input (e.g. LiDAR ``points``).
     """
+    if getattr(model, "input_history", None):
+        raise ExportError(
+            f"model.input_history {list(model.input_history)}: the exported graph takes one frame's inputs; a model "
+            "that encodes past frames cannot be exported"
+        )
     holders = [holder for _, holder, _, _ in _stream_holders(model)]
     for name, sub in model.named_modules():
         if name and is_stateful(sub) and not set(sub.modules()).intersection(holders):

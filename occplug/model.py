@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import sys
 import warnings
@@ -14,7 +15,7 @@ from occplug import interfaces as I
 from occplug.config.slots import Slot, component_params
 from occplug.constraints import NonNegative
 from occplug.data.frame import Batch
-from occplug.geometry import GridSpec
+from occplug.geometry import GridSpec, relative_pose
 from occplug.interfaces.encoder import feature_levels
 from occplug.interfaces.model import OccupancyModel
 from occplug.kinds import KINDS, given_arguments
@@ -22,7 +23,7 @@ from occplug.plugins import get_registry
 from occplug.queries import check_query_support
 from occplug.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
 
-__all__ = ["OccModel", "build_component", "head_order"]
+__all__ = ["OccModel", "build_component", "frame_in_current_ego", "head_order"]
 
 
 def build_component(kind: str, spec: dict[str, Any] | str, **defaults: Any) -> Any:
@@ -92,6 +93,33 @@ def _call(component: nn.Module, outputs: I.ModelOutputs, *args: Any) -> Any:
     return component(*args)
 
 
+def frame_in_current_ego(batch: Batch, offset: int) -> Batch:
+    """Adjacent frame ``offset`` of ``batch`` with its sensors expressed in the current frame's ego frame.
+
+    ``cam_to_ego`` and ``lidar_to_ego`` become ``T @ pose`` with ``T = relative_pose(past ego_to_global, current
+    ego_to_global)`` (past ego -> current ego, computed in float64), and ``ego_to_global`` the current frame's, so
+    a view transform or point encoder puts that frame's observations where they lie in the current ego frame (a
+    static world lands on the same voxels).
+
+    Raises:
+        ValueError: the frame is not loaded (one line naming ``data.adjacent_offsets``).
+    """
+    past = batch.adjacent.get(offset)
+    if past is None:
+        raise ValueError(
+            f"model.input_history: frame offset {offset} is not loaded; set data.adjacent_offsets to include it "
+            f"(loaded: {sorted(batch.adjacent) or 'none'})"
+        )
+    to_current = relative_pose(past.ego_to_global.to(torch.float64), batch.ego_to_global.to(torch.float64))
+    moved: dict[str, Any] = {
+        "cam_to_ego": (to_current[:, None] @ past.cam_to_ego.to(torch.float64)).to(past.cam_to_ego.dtype),
+        "ego_to_global": batch.ego_to_global,
+    }
+    if past.lidar_to_ego is not None:
+        moved["lidar_to_ego"] = (to_current @ past.lidar_to_ego.to(torch.float64)).to(past.lidar_to_ego.dtype)
+    return dataclasses.replace(past, **moved)
+
+
 class OccModel(OccupancyModel):
     """Encoders -> view transform -> scene -> heads, trained by the summed supervision losses.
 
@@ -125,6 +153,10 @@ class OccModel(OccupancyModel):
         optimizer: the config's ``optimizer`` node.
         scheduler: the config's ``scheduler`` node.
         metrics: the config's ``metrics`` list (registered names or nodes).
+        input_history: frame offsets (e.g. ``[-1]``) of past frames whose cameras and LiDAR the model also
+            encodes -- encoder, point encoders and view transform, with their sensors moved into the current ego
+            frame (:func:`frame_in_current_ego`) -- into ``outputs.history[offset]``, for a scene that fuses
+            frames; each must be loaded (``data.adjacent_offsets``). Empty: the current frame only.
     """
 
     def __init__(
@@ -143,8 +175,13 @@ class OccModel(OccupancyModel):
         scheduler: dict | None = None,
         metrics: list | None = None,
         point_encoders: Annotated[dict, Slot("point_encoder", mapping=True)] | None = None,
+        input_history: list[int] | None = None,
     ) -> None:
         super().__init__()
+        history = [int(k) for k in (input_history or [])]
+        if 0 in history or len(set(history)) != len(history):
+            raise ValueError(f"model.input_history: frame offsets other than 0, each once, got {list(input_history or [])}")
+        self.input_history = history
         self.grid = GridSpec.from_config(grid)
         if isinstance(grid, GridSpec):  # hyper-parameters stay plain data (weights_only checkpoint loading)
             grid = self.grid.to_dict()
@@ -233,16 +270,24 @@ class OccModel(OccupancyModel):
             return self.heads[head_name].query(outputs.scene, points, times)
 
         outputs = I.ModelOutputs(image_features=None, lifted=None, scene=None, heads={}, query=query)
+        for offset in self.input_history:
+            past = I.ModelOutputs(image_features=None, lifted=None, scene=None, heads={}, query=query)
+            self._encode(frame_in_current_ego(batch, offset), past)
+            outputs.history[offset] = past
+        self._encode(batch, outputs)
+        outputs.scene = _call(self.scene, outputs, outputs.lifted, batch)
+        for name in self.head_order:
+            outputs.heads[name] = _call(self.heads[name], outputs, outputs.scene, batch)
+        return outputs
+
+    def _encode(self, batch: Batch, outputs: I.ModelOutputs) -> None:
+        """Encoders, point encoders and view transform on one frame, into ``outputs``."""
         levels = feature_levels(self.encoder(batch.images))
         outputs.image_levels = levels
         outputs.image_features = levels[self.encoder.primary_level]
         for name, point_encoder in self.point_encoders.items():
             outputs.encoded[name] = point_encoder(batch)
         outputs.lifted = _call(self.view_transform, outputs, outputs.image_features, batch)
-        outputs.scene = _call(self.scene, outputs, outputs.lifted, batch)
-        for name in self.head_order:
-            outputs.heads[name] = _call(self.heads[name], outputs, outputs.scene, batch)
-        return outputs
 
     def occupancy_from(self, outputs: I.ModelOutputs) -> Tensor:
         """``(B, X, Y, Z)`` int64 class ids on the evaluation grid from a forward pass's outputs

@@ -41,6 +41,9 @@ class ModelOutputs:
         encoded: each point encoder's ``(B, C, X, Y, Z)`` volume, keyed by its config name.
         extras: intermediate outputs components publish for supervision sources (a head's
             queries, masks); keys are ``<component>/<name>`` by convention.
+        history: each past frame the model also encodes (``model.input_history``), keyed by its frame offset:
+            that frame's ``image_levels``, ``image_features``, ``encoded`` and ``lifted``, its cameras and LiDAR
+            moved into the **current** ego frame (so its grids lie on the current frame's grid).
     """
 
     image_features: Tensor | None
@@ -51,6 +54,7 @@ class ModelOutputs:
     image_levels: list[Tensor] = field(default_factory=list)
     encoded: dict[str, Tensor] = field(default_factory=dict)
     extras: dict[str, object] = field(default_factory=dict)
+    history: dict[int, ModelOutputs] = field(default_factory=dict)
 
 
 class SupervisionSource(nn.Module, ABC):

@@ -109,8 +109,11 @@ class OccleScene(SceneRepresentation):
         mamba_channels: widths of the Dual Mamba U-Net's levels, one more than its stages (the paper: 4 stages;
             here 2 by default, for CPU).
         mamba_state: the SSM state size of its Mamba blocks.
-        mamba_chunk: chunk length of their chunked selective scan (speed only, the result is the same; fastest
-            near the square root of a stage's voxel count).
+        mamba_chunk: chunk length of their chunked selective scan (speed only: equal up to float rounding).
+        history: past frame offsets the geometric branch fuses with the current frame (§3.3.1's multi-frame
+            grids, ``T = len(history) + 1``, a Conv1D over frames per modality); each must be in the model's
+            ``input_history`` (``outputs.history``). Empty: one frame. The semantic branch reads the current
+            frame only.
 
     Forward:
         ``lifted`` (volume ``(B, C_img, X, Y, Z)``), ``batch``, ``outputs`` (``encoded[lidar_encoder]``
@@ -137,6 +140,7 @@ class OccleScene(SceneRepresentation):
         mamba_channels: Annotated[list[Annotated[int, Positive]], Length(min=2)] = [32, 48, 64],  # noqa: B006 - read only
         mamba_state: Annotated[int, Positive] = 16,
         mamba_chunk: Annotated[int, Positive] = 64,
+        history: list[int] | None = None,
     ) -> None:
         super().__init__()
         if geometry not in ("cross_plane", "conv3d"):
@@ -148,6 +152,8 @@ class OccleScene(SceneRepresentation):
         self.lidar_encoder = lidar_encoder
         self.out_channels = c = int(channels)
         self.semantic, self.geometric, self.projection = bool(semantic), bool(geometric), bool(projection)
+        self.history = [int(k) for k in (history or [])]
+        frames = len(self.history) + 1
         both = self.in_channels + self.lidar_channels
         # plain stems stand in for a switched-off branch, so the fusion always sees two grids
         self.stems = nn.ModuleDict()
@@ -164,12 +170,13 @@ class OccleScene(SceneRepresentation):
                     self.in_channels,
                     self.grid,
                     c,
+                    num_frames=frames,
                     plane_kernel=plane_kernel,
                     heads=attention_heads,
                 )
             else:
                 baseline = Conv3dDeformableBaseline(
-                    self.lidar_channels, self.in_channels, self.grid, c, heads=attention_heads
+                    self.lidar_channels, self.in_channels, self.grid, c, num_frames=frames, heads=attention_heads
                 )
                 baseline.head = nn.Identity()  # G's header is the occle_geometry head component
                 self.geometric_branch = baseline
@@ -206,12 +213,26 @@ class OccleScene(SceneRepresentation):
         else:
             sem_in = self.stems["semantic"](torch.cat([image, lidar], dim=1))
         if self.geometric:
-            geometry = self.geometric_branch(lidar.unsqueeze(1), image.unsqueeze(1))  # one frame: T = 1
+            lidar_frames, image_frames = self._frames(lidar, image, outputs)
+            geometry = self.geometric_branch(lidar_frames, image_frames)
             geo_in = geometry
         else:
             geo_in = self.stems["geometric"](torch.cat([image, lidar], dim=1))
         fused = self.fusion(sem_in, geo_in)
         return OccleGrids(fused, self.grid, lidar_semantic, semantic, geometry, self.projection)
+
+    def _frames(self, lidar: Tensor, image: Tensor, outputs: ModelOutputs) -> tuple[Tensor, Tensor]:
+        """``(B, T, C, X, Y, Z)`` LiDAR and image grids: the ``history`` frames in order, then the current one."""
+        missing = [k for k in self.history if k not in outputs.history]
+        if missing:
+            raise ValueError(
+                f"occle_scene history reads past frames {missing}; set model.input_history to include them "
+                f"(encoded: {sorted(outputs.history) or 'none'})"
+            )
+        past = [outputs.history[k] for k in self.history]
+        lidars = [p.encoded[self.lidar_encoder] for p in past] + [lidar]
+        images = [p.lifted.volume for p in past] + [image]
+        return torch.stack(lidars, dim=1), torch.stack(images, dim=1)
 
     @classmethod
     def conformance_inputs(cls, batch: Batch, grid: GridSpec, channels: int) -> tuple[Any, ...]:

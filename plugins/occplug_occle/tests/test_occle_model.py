@@ -1,5 +1,6 @@
 """OccLE as an occplug model: builds from its configs, trains, predicts, runs the three phases (tiny world)."""
 
+import dataclasses
 import json
 
 import pytest
@@ -117,3 +118,28 @@ def test_three_phases_run_and_mark_done(tmp_path):
     fusion = torch.load(run / "fusion" / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
     keys = [k for k in student if k.startswith("scene.geometric_branch.") and student[k].is_floating_point()]
     assert keys and all(torch.equal(student[k], fusion[k]) for k in keys)
+
+
+def test_two_frames_fuses_the_previous_frame_in_the_geometric_branch():
+    """``occle/two_frames``: the cross-plane branch reads [previous, current]; the previous frame matters to G only
+    through the model's ``input_history`` (the semantic branch reads the current frame)."""
+    torch.manual_seed(0)
+    cfg = runner.load_config(["occle/two_frames", "occplug/trainer/debug"], ["data.preset=tiny", *SMALL])
+    dm, model = runner.build_run(cfg)
+    data = dm.dataset("train")
+    batch = dm.collate([data[i] for i in (1, 2)])
+    assert model.scene.geometric_branch.num_frames == 2
+    loss, _ = _loss(model, batch)
+    loss.backward()
+    assert torch.isfinite(loss)
+    model.eval()
+    with torch.no_grad():
+        out = model(batch)
+        past = batch.adjacent[-1]
+        other = dataclasses.replace(past, points=[p.flip(0)[: len(p) // 2] for p in past.points])
+        changed = model(dataclasses.replace(batch, adjacent={-1: other}))
+    assert float((changed.heads["geometry"]["logits"] - out.heads["geometry"]["logits"]).abs().max()) > 1e-5
+    torch.testing.assert_close(changed.scene.lidar_semantic, out.scene.lidar_semantic)
+    model.input_history = []
+    with pytest.raises(ValueError, match=r"^occle_scene history reads past frames \[-1\]; set model.input_history"):
+        model(batch)
