@@ -143,3 +143,17 @@ def test_two_frames_fuses_the_previous_frame_in_the_geometric_branch():
     model.input_history = []
     with pytest.raises(ValueError, match=r"^occle_scene history reads past frames \[-1\]; set model.input_history"):
         model(batch)
+
+
+def test_two_frames_composes_with_the_phased_recipe():
+    from occplug.config import validate
+    from occplug.config.phases import phase_specs
+    from occplug.plugins import get_registry
+
+    cfg = runner.load_config(["occle/three_phase_10pct", "occle/two_frames"])
+    validate(cfg, get_registry())
+    specs = phase_specs(cfg)
+    assert [s.name for s in specs] == ["semantic", "teacher", "student", "fusion"]
+    for spec in specs:
+        assert spec.config["model"]["input_history"] == [-1] and spec.config["model"]["scene"]["history"] == [-1]
+        assert spec.config["data"]["adjacent_offsets"] == [-1] and spec.config["data"]["label_fraction"] == 0.1
