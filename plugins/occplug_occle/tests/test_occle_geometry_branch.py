@@ -372,7 +372,7 @@ def test_eval_subset_does_not_follow_the_input_order_at_any_stride(stride):
     """A voxel's 70 points at every ``stride``-th input index: its fixed eval subset takes both halves alike."""
     enc = LidarVoxelEncoder(GRID, point_features=1, out_channels=4, hidden=4, sampling="random").eval()
     shares = []
-    for offset in range(0, 21):
+    for offset in range(21):
         pts = torch.tensor([[-5.0, 0.0, 0.0, -1.0]]).repeat(70 * stride + offset, 1)  # outside the grid
         where = offset + stride * torch.arange(70)
         pts[where] = torch.tensor([[2.5, 0.5, 0.5, 0.0]]).repeat(70, 1)
