@@ -21,13 +21,14 @@ same order from the first phase) are copied from that run instead of trained: ``
 ``geometry_student`` train nothing, ``no_projection``, ``no_voxel_labels`` and ``teacher_in_fusion`` only Phase
 III, ``no_geometric`` only Phase III. ``--dry-run`` prints the optimizer steps each row trains.
 
-CPU budget (OMP_NUM_THREADS=1, one core of a shared 2-core machine): a training step of the whole model (batch 2,
-the recipes' 32 x 32 x 8 grid, which dominates: ``tiny`` and ``default`` alike) takes 5-10 s, and every phase adds
-~10-20 s of start-up and validation. At ``--epochs 1`` the ``default`` world trains 16,800 steps per seed over all
-rows (``three_phase_10pct`` 3,480, ``full_100pct`` 2,880, ``primary_only`` 3,480, ``no_semantic`` 2,520,
-``baseline_10pct`` 600, four Phase-III-only rows 960 each): about 1-2 CPU days per seed. ``--epochs 0.1`` (1,680
-steps, ~3-5 h per seed; every phase keeps >= 1 epoch) is the intended CPU setting for 3 seeds. The smoke run
-``--seeds 0 --preset tiny --epochs 0.02 --rows three_phase_10pct baseline_10pct`` took 90 s.
+CPU budget (OMP_NUM_THREADS=1, one core of a 2-core machine running two rows side by side; measured on the
+``default`` world, batch 2, the recipes' 32 x 32 x 8 grid): a step takes ~0.9 s in Phase I, ~0.7 s in Phase II
+(teacher, student), ~2.5 s in Phase III and the baseline (the Dual Mamba's backward dominates), and every phase
+adds ~10-30 s of start-up and validation. ``--epochs 0.3`` (the README's table: 1,044 / 864 / 180 steps for
+``three_phase_10pct`` / ``full_100pct`` / ``baseline_10pct``) took ~35 / ~32 / ~8 min per seed, 1 h 35 min for
+those three rows and 3 seeds on 2 cores. ``--epochs 1`` trains 3,480 / 2,880 / 600 steps (~2.7 CPU hours per seed
+for the three rows); every row at ``--epochs 1`` is 16,800 steps per seed. Every phase keeps >= 1 epoch. The smoke
+run ``--seeds 0 --preset tiny --epochs 0.02 --rows three_phase_10pct baseline_10pct`` took 90 s.
 
 ``--val-scenes N`` evaluates on N validation scenes (the ``default`` world holds 4 x 6 frames; more lowers the
 spread between seeds). Results go to ``--out`` (default ``runs/ablate_occle``): one run directory per row and
