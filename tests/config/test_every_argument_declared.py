@@ -42,6 +42,9 @@ ALLOWED: dict[tuple[str, str, str], str] = {
     ("data", "occ3d_nuscenes", "adjacent_offsets"): "signed frame offsets (negative: earlier frames)",
     ("data", "semantickitti", "adjacent_offsets"): "signed frame offsets (negative: earlier frames)",
     ("data", "synthetic", "adjacent_offsets"): "signed frame offsets (negative: earlier frames)",
+    # signed frame offsets of past frames the model encodes; OccModel rejects 0 and repeats, no range applies
+    ("model", "occ_model", "input_history"): "signed frame offsets (negative: earlier frames)",
+    ("scene", "occle_scene", "history"): "signed frame offsets, each one of model.input_history",
     # nodes of kind 'transform', built and checked one by one by occplug.data.extensions
     ("data", "occ3d_nuscenes", "transforms"): "a list of transform nodes, checked by occplug.data.extensions",
     ("data", "semantickitti", "transforms"): "a list of transform nodes, checked by occplug.data.extensions",
