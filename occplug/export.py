@@ -157,10 +157,15 @@ def occupancy_logits(model: nn.Module, outputs: Any) -> Tensor:
     return heads[head_name].occupancy_logits(outputs.scene, model.grid)
 
 
+def _supervision_modules(model: nn.Module) -> set[int]:
+    """``id`` of every module inside ``model``'s supervision sources (not part of inference)."""
+    return {id(m) for s in (getattr(model, "supervision", None) or {}).values() for m in s.modules()}
+
+
 def reads_points(model: nn.Module) -> bool:
     """Whether an inference component of ``model`` (not its supervision) requires the batch's LiDAR ``points`` or
     ``lidar_to_ego`` (then both are graph inputs: a LiDAR pose read alone would otherwise become a constant)."""
-    supervision = {id(m) for s in (getattr(model, "supervision", None) or {}).values() for m in s.modules()}
+    supervision = _supervision_modules(model)
     return any(
         set(getattr(sub, "requires", ()) or ()) & set(POINT_INPUTS) and id(sub) not in supervision
         for sub in model.modules()
@@ -496,7 +501,7 @@ def check_exportable(model: nn.Module) -> None:
                 f"model.{name} ({type(sub).__name__}) is stateful but keeps its state outside an "
                 "occplug.streams.StreamState; export takes a stream's state only through StreamState"
             )
-    supervision = {id(m) for s in (getattr(model, "supervision", None) or {}).values() for m in s.modules()}
+    supervision = _supervision_modules(model)
     for name, sub in model.named_modules():
         extra = set(getattr(sub, "requires", ()) or ()) - _SUPPORTED_FIELDS
         if extra and id(sub) not in supervision:  # supervision is not part of inference
@@ -775,12 +780,15 @@ def perturb(batch: Batch, seed: int) -> Batch:
     k[..., 1, 1] *= 1 + 0.08 * u(b, n)
     k[..., 0, 2] += 0.04 * w * u(b, n)
     k[..., 1, 2] += 0.04 * h * u(b, n)
-    yaw = math.radians(2.0) * u(b, n)
-    turn = torch.eye(4).repeat(b, n, 1, 1)
-    turn[..., 0, 0], turn[..., 0, 1] = torch.cos(yaw), -torch.sin(yaw)
-    turn[..., 1, 0], turn[..., 1, 1] = torch.sin(yaw), torch.cos(yaw)
-    turn[..., :3, 3] = 0.2 * u(b, n, 3)
-    cam_to_ego = turn @ batch.cam_to_ego.float()
+    def turn(*shape: int) -> Tensor:  # (*shape, 4, 4): up to 2 degrees of yaw and 0.2 m
+        yaw = math.radians(2.0) * u(*shape)
+        out = torch.eye(4).repeat(*shape, 1, 1)
+        out[..., 0, 0], out[..., 0, 1] = torch.cos(yaw), -torch.sin(yaw)
+        out[..., 1, 0], out[..., 1, 1] = torch.sin(yaw), torch.cos(yaw)
+        out[..., :3, 3] = 0.2 * u(*shape, 3)
+        return out
+
+    cam_to_ego = turn(b, n) @ batch.cam_to_ego.float()
     scale = 1 + 0.1 * u(b, n)
     aug = torch.eye(3).repeat(b, n, 1, 1)  # pixel u -> (w - 1) - u, then scale about the image centre
     aug[..., 0, 0], aug[..., 0, 2] = -scale, (w - 1) / 2 * (1 + scale)
@@ -788,12 +796,7 @@ def perturb(batch: Batch, seed: int) -> Batch:
     img_aug = aug @ batch.img_aug.float()
     lidar = {}
     if batch.lidar_to_ego is not None:  # the LiDAR turns and moves like a camera
-        lyaw = math.radians(2.0) * u(b)
-        lturn = torch.eye(4).repeat(b, 1, 1)
-        lturn[:, 0, 0], lturn[:, 0, 1] = torch.cos(lyaw), -torch.sin(lyaw)
-        lturn[:, 1, 0], lturn[:, 1, 1] = torch.sin(lyaw), torch.cos(lyaw)
-        lturn[:, :3, 3] = 0.2 * u(b, 3)
-        lidar["lidar_to_ego"] = (lturn.to(batch.lidar_to_ego.dtype) @ batch.lidar_to_ego)
+        lidar["lidar_to_ego"] = turn(b).to(batch.lidar_to_ego.dtype) @ batch.lidar_to_ego
     return dataclasses.replace(
         batch, images=batch.images.flip(-1).contiguous(), intrinsics=k, cam_to_ego=cam_to_ego, img_aug=img_aug,
         **lidar,
