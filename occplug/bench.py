@@ -539,6 +539,8 @@ def _train(cfg: dict[str, Any], dm: Any, model: Any, job: dict[str, Any], timer:
         log_every_n_steps=1,
     )
     model.train()
+    # a few steps read a few frames (a synthetic world generates them on access): never generate the whole split
+    dm.prepare_data = lambda: None
     with tempfile.TemporaryDirectory(prefix="occplug-bench-") as root:
         trainer = runner._trainer({**cfg, "trainer": trainer_cfg, "callbacks": None}, Path(root), [timer], False)
         trainer.fit(model, datamodule=dm)

@@ -166,3 +166,25 @@ def test_out_is_checked_before_measuring_and_written_whole(tmp_path, monkeypatch
     assert main(["bench", BASELINE, "-o", str(out)]) == 0
     assert written == [out] and out.read_text() == report.to_markdown()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "table.md"]  # no temporary file left
+
+
+def test_training_rounds_generate_only_the_frames_they_read(tmp_path, monkeypatch):
+    """The training rounds fit a few steps: they must not pregenerate the whole synthetic split (an occ3d world
+    takes hours), only the frames those steps read."""
+    from lightning.pytorch.callbacks import Callback
+
+    from occplug.bench import _train
+
+    monkeypatch.setenv("OCCPLUG_CACHE", str(tmp_path))
+    cfg = runner.load_config([BASELINE], ["data.preset=tiny", "data.batch_size=1"])
+    dm, model = runner.build_run(cfg)
+    steps = []
+
+    class Count(Callback):
+        def on_train_batch_end(self, *args):
+            steps.append(1)
+
+    _train(cfg, dm, model, {"device": "cpu", "warmup": 1, "train_repeats": 1}, Count())
+    cached = list(tmp_path.rglob("*.pt"))
+    assert len(steps) == 2
+    assert 1 <= len(cached) <= 3  # 2 steps at batch 1 (+ one batch Lightning reads ahead); the split holds 8
