@@ -64,7 +64,7 @@ class BenchSettings:
 
     repeats: int = 10
     warmup: int = 3
-    train_repeats: int = 5
+    train_repeats: int = 5  # 0: inference only (no training rounds; their columns stay empty)
     batch_size: int = 1
     device: str = "auto"
     preset: str | None = None
@@ -91,8 +91,8 @@ class BenchRow:
     params: int
     latency_ms: float
     memory_mib: float
-    train_step_ms: float
-    train_memory_mib: float
+    train_step_ms: float | None
+    train_memory_mib: float | None
     mIoU: float | None = None
     IoU: float | None = None
     RayIoU: float | None = None
@@ -178,9 +178,11 @@ class BenchReport:
         ]
         for r in self.rows:
             acc = [MISSING if v is None else f"{v:.2f}" for v in (r.mIoU, r.IoU, r.RayIoU)]
+            step = MISSING if r.train_step_ms is None else f"{r.train_step_ms:.1f}"
+            train_memory = MISSING if r.train_memory_mib is None else f"{r.train_memory_mib:.0f}"
             lines.append(
-                f"| {r.model} | {_params(r.params)} | {r.latency_ms:.2f} | {r.memory_mib:.0f} | {r.train_step_ms:.1f} "
-                f"| {r.train_memory_mib:.0f} | {' | '.join(acc)} | {r.eval_mask or MISSING} |"
+                f"| {r.model} | {_params(r.params)} | {r.latency_ms:.2f} | {r.memory_mib:.0f} | {step} "
+                f"| {train_memory} | {' | '.join(acc)} | {r.eval_mask or MISSING} |"
             )
         return "\n".join(lines) + "\n"
 
@@ -381,7 +383,7 @@ def run_bench(
         latency = interleave(workers, "latency", settings.repeats)
         if progress:
             progress(f"{settings.train_repeats} training rounds")
-        train = interleave(workers, "train", settings.train_repeats)
+        train = interleave(workers, "train", settings.train_repeats) if settings.train_repeats else [[]] * len(workers)
         stats = [w.request("stats") for w in workers]
     finally:
         for w in workers:
@@ -396,8 +398,8 @@ def run_bench(
                 params=int(info["params"]),
                 latency_ms=statistics.median(lat),
                 memory_mib=st["memory"] / 2**20,
-                train_step_ms=statistics.median(tr),
-                train_memory_mib=st["train_memory"] / 2**20,
+                train_step_ms=statistics.median(tr) if tr else None,
+                train_memory_mib=st["train_memory"] / 2**20 if tr else None,
                 mIoU=acc.get("mIoU"),
                 IoU=acc.get("IoU"),
                 RayIoU=acc.get("RayIoU"),

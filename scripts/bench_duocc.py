@@ -15,8 +15,12 @@ and the benchmark measures the run directories, reading their ``metrics.json`` (
 
     python scripts/bench_duocc.py                                       # K = 1 2 4 8, default world, 4 epochs
     python scripts/bench_duocc.py --preset tiny --epochs 1 --set trainer.max_steps=4 --repeats 2   # a smoke run
-    python scripts/bench_duocc.py --device cuda --preset occ3d --epochs 0 \\
+    python scripts/bench_duocc.py --device cuda --preset occ3d --epochs 0 --full --train-repeats 0 \\
         --set "grid={range: [-40.0, -40.0, -1.0, 40.0, 40.0, 5.4], voxel_size: 0.4}"
+
+``--train-repeats 0`` measures inference only: a training step on the ``occ3d`` world reads frames the benchmark
+has not generated yet (about 4 s each on one CPU core, K + 1 of them per stacking sample), so its training rounds
+take many minutes.
 
 GPU note: the paper measures 256 x 704 images, a 200 x 200 x 16 grid (0.4 m) and a ResNet-50 on an A100 --
 83.3 ms and 2,788 MB for the full DuOcc, 49.0 ms / 2,437 MB for StreamAgg only (Tab. 1, Tab. 7). The ``occ3d``
@@ -34,11 +38,15 @@ import time
 from pathlib import Path
 
 
-def rows(ks: list[int]) -> list[tuple[str, str, list[str]]]:
-    """``(name, config, overrides)`` of every row."""
+def rows(ks: list[int], full: bool = False) -> list[tuple[str, str, list[str]]]:
+    """``(name, config, overrides)`` of every row (``full``: the whole DuOcc, D, last)."""
     out = [("stream_agg", "duocc/stream_agg", [])]
     out += [(f"stacking_K{k}", "duocc/stacking", [f"model.scene.num_history={k}"]) for k in ks]
-    return out
+    return out + ([("full", "duocc/full", [])] if full else [])
+
+
+def _num(value: float | None) -> str:
+    return "—" if value is None else f"{value:.0f}"
 
 
 def common(args: argparse.Namespace) -> list[str]:
@@ -77,19 +85,23 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--preset", default="default", help="synthetic world preset (default: default)")
     parser.add_argument("--set", nargs="*", default=[], help="extra key=value overrides for every row")
-    parser.add_argument("--repeats", type=int, default=5, help="latency and training rounds per model")
+    parser.add_argument("--repeats", type=int, default=5, help="latency rounds per model")
     parser.add_argument("--device", default="cpu", help="cpu | cuda | auto")
+    parser.add_argument(
+        "--train-repeats", type=int, default=5, help="timed training steps per model (0: inference only)"
+    )
+    parser.add_argument("--full", action="store_true", help="add the full DuOcc (D, duocc/full) as a last row")
     parser.add_argument("--out", default="runs/bench_duocc")
     args = parser.parse_args()
 
     from occplug.bench import BenchSettings, resolve_target, run_bench
 
     settings = BenchSettings(
-        repeats=args.repeats, warmup=1, train_repeats=args.repeats, batch_size=1, device=args.device
+        repeats=args.repeats, warmup=1, train_repeats=args.train_repeats, batch_size=1, device=args.device
     )
     start = time.monotonic()
     targets = []
-    for name, config, overrides in rows(args.ks):
+    for name, config, overrides in rows(args.ks, args.full):
         if args.epochs > 0:
             targets.append(resolve_target(str(train(name, config, overrides, args)), settings))
         else:
@@ -97,7 +109,7 @@ def main() -> None:
             target.name = name
             targets.append(target)
     report = run_bench(targets, settings, progress=lambda line: print(line, file=sys.stderr))
-    names = [name for name, _, _ in rows(args.ks)]
+    names = [name for name, _, _ in rows(args.ks, args.full)]
     base = report.rows[0]
     lines = [
         f"{report.machine}; {report.device}; torch {report.versions.get('torch', '?')}; world '{args.preset}'; "
@@ -110,11 +122,11 @@ def main() -> None:
     ]
     table = []
     for name, row in zip(names, report.rows, strict=True):
-        frames = "stream" if name == "stream_agg" else str(int(name.split("K")[1]) + 1)
+        frames = str(int(name.split("K")[1]) + 1) if name.startswith("stacking") else "stream"
         miou = "—" if row.mIoU is None else f"{row.mIoU:.2f}"
         lines.append(
             f"| {name} | {frames} | {row.params} | {row.latency_ms:.1f} ({row.latency_ms / base.latency_ms:.2f}x) | "
-            f"{row.memory_mib:.0f} | {row.train_step_ms:.0f} | {row.train_memory_mib:.0f} | {miou} |"
+            f"{row.memory_mib:.0f} | {_num(row.train_step_ms)} | {_num(row.train_memory_mib)} | {miou} |"
         )
         table.append(
             {

@@ -23,7 +23,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     fmt.add_argument("--json", action="store_true", help="print JSON instead of a Markdown table")
     p.add_argument("--repeats", type=int, default=10, help="timed inference repeats per model (default 10)")
     p.add_argument("--warmup", type=int, default=3, help="untimed repeats first (default 3)")
-    p.add_argument("--train-repeats", type=int, default=5, help="timed training steps per model (default 5)")
+    p.add_argument(
+        "--train-repeats", type=int, default=5, help="timed training steps per model (default 5; 0: inference only)"
+    )
     p.add_argument("--batch-size", type=int, default=1, help="frames per inference and training batch (default 1)")
     p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda (default auto)")
     p.add_argument("--preset", help="data.preset for configs, e.g. tiny (run directories keep their data)")
@@ -34,9 +36,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 def cmd_bench(args: argparse.Namespace) -> int:
     from occplug.bench import BenchSettings, resolve_target, run_bench
 
-    for flag in ("repeats", "train_repeats", "batch_size"):
+    for flag in ("repeats", "batch_size"):
         if getattr(args, flag) < 1:
             raise UsageError(f"--{flag.replace('_', '-')}: expected an int >= 1, got {getattr(args, flag)}")
+    if args.train_repeats < 0:
+        raise UsageError(f"--train-repeats: expected an int >= 0 (0: inference only), got {args.train_repeats}")
     if args.warmup < 0:
         raise UsageError(f"--warmup: expected an int >= 0, got {args.warmup}")
     if args.out:

@@ -118,7 +118,7 @@ def test_markdown_of_a_known_report():
     assert report.to_markdown().splitlines()[-1] == "| m | 1.23 M | 12.35 | 100 | 56.8 | 201 | — | — | — | — |"
 
 
-@pytest.mark.parametrize("case", ["missing", "no_run_dir", "missing_yaml", "bad_repeats"])
+@pytest.mark.parametrize("case", ["missing", "no_run_dir", "missing_yaml", "bad_repeats", "bad_train_repeats"])
 def test_bad_inputs_are_one_error_line_exit_2(case, tmp_path, capsys):
     folder = tmp_path / "folder"
     folder.mkdir()
@@ -128,6 +128,7 @@ def test_bad_inputs_are_one_error_line_exit_2(case, tmp_path, capsys):
         "no_run_dir": ["bench", str(folder)],
         "missing_yaml": ["bench", str(tmp_path / "nope.yaml")],
         "bad_repeats": ["bench", BASELINE, "--repeats", "0"],
+        "bad_train_repeats": ["bench", BASELINE, "--train-repeats", "-1"],
     }[case]
     assert main(args) == 2
     err = capsys.readouterr().err.strip()
@@ -137,6 +138,7 @@ def test_bad_inputs_are_one_error_line_exit_2(case, tmp_path, capsys):
         "no_run_dir": f"{folder}: a folder but not an occplug run directory (no config.yaml)",
         "missing_yaml": f"{tmp_path / 'nope.yaml'}: no such run directory or config file",
         "bad_repeats": "--repeats: expected an int >= 1, got 0",
+        "bad_train_repeats": "--train-repeats: expected an int >= 0 (0: inference only), got -1",
     }[case]
     assert err == f"error: {expected}"
 
@@ -188,3 +190,15 @@ def test_training_rounds_generate_only_the_frames_they_read(tmp_path, monkeypatc
     cached = list(tmp_path.rglob("*.pt"))
     assert len(steps) == 2
     assert 1 <= len(cached) <= 3  # 2 steps at batch 1 (+ one batch Lightning reads ahead); the split holds 8
+
+
+def test_train_repeats_0_measures_inference_only(tmp_path):
+    out = tmp_path / "bench.json"
+    args = ["bench", BASELINE, "--preset", "tiny", "--device", "cpu", "--repeats", "1", "--warmup", "0"]
+    assert main([*args, "--train-repeats", "0", "--json", "-o", str(out)]) == 0
+    report = BenchReport.from_json(out.read_text())
+    (row,) = report.rows
+    assert row.latency_ms > 0 and row.memory_mib > 0
+    assert row.train_step_ms is None and row.train_memory_mib is None
+    assert BenchReport.from_csv(report.to_csv()) == report
+    assert report.to_markdown().splitlines()[-1].split(" | ")[4:6] == ["—", "—"]
