@@ -382,20 +382,22 @@ def test_point_to_index_hook_replaces_the_grid_indexing() -> None:
 
 
 def test_a_point_1km_away_lands_in_the_outer_cell_of_a_contracted_grid() -> None:
-    # One camera at ego (0, 0, 1.5) looking along +x; principal point on cell (0, 0)'s centre of a 1 x 1 feature map.
+    # One camera at ego (0, 0.2, 1.5) looking along +x; principal point on cell (0, 0)'s centre of a 1 x 1 feature map.
+    # y = 0.2 and x = 1200 keep every point inside a cell: at y = 0 or x = 1000 (x' = 78.4) a point sits on a voxel
+    # face and the cell it lands in turns on the last float bit, which differs between CPUs.
     cam = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
     batch = hand_batch(
         1,
         images=torch.zeros(1, 1, 3, 8, 8),
         intrinsics=torch.tensor([[[[10.0, 0, 3.5], [0, 10.0, 3.5], [0, 0, 1]]]]),
-        cam_to_ego=make_pose(cam, torch.tensor([0.0, 0.0, 1.5])).view(1, 1, 4, 4),
+        cam_to_ego=make_pose(cam, torch.tensor([0.0, 0.2, 1.5])).view(1, 1, 4, 4),
     )
     contracted = GridSpec(range=(-80, -80, -1, 80, 80, 5.4), voxel_size=(0.8, 0.8, 0.4), contraction={"near": 40.0})
     metric = GridSpec(range=(-80, -80, -1, 80, 80, 5.4), voxel_size=(0.8, 0.8, 0.4))
-    depths = torch.tensor([10.0, 60.0, 1000.0])
+    depths = torch.tensor([10.0, 60.0, 1200.0])
     feats = torch.tensor([1.0, 10.0, 100.0]).view(1, 1, 3, 1, 1, 1)
     out = FrustumSplatter(contracted, 8).splat_points(feats, batch, depths)[0, 0]
-    # x = 10 -> cell 112; x = 60 -> x' = 80 (1 - 0.5 / 1.5) = 53.33 -> cell 166; x = 1000 -> x' = 78.4 -> cell 198
+    # x = 10 -> cell 112; x = 60 -> x' = 80 (1 - 0.5 / 1.5) = 53.33 -> cell 166; x = 1200 -> x' = 78.67 -> cell 198
     assert out[112, 100, 6] == 1.0 and out[166, 100, 6] == 10.0 and out[198, 100, 6] == 100.0
     assert out.sum() == 111.0
     # With 1.6 m cells (100 x 100 BEV) 1 km and 1000 km both land in the outer cell 99, never dropped
