@@ -170,7 +170,9 @@ class BenchReport:
             f"device: {self.device}",
             "versions: " + ", ".join(f"{k} {v}" for k, v in self.versions.items()),
             f"batch size {s['batch_size']}; latency: median of {s['repeats']} interleaved repeats after "
-            f"{s['warmup']} warm-up, per frame; train step: median of {s['train_repeats']}; memory: {memory}",
+            f"{s['warmup']} warm-up, per frame; train step: "
+            + (f"median of {s['train_repeats']}" if s["train_repeats"] else "not measured")
+            + f"; memory: {memory}",
             "",
             "| model | params | latency (ms/frame) | memory (MiB) | train step (ms) | train memory (MiB) "
             "| mIoU | IoU | RayIoU | eval mask |",

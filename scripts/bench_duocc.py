@@ -14,8 +14,8 @@ and the benchmark measures the run directories, reading their ``metrics.json`` (
 ``--epochs 0`` the configs are measured untrained (no accuracy). A finished run directory is reused::
 
     python scripts/bench_duocc.py                                       # K = 1 2 4 8, default world, 4 epochs
-    python scripts/bench_duocc.py --preset tiny --epochs 1 --set trainer.max_steps=4 --repeats 2   # a smoke run
-    python scripts/bench_duocc.py --device cuda --preset occ3d --epochs 0 --full --train-repeats 0 \\
+    python scripts/bench_duocc.py --preset tiny --epochs 1 --set trainer.max_steps=4 --repeats 2 --train-repeats 2
+    python scripts/bench_duocc.py --device cuda --preset occ3d --epochs 0 --full --repeats 10 --train-repeats 0 \\
         --set "grid={range: [-40.0, -40.0, -1.0, 40.0, 40.0, 5.4], voxel_size: 0.4}"
 
 ``--train-repeats 0`` measures inference only: a training step on the ``occ3d`` world reads frames the benchmark
@@ -93,6 +93,8 @@ def main() -> None:
     parser.add_argument("--full", action="store_true", help="add the full DuOcc (D, duocc/full) as a last row")
     parser.add_argument("--out", default="runs/bench_duocc")
     args = parser.parse_args()
+    if args.train_repeats < 0:
+        parser.error(f"--train-repeats: expected an int >= 0 (0: inference only), got {args.train_repeats}")
 
     from occplug.bench import BenchSettings, resolve_target, run_bench
 

@@ -189,7 +189,7 @@ def test_training_rounds_generate_only_the_frames_they_read(tmp_path, monkeypatc
     _train(cfg, dm, model, {"device": "cpu", "warmup": 1, "train_repeats": 1}, Count())
     cached = list(tmp_path.rglob("*.pt"))
     assert len(steps) == 2
-    assert 1 <= len(cached) <= 3  # 2 steps at batch 1 (+ one batch Lightning reads ahead); the split holds 8
+    assert 1 <= len(cached) <= 3  # 2 steps at batch 1 (+ one batch Lightning reads ahead); train + val hold 8
 
 
 def test_train_repeats_0_measures_inference_only(tmp_path):

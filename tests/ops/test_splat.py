@@ -400,10 +400,10 @@ def test_a_point_1km_away_lands_in_the_outer_cell_of_a_contracted_grid() -> None
     # x = 10 -> cell 112; x = 60 -> x' = 80 (1 - 0.5 / 1.5) = 53.33 -> cell 166; x = 1200 -> x' = 78.67 -> cell 198
     assert out[112, 100, 6] == 1.0 and out[166, 100, 6] == 10.0 and out[198, 100, 6] == 100.0
     assert out.sum() == 111.0
-    # With 1.6 m cells (100 x 100 BEV) 1 km and 1000 km both land in the outer cell 99, never dropped
+    # With 1.6 m cells (100 x 100 BEV) 1.2 km and 1000 km both land in the outer cell 99, never dropped
     # (10 m -> cell floor(90 / 1.6) = 56); the metric grid drops everything beyond 80 m.
     coarse = GridSpec(range=(-80, -80, -1, 80, 80, 5.4), voxel_size=(1.6, 1.6, 0.4), contraction={"near": 40.0})
-    far = FrustumSplatter(coarse, 8, bev=True).splat_points(feats, batch, torch.tensor([10.0, 1e3, 1e6]))[0, 0]
+    far = FrustumSplatter(coarse, 8, bev=True).splat_points(feats, batch, torch.tensor([10.0, 1.2e3, 1e6]))[0, 0]
     assert far.shape == (100, 100) and far[56, 50] == 1.0 and far[99, 50] == 10.0 + 100.0 and far.sum() == 111.0
     assert FrustumSplatter(metric, 8).splat_points(feats, batch, depths)[0, 0].sum() == 11.0
 

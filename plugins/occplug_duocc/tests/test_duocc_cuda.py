@@ -12,8 +12,8 @@ SMALL = ["grid.range=[-8.0,-8.0,-1.0,8.0,8.0,5.4]", "model.encoder.out_channels=
 
 
 @pytest.mark.parametrize("config", ["stream_agg", "full"])
-def test_streamed_frames_on_cuda_match_cpu_and_train(config):
-    torch.backends.cudnn.allow_tf32 = False  # TF32 convolutions would differ from the CPU by ~1e-3
+def test_streamed_frames_on_cuda_match_cpu_and_backpropagate(config, monkeypatch):
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)  # TF32 convs differ from the CPU by ~1e-3
     torch.manual_seed(0)
     cfg = runner.load_config([f"duocc/{config}", "occplug/trainer/debug"], ["data.preset=tiny", *SMALL])
     dm, model = runner.build_run(cfg)
@@ -23,6 +23,7 @@ def test_streamed_frames_on_cuda_match_cpu_and_train(config):
 
     def stream(device):
         set_stream_stage(model, "val")
+        model.scene.history.clear("val")  # each device streams the scene from its start
         model.to(device)
         with torch.no_grad():
             return [model.logits_on_grid(model(f.to(device)), model.occupancy_head).cpu() for f in frames]
@@ -37,4 +38,5 @@ def test_streamed_frames_on_cuda_match_cpu_and_train(config):
     losses = model.losses(batch, model(batch))
     total = torch.stack(list(losses.values())).sum()
     total.backward()
-    assert bool(torch.isfinite(total))
+    grads = [p.grad for p in model.parameters() if p.grad is not None]
+    assert bool(torch.isfinite(total)) and grads and all(g.is_cuda and bool(torch.isfinite(g).all()) for g in grads)
