@@ -153,6 +153,14 @@ class _Merger:
         except yaml.YAMLError:
             value = raw
         parts = key.split(".")
+        phases = self.data.get("phases")
+        if len(parts) > 1 and parts[0] == "phases" and not (isinstance(phases, dict) and parts[1] in phases):
+            # a misspelt phase would otherwise become a new phase that trains the whole model once more
+            known = ", ".join(phases) if isinstance(phases, dict) and phases else "none"
+            raise ConfigError(
+                f"override '{item}': the config has no phase '{parts[1]}' (its phases: {known}); "
+                "declare a new phase in a config file"
+            )
         nested: Any = value
         for part in reversed(parts):
             nested = {part: nested}
