@@ -23,8 +23,9 @@ of the augmented image (``img_aug @ intrinsics``); a feature level of stride ``s
 Assumptions (where the paper, §3.2 "I2Q"/"V2Q" and suppl. A.4, is silent; the public code's choices are in
 ``duocc-code-notes.md`` §3):
 
-* §3.2 I2Q, anchors: 900 k-means anchors of the training boxes in the code; here ``num_queries`` anchors drawn
-  uniformly (fixed seed) in ``anchor_range`` with the size ``anchor_size`` and yaw 0, all learnable. The
+* §3.2 I2Q, anchors: 900 k-means anchors of the training boxes in the code; here ``anchor_centres`` when given
+  (``scripts/duocc_anchors.py`` makes them as the code does, :mod:`.anchors`), else ``num_queries`` centres drawn
+  uniformly (fixed seed) in ``anchor_range``; size ``anchor_size``, yaw 0, all learnable. The
   instance features start at zero (code) and are learnable unless ``learn_instance_feature=False`` (the code
   freezes them).
 * §3.2 I2Q, layer order (code ``operation_order``): layer 1 = image deformable aggregation, FFN, LN, refine;
@@ -529,6 +530,8 @@ class SparseDetector(nn.Module):
             key points per anchor (code 8 / 8 / 6).
         anchor_range: ``(x_min, y_min, z_min, x_max, y_max, z_max)`` ego-frame box in which anchor centres start.
         anchor_size: initial ``(l, w, h)`` of every anchor, metres.
+        anchor_centres: ``num_queries`` ego-frame ``(x, y, z)`` starting centres (the code's k-means anchors;
+            ``scripts/duocc_anchors.py``), or None to draw them uniformly in ``anchor_range``.
         learn_instance_feature: whether the initial instance features are learned (code: frozen zeros).
         confidence_decay: decay of a cached instance's confidence per frame.
         use_velocity: move cached anchors by constant velocity as well as by ego motion.
@@ -551,6 +554,7 @@ class SparseDetector(nn.Module):
         num_learnable_points: int = 6,
         anchor_range: Sequence[float] = (-40.0, -40.0, -1.0, 40.0, 40.0, 5.4),
         anchor_size: Sequence[float] = (4.0, 1.8, 1.6),
+        anchor_centres: Sequence[Sequence[float]] | None = None,
         learn_instance_feature: bool = True,
         confidence_decay: float = 0.6,
         use_velocity: bool = True,
@@ -567,8 +571,17 @@ class SparseDetector(nn.Module):
         self.confidence_decay, self.use_velocity = float(confidence_decay), bool(use_velocity)
         self.max_time_interval = float(max_time_interval)
         rng = torch.tensor([float(v) for v in anchor_range])
-        gen = torch.Generator().manual_seed(0)
-        centres = rng[:3] + torch.rand(num_queries, 3, generator=gen) * (rng[3:] - rng[:3])
+        if anchor_centres is None:
+            gen = torch.Generator().manual_seed(0)
+            centres = rng[:3] + torch.rand(num_queries, 3, generator=gen) * (rng[3:] - rng[:3])
+        else:
+            if len(anchor_centres) != num_queries or any(len(c) != 3 for c in anchor_centres):
+                raise ValueError(
+                    f"SparseDetector: anchor_centres must be num_queries={num_queries} rows of (x, y, z), got "
+                    f"{len(anchor_centres)} rows; make them for this query count with scripts/duocc_anchors.py "
+                    "--queries, or set anchor_centres: null"
+                )
+            centres = torch.tensor([[float(v) for v in c] for c in anchor_centres])
         size = torch.tensor([float(v) for v in anchor_size]).log().expand(num_queries, 3)
         yaw = torch.tensor([0.0, 1.0]).expand(num_queries, 2)
         self.anchors = nn.Parameter(torch.cat([centres, size, yaw, torch.zeros(num_queries, 2)], dim=-1))

@@ -19,14 +19,25 @@ def test_occ3d_nuscenes_has_the_papers_settings_and_validates():
     assert cfg["data"]["type"] == "occ3d_nuscenes" and cfg["data"]["image_size"] == [256, 704]
     assert cfg["grid"] == {"range": [-40.0, -40.0, -1.0, 40.0, 40.0, 5.4], "voxel_size": 0.4}  # 200 x 200 x 16
     assert model["view_transform"]["grid"] == cfg["grid"] and model["scene"]["grid"] == cfg["grid"]
-    assert model["encoder"] == {"type": "timm", "model_name": "resnet50", "out_channels": 64, "feature_level": 3,
-                                "weights": None}
+    assert model["encoder"] == {
+        "type": "timm",
+        "model_name": "resnet50",
+        "out_channels": 64,
+        "feature_level": 3,
+        "weights": None,
+    }
     assert model["view_transform"]["out_channels"] == 64  # V_init: 200 x 200 x 16 x 64
     detector = model["scene"]["query_agg"]["detector"]
     assert (detector["num_queries"], detector["num_layers"]) == (900, 6)
     weights = {name: model["supervision"][name]["weight"] for name in ("depth", *LOSSES, "detection", "mask")}
-    assert weights == {"depth": 0.05, "occupancy": 10.0, "forecast": 10.0, "occupied": 10.0, "detection": 0.2,
-                       "mask": 1.0}  # suppl. A.4
+    assert weights == {
+        "depth": 0.05,
+        "occupancy": 10.0,
+        "forecast": 10.0,
+        "occupied": 10.0,
+        "detection": 0.2,
+        "mask": 1.0,
+    }  # suppl. A.4
     mask = model["supervision"]["mask"]
     assert (mask["num_queries"], mask["num_groups"], mask["camera_mask"]) == (100, 6, True)
     assert all(model["supervision"][name]["camera_mask"] for name in LOSSES)

@@ -234,7 +234,13 @@ def test_dqa_leaves_every_voxel_outside_the_selected_boxes_unchanged_in_the_scen
 
 def test_training_selection_uses_the_ground_truth_and_gt_boxes_replaces_the_detections():
     torch.manual_seed(0)
-    model, dm = _model_and_dm("full", "model.scene.query_agg.selection={score_threshold: -1.0, iou_threshold: 0.0}")
+    # uniform anchors: k-means ones (duocc/anchors/synthetic) start on the boxes, so every query would overlap one
+    model, dm = _model_and_dm(
+        "full",
+        "model.scene.query_agg.selection={score_threshold: -1.0, iou_threshold: 0.0}",
+        "model.scene.query_agg.detector.anchor_centres=null",
+        "model.scene.query_agg.detector.anchor_size=[4.0, 1.8, 1.6]",
+    )
     batch = _batch(dm, [0, 3])
     out = model(batch)
     selected = out.extras["duocc_stream/dqa_selected"]

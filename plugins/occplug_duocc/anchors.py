@@ -1,0 +1,73 @@
+"""K-means anchors for the image-to-query detector, from the training split's ground-truth boxes.
+
+The public code (Sparse4D's ``tools/anchor_generator.py``, ``duocc-code-notes.md`` §3) starts its 900 queries at
+the k-means centres of the ego-frame box centres within 42 m, every anchor with the log of the mean box size and
+yaw 0. :func:`kmeans_anchors` does the same on any ``(M, 3)`` set of centres; ``scripts/duocc_anchors.py``
+collects them from a config's training split and writes a config overlay that sets the detector's
+``anchor_centres`` and ``anchor_size``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["kmeans", "kmeans_anchors"]
+
+
+def kmeans(points: Tensor, k: int, *, iterations: int = 100, seed: int = 0) -> Tensor:
+    """Lloyd's k-means with k-means++ seeding (deterministic for a seed).
+
+    Args:
+        points: ``(M, D)`` float points, ``M >= k``.
+        k: number of clusters.
+        iterations: at most this many Lloyd steps (stops earlier once no assignment changes).
+        seed: generator seed of the k-means++ draws.
+
+    Returns:
+        ``(k, D)`` float64 cluster centres, sorted by their first coordinate then the second (a stable order, so
+        the same data always gives the same anchor per query). An empty cluster is re-seeded at the point
+        farthest from its centre.
+    """
+    if points.dim() != 2 or points.shape[0] < k or k < 1:
+        raise ValueError(f"kmeans: need (M, D) points with M >= k >= 1, got {tuple(points.shape)} for k={k}")
+    x = points.to(torch.float64)
+    gen = torch.Generator().manual_seed(seed)
+    centres = x[torch.randint(x.shape[0], (1,), generator=gen)]
+    for _ in range(1, k):  # k-means++: the next centre with probability proportional to the squared distance
+        d2 = torch.cdist(x, centres).amin(1).square()
+        if float(d2.sum()) == 0.0:
+            centres = torch.cat([centres, x[torch.randint(x.shape[0], (1,), generator=gen)]])
+        else:
+            centres = torch.cat([centres, x[torch.multinomial(d2, 1, generator=gen)]])
+    assign = torch.full((x.shape[0],), -1, dtype=torch.long)
+    for _ in range(iterations):
+        new = torch.cdist(x, centres).argmin(1)
+        if torch.equal(new, assign):
+            break
+        assign = new
+        for c in range(k):
+            members = x[assign == c]
+            if members.shape[0]:
+                centres[c] = members.mean(0)
+            else:
+                centres[c] = x[(x - centres[assign]).norm(dim=1).argmax()]
+    order = sorted(range(k), key=lambda i: tuple(centres[i].tolist()))
+    return centres[order]
+
+
+def kmeans_anchors(boxes: Tensor, k: int, *, seed: int = 0) -> tuple[Tensor, Tensor]:
+    """Anchor centres and size as the public code makes them.
+
+    Args:
+        boxes: ``(M, >= 6)`` ego-frame boxes ``[cx, cy, cz, l, w, h, ...]`` (metres), ``M >= k``.
+        k: number of anchors (the detector's ``num_queries``).
+        seed: k-means++ seed.
+
+    Returns:
+        ``centres (k, 3)`` (k-means of the box centres) and ``size (3,)``: the mean ``(l, w, h)`` over all boxes
+        (the code stores its log; the detector takes metres and logs it).
+    """
+    if boxes.dim() != 2 or boxes.shape[1] < 6:
+        raise ValueError(f"kmeans_anchors: boxes must be (M, >= 6), got {tuple(boxes.shape)}")
+    return kmeans(boxes[:, :3], k, seed=seed), boxes[:, 3:6].to(torch.float64).mean(0)
