@@ -154,9 +154,10 @@ class _Merger:
             value = raw
         parts = key.split(".")
         phases = self.data.get("phases")
-        if len(parts) > 1 and parts[0] == "phases" and not (isinstance(phases, dict) and parts[1] in phases):
+        declared = [str(name) for name in phases] if isinstance(phases, dict) else []
+        if len(parts) > 1 and parts[0] == "phases" and parts[1] not in declared:
             # a misspelt phase would otherwise become a new phase that trains the whole model once more
-            known = ", ".join(phases) if isinstance(phases, dict) and phases else "none"
+            known = ", ".join(declared) or "none"
             raise ConfigError(
                 f"override '{item}': the config has no phase '{parts[1]}' (its phases: {known}); "
                 "declare a new phase in a config file"
