@@ -30,6 +30,9 @@ those three rows and 3 seeds on 2 cores. ``--epochs 1`` trains 3,480 / 2,880 / 6
 for the three rows); every row at ``--epochs 1`` is 16,800 steps per seed. Every phase keeps >= 1 epoch. The smoke
 run ``--seeds 0 --preset tiny --epochs 0.02 --rows three_phase_10pct baseline_10pct`` took 90 s.
 
+``--set`` items go to every run; one under ``phases.<name>.`` only to the rows that declare that phase (e.g.
+``--set phases.fusion.trainer.max_epochs=6`` lengthens Phase III of the OccLE rows, not the baseline).
+
 ``--val-scenes N`` evaluates on N validation scenes (the ``default`` world holds 4 x 6 frames; more lowers the
 spread between seeds). Results go to ``--out`` (default ``runs/ablate_occle``): one run directory per row and
 seed, and ``table.json``. A finished run directory is reused, so an interrupted ablation continues where it
@@ -99,7 +102,14 @@ def overrides(name: str, seed: int, args: argparse.Namespace) -> list[str]:
         out.append(f"data.val_scenes={args.val_scenes}")
     for phase, epochs in base_epochs(name).items():
         out.append(f"phases.{phase}.trainer.max_epochs={max(1, round(epochs * args.epochs))}")
-    return [*out, *args.set]
+    declared = set(base_epochs(name))
+    return [*out, *(item for item in args.set if _phase_of(item) in (None, *declared))]
+
+
+def _phase_of(item: str) -> str | None:
+    """The phase a ``--set`` item changes (``phases.<name>.<key>=...``), else None: it goes to the rows declaring it."""
+    parts = item.split("=", 1)[0].strip().split(".")
+    return parts[1] if len(parts) > 2 and parts[0] == "phases" else None
 
 
 _EPOCHS: dict[str, dict[str, int]] = {}
@@ -261,6 +271,16 @@ def main() -> None:
     parser.add_argument("--dry-run", action="store_true", help="print the planned optimizer steps and stop")
     args = parser.parse_args()
     args.rows = sorted(set(args.rows), key=lambda r: (r != DONOR, list(ROWS).index(r)))  # the donor first
+    from occplug.config import ConfigError
+
+    try:
+        for item in args.set:
+            phase = _phase_of(item)
+            if phase is not None and not any(phase in base_epochs(r) for r in args.rows):
+                raise ConfigError(f"--set {item}: none of the rows {args.rows} declares a phase {phase!r}")
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     if args.dry_run:
         dry_run(args)
         return
