@@ -1,16 +1,20 @@
 """DuOcc's detector anchors as the public code makes them: k-means of the training boxes' centres.
 
 Reads every frame of a config's training split, keeps the boxes of the detector's classes
-(``model.scene.query_agg.detection_classes``) whose centre lies within ``--max-distance`` metres of the ego (the
-code: 42 m; default: inside the config's grid), and writes a config overlay with ``anchor_centres`` (k-means of the
-centres, k = the detector's ``num_queries`` or ``--queries``) and ``anchor_size`` (the mean box size)::
+(``model.scene.query_agg.detection_classes``; the code takes every box of its info file, which holds nuScenes' ten
+detection classes) whose centre lies within ``--max-distance`` metres of the ego (the norm of ``(x, y, z)``, as the
+code; it uses 42 m; default: the centre inside the config's grid in x and y), and writes a config overlay with
+``anchor_centres`` (k-means of the centres, k = the detector's ``num_queries`` or ``--queries``) and
+``anchor_size`` (the mean box size)::
 
     python scripts/duocc_anchors.py -c duocc/full --out anchors.yaml
     occplug fit -c duocc/full -c anchors.yaml
 
 ``duocc/full`` ships the overlay this script wrote for the synthetic ``default`` world
 (``duocc/anchors/synthetic``); for real data, run it on your recipe (e.g. ``-c duocc/occ3d_nuscenes``, 900
-queries). Reading the split renders every frame of a synthetic world (cached afterwards).
+queries). It reads whole frames (images too): every frame of a synthetic world is rendered once (then cached), and
+on real data this takes as long as one pass over the training split. ``duocc/full`` with another world or grid
+still starts from the default world's anchors: make an overlay for it.
 """
 
 from __future__ import annotations
@@ -39,8 +43,10 @@ def training_boxes(cfg: dict, classes: list[int], max_distance: float | None) ->
         if frame.boxes is None or frame.box_labels is None or not len(frame.boxes):
             continue
         boxes = frame.boxes[torch.isin(frame.box_labels, wanted)]
-        xy = boxes[:, :2]
-        near = xy.norm(dim=1) <= max_distance if max_distance is not None else ((xy >= lo) & (xy <= hi)).all(1)
+        if max_distance is not None:  # the code's rule: the norm of the centre (x, y, z)
+            near = boxes[:, :3].norm(dim=1) <= max_distance
+        else:
+            near = ((boxes[:, :2] >= lo) & (boxes[:, :2] <= hi)).all(1)
         kept.append(boxes[near])
     return torch.cat(kept) if kept else torch.zeros(0, 9)
 

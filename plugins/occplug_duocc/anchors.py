@@ -33,27 +33,36 @@ def kmeans(points: Tensor, k: int, *, iterations: int = 100, seed: int = 0) -> T
         raise ValueError(f"kmeans: need (M, D) points with M >= k >= 1, got {tuple(points.shape)} for k={k}")
     x = points.to(torch.float64)
     gen = torch.Generator().manual_seed(seed)
-    centres = x[torch.randint(x.shape[0], (1,), generator=gen)]
-    for _ in range(1, k):  # k-means++: the next centre with probability proportional to the squared distance
-        d2 = torch.cdist(x, centres).amin(1).square()
+    chosen = [int(torch.randint(x.shape[0], (1,), generator=gen))]
+    d2 = (x - x[chosen[0]]).square().sum(1)  # squared distance to the nearest chosen centre, kept as a running min
+    for _ in range(1, k):  # k-means++: the next centre with probability proportional to d2
         if float(d2.sum()) == 0.0:
-            centres = torch.cat([centres, x[torch.randint(x.shape[0], (1,), generator=gen)]])
+            chosen.append(int(torch.randint(x.shape[0], (1,), generator=gen)))
         else:
-            centres = torch.cat([centres, x[torch.multinomial(d2, 1, generator=gen)]])
+            chosen.append(int(torch.multinomial(d2, 1, generator=gen)))
+        d2 = torch.minimum(d2, (x - x[chosen[-1]]).square().sum(1))
+    centres = x[chosen].clone()
     assign = torch.full((x.shape[0],), -1, dtype=torch.long)
     for _ in range(iterations):
-        new = torch.cdist(x, centres).argmin(1)
+        new = _nearest(x, centres)
         if torch.equal(new, assign):
             break
         assign = new
-        for c in range(k):
-            members = x[assign == c]
-            if members.shape[0]:
-                centres[c] = members.mean(0)
-            else:
-                centres[c] = x[(x - centres[assign]).norm(dim=1).argmax()]
+        counts = torch.bincount(assign, minlength=k)
+        sums = torch.zeros_like(centres).index_add_(0, assign, x)
+        filled = counts > 0
+        centres[filled] = sums[filled] / counts[filled, None]
+        for c in torch.nonzero(~filled).flatten().tolist():  # re-seed an empty cluster at the worst-fitted point
+            worst = int((x - centres[assign]).norm(dim=1).argmax())
+            centres[c] = x[worst]
+            assign[worst] = c
     order = sorted(range(k), key=lambda i: tuple(centres[i].tolist()))
     return centres[order]
+
+
+def _nearest(x: Tensor, centres: Tensor, chunk: int = 8192) -> Tensor:
+    """Index of the nearest centre for each point, ``chunk`` points at a time (bounded memory)."""
+    return torch.cat([torch.cdist(x[i : i + chunk], centres).argmin(1) for i in range(0, x.shape[0], chunk)])
 
 
 def kmeans_anchors(boxes: Tensor, k: int, *, seed: int = 0) -> tuple[Tensor, Tensor]:

@@ -575,11 +575,16 @@ class SparseDetector(nn.Module):
             gen = torch.Generator().manual_seed(0)
             centres = rng[:3] + torch.rand(num_queries, 3, generator=gen) * (rng[3:] - rng[:3])
         else:
-            if len(anchor_centres) != num_queries or any(len(c) != 3 for c in anchor_centres):
+            if len(anchor_centres) != num_queries:
                 raise ValueError(
                     f"SparseDetector: anchor_centres must be num_queries={num_queries} rows of (x, y, z), got "
                     f"{len(anchor_centres)} rows; make them for this query count with scripts/duocc_anchors.py "
                     "--queries, or set anchor_centres: null"
+                )
+            bad = [i for i, c in enumerate(anchor_centres) if len(c) != 3]
+            if bad:
+                raise ValueError(
+                    f"SparseDetector: anchor_centres[{bad[0]}] must be (x, y, z), got {anchor_centres[bad[0]]}"
                 )
             centres = torch.tensor([[float(v) for v in c] for c in anchor_centres])
         size = torch.tensor([float(v) for v in anchor_size]).log().expand(num_queries, 3)

@@ -31,6 +31,15 @@ def test_kmeans_recovers_separated_clusters_deterministically():
         kmeans(points[:2], 3)
 
 
+def test_kmeans_with_more_clusters_than_distinct_points_stays_finite():
+    points = torch.tensor([[0.0, 0.0, 0.0]] * 3 + [[10.0, 0.0, 0.0], [20.0, 0.0, 0.0]])
+    centres = kmeans(points, 4, seed=1)
+    assert torch.isfinite(centres).all()
+    # every centre is one of the three distinct points, and each of them is a centre
+    distinct = torch.tensor([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [20.0, 0.0, 0.0]], dtype=torch.float64)
+    assert (torch.cdist(centres, distinct).amin(1) == 0).all() and (torch.cdist(distinct, centres).amin(1) == 0).all()
+
+
 def test_kmeans_anchors_take_the_mean_box_size():
     boxes = torch.tensor([[0.0, 0.0, 1.0, 4.0, 2.0, 1.5], [10.0, 0.0, 1.0, 1.0, 1.0, 2.0]])
     centres, size = kmeans_anchors(boxes, 2)

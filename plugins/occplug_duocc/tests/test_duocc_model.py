@@ -234,7 +234,7 @@ def test_dqa_leaves_every_voxel_outside_the_selected_boxes_unchanged_in_the_scen
 
 def test_training_selection_uses_the_ground_truth_and_gt_boxes_replaces_the_detections():
     torch.manual_seed(0)
-    # uniform anchors: k-means ones (duocc/anchors/synthetic) start on the boxes, so every query would overlap one
+    # the uniform anchors and size this test was written for (duocc/full's k-means ones are the default world's)
     model, dm = _model_and_dm(
         "full",
         "model.scene.query_agg.selection={score_threshold: -1.0, iou_threshold: 0.0}",
