@@ -28,6 +28,8 @@ def test_occ3d_nuscenes_has_the_papers_settings_and_validates():
     }
     assert model["view_transform"]["out_channels"] == 64  # V_init: 200 x 200 x 16 x 64
     detector = model["scene"]["query_agg"]["detector"]
+    cw = model["supervision"]["occupancy"]["class_weights"]  # the code's: others .. vegetation, free (halved)
+    assert len(cw) == 18 and cw[4] == 0.300 and cw[-1] == 0.117 and min(cw[:-1]) == 0.263
     # not the synthetic world's 48 k-means anchors of duocc/full: uniform until the user makes the data's own
     assert detector["anchor_centres"] is None and detector["anchor_size"] == [4.0, 1.8, 1.6]
     assert (detector["num_queries"], detector["num_layers"]) == (900, 6)
