@@ -1,7 +1,7 @@
 """Class frequencies of a data set: voxels per label id over a split (``occplug data stats``).
 
 Losses that weight classes by frequency (MonoScene's ``1 / log(f + 0.001)``, e.g. OccLE's ``class_frequencies``)
-take these counts as they are.
+take these counts as they are; :func:`inverse_log_weights` is that family of weights (``scale / log(f + eps)``).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import torch
 
 from occplug.data.frame import Frame
 
-__all__ = ["ClassCounts", "class_counts"]
+__all__ = ["ClassCounts", "class_counts", "inverse_log_weights"]
 
 
 @dataclass
@@ -61,3 +61,31 @@ def class_counts(
         total += torch.bincount(labels.flatten(), minlength=num_classes).numpy()
         counted += 1
     return ClassCounts(counts=total, frames=counted, skipped=skipped)
+
+
+def inverse_log_weights(counts: torch.Tensor | Sequence[float], scale: float = 1.0, eps: float = 0.0) -> torch.Tensor:
+    """Class weights ``w_c = scale / log(f_c + eps)`` from raw class counts (larger for rarer classes).
+
+    MonoScene's (and OccLE's) weights are ``scale=1, eps=0.001``; the public DuOcc code's are ``scale=5, eps=0``
+    (then halves free's).
+
+    Args:
+        counts: ``(K,)`` raw voxel (or pixel) counts per class over a training set, e.g. :func:`class_counts`'
+            ``counts``; normalised frequencies would make the logarithm negative.
+        scale: the numerator.
+        eps: added to every count before the logarithm.
+
+    Returns:
+        ``(K,)`` float32 weights.
+
+    Raises:
+        ValueError: ``counts`` is not 1-D, or a count has ``f + eps <= 1`` (the weight would be negative or
+            infinite).
+    """
+    f = torch.as_tensor(counts, dtype=torch.float64)
+    if f.dim() != 1 or bool((f + eps <= 1.0).any()):
+        raise ValueError(
+            f"class weights scale / log(f + {eps:g}) need a 1-D list of raw class counts, each above {1 - eps:g} "
+            f"(the weight is negative or infinite otherwise), got {f.tolist()}"
+        )
+    return (scale / torch.log(f + eps)).to(torch.float32)

@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from occplug.data.stats import inverse_log_weights
 from occplug.geometry import GridSpec
 
 __all__ = [
@@ -49,13 +50,7 @@ def class_weights_from_frequencies(frequencies: Tensor | Sequence[float], eps: f
     Returns:
         ``(K,)`` float32 weights, larger for rarer classes.
     """
-    f = torch.as_tensor(frequencies, dtype=torch.float64)
-    if f.dim() != 1 or bool((f + eps <= 1.0).any()):
-        raise ValueError(
-            "class_weights_from_frequencies needs a 1-D tensor of raw class counts, each > 1 - eps (1/log(f + eps) "
-            f"is negative or infinite otherwise), got {f.tolist()}"
-        )
-    return (1.0 / torch.log(f + eps)).to(torch.float32)
+    return inverse_log_weights(frequencies, scale=1.0, eps=eps)
 
 
 def _counted(labels: Tensor, mask: Tensor | None, ignore_index: int) -> Tensor:

@@ -1,0 +1,54 @@
+"""The public DuOcc code's occupancy CE class weights, from a training split's class counts.
+
+The code (``duocc-code-notes.md`` §4) weights its occupancy CE by ``5 / ln(f_c)`` over the raw voxel counts
+``f_c`` of nuScenes (its ``nusc_class_frequencies``) and halves the free class's weight; the paper does not give
+them. :func:`duocc_class_weights` computes the same from any counts (``occplug data stats`` prints them);
+``scripts/duocc_class_weights.py`` counts a config's training split and writes a config overlay.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from occplug.data.stats import inverse_log_weights
+
+__all__ = ["CODE_FREE_FACTOR", "CODE_SCALE", "duocc_class_weights"]
+
+#: the numerator of the code's ``5 / ln(f)``.
+CODE_SCALE = 5.0
+#: the code's factor on the free class's weight.
+CODE_FREE_FACTOR = 0.5
+
+
+def duocc_class_weights(
+    counts: Tensor | Sequence[float], free_index: int = -1, free_factor: float = CODE_FREE_FACTOR
+) -> Tensor:
+    """``5 / ln(f_c)`` per class, the free class's times ``free_factor``.
+
+    Args:
+        counts: ``(K,)`` raw voxel counts per label id over the training split (free included).
+        free_index: the free class's position (Occ3D: the last, 17).
+        free_factor: the factor on free's weight (the code: 0.5).
+
+    Returns:
+        ``(K,)`` float32 weights. A class counted at most once (absent from the split; ``ln`` would be 0 or
+        undefined) gets the largest weight of the others: it is at least as rare as the rarest seen, and its weight
+        only matters on data that holds it.
+
+    Raises:
+        ValueError: ``counts`` is not 1-D, or no class was counted more than once.
+    """
+    f = torch.as_tensor(counts, dtype=torch.float64)
+    if f.dim() != 1:
+        raise ValueError(f"duocc_class_weights: expected a 1-D list of class counts, got shape {tuple(f.shape)}")
+    seen = f > 1
+    if not bool(seen.any()):
+        raise ValueError(f"duocc_class_weights: no class is counted more than once in {f.tolist()}")
+    weights = torch.empty(f.shape[0], dtype=torch.float32)
+    weights[seen] = inverse_log_weights(f[seen], scale=CODE_SCALE)
+    weights[~seen] = weights[seen].max()
+    weights[free_index] = weights[free_index] * free_factor
+    return weights

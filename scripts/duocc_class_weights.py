@@ -1,0 +1,72 @@
+"""DuOcc's occupancy CE class weights as the public code makes them: ``5 / ln(f)`` per class, free halved.
+
+Counts the voxel labels of a config's training split (``occplug data stats``'s counts: every voxel, as the code's
+``nusc_class_frequencies``; ``--mask camera`` counts camera-visible ones only) and writes a config overlay that
+sets ``model.supervision.<source>.class_weights`` (``occupancy``: the recipes' ``voxel_ce``)::
+
+    python scripts/duocc_class_weights.py -c duocc/stream_agg --out weights.yaml
+    occplug fit -c duocc/stream_agg -c weights.yaml
+
+The synthetic recipes ship the overlay this script wrote for the ``default`` world
+(``duocc/class_weights/synthetic``); ``duocc/occ3d_nuscenes`` carries the code's own nuScenes values. A class
+absent from the split gets the largest weight of the others (:func:`occplug_duocc.class_weights.duocc_class_weights`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import yaml
+
+from occplug import runner
+from occplug.config import ConfigError
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-c", "--config", action="append", required=True, help="config(s), composed in order")
+    parser.add_argument("overrides", nargs="*", help="key=value overrides")
+    parser.add_argument("--mask", default="none", choices=["none", "camera"], help="voxels counted (default: every)")
+    parser.add_argument("--source", default="occupancy", help="the supervision source to weight (default: occupancy)")
+    parser.add_argument("--out", type=Path, required=True, help="the config overlay to write (YAML)")
+    args = parser.parse_args(argv)
+    from occplug.data.stats import class_counts
+    from occplug_duocc.class_weights import duocc_class_weights
+
+    try:
+        cfg = runner.load_config(args.config, args.overrides)
+        source = (cfg["model"].get("supervision") or {}).get(args.source)
+        if not isinstance(source, dict) or source.get("type") != "voxel_ce":
+            raise ConfigError(f"model.supervision.{args.source}: expected a voxel_ce source to weight, got {source!r}")
+        dm = runner.build_datamodule(cfg)
+        names = list(dm.class_names)
+        if "free" not in names:
+            raise ConfigError(f"data of {args.config}: no class named 'free' among {names}")
+        counts = class_counts(dm.dataset("train"), len(names), mask=args.mask)
+        if counts.frames == 0:
+            raise ConfigError(f"{args.config}: the training split has no frame with voxel labels")
+        weights = duocc_class_weights(counts.counts, free_index=names.index("free"))
+    except (ConfigError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    header = (
+        f"# DuOcc occupancy CE class weights (scripts/duocc_class_weights.py): 5 / ln(f) per class, free halved, the\n"
+        f"# public code's rule; f = voxels per class ({args.mask} mask) over {counts.frames} training frames:\n"
+        f"# {[int(c) for c in counts.counts]}\n"
+        f"# Made from: {' '.join(['-c ' + c for c in args.config] + list(args.overrides))}\n"
+    )
+    body = {"model": {"supervision": {args.source: {"class_weights": [round(float(w), 3) for w in weights]}}}}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.out.with_name(args.out.name + ".tmp")
+    tmp.write_text(header + yaml.safe_dump(body, sort_keys=False, default_flow_style=None))
+    tmp.replace(args.out)
+    print(
+        f"{args.out}: {len(names)} class weights from {counts.frames} frames: {[round(float(w), 3) for w in weights]}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
