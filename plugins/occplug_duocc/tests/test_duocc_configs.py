@@ -3,7 +3,9 @@ tests/test_configs.py's sweep)."""
 
 from __future__ import annotations
 
+import ast
 import copy
+from importlib.resources import files
 
 from occplug.config import compose, validate
 from occplug.plugins import get_registry
@@ -70,3 +72,20 @@ def test_synthetic_no_camera_mask_recipe_is_full_without_the_mask():
         full["model"]["supervision"][name]["camera_mask"] = False
     assert unmasked["model"] == full["model"] and unmasked["eval_mask"] == "none"
     assert [m if isinstance(m, str) else m["type"] for m in unmasked["metrics"]] == ["occ3d_miou", "rayiou"]
+
+
+def test_synthetic_recipes_weight_the_occupancy_ce_by_the_default_worlds_counts():
+    from occplug_duocc.class_weights import duocc_class_weights
+
+    overlay = compose(["duocc/class_weights/synthetic"]).resolved()["model"]["supervision"]["occupancy"]
+    # the overlay's header records the counts it was made from: the weights are the code's rule over them
+    text = (files("occplug_duocc") / "configs" / "class_weights" / "synthetic.yaml").read_text()
+    counts = ast.literal_eval(next(ln[2:] for ln in text.splitlines() if ln.startswith("# [")))
+    assert len(counts) == 18 and counts[4] > 0  # car voxels
+    assert overlay["class_weights"] == [round(float(w), 3) for w in duocc_class_weights(counts)]
+    for recipe in ("single_frame", "stream_agg", "stacking", "full", "full_mask"):
+        occupancy = compose([f"duocc/{recipe}"]).resolved()["model"]["supervision"]["occupancy"]
+        assert occupancy["class_weights"] == overlay["class_weights"], recipe
+    # the real-data recipe keeps the code's nuScenes weights
+    nusc = compose(["duocc/occ3d_nuscenes"]).resolved()["model"]["supervision"]["occupancy"]["class_weights"]
+    assert nusc[-1] == 0.117 and nusc != overlay["class_weights"]
