@@ -26,7 +26,8 @@ tuned for::
     python scripts/ablate_duocc.py --rows stream_agg full --seeds 0 1 2
     python scripts/ablate_duocc.py --seeds 0 --preset tiny --epochs 1 --set trainer.max_steps=4   # a smoke run
 
-A finished run directory (its ``metrics.json``) is reused, so an interrupted ablation continues where it stopped.
+A finished run directory (its ``metrics.json``) is reused, so an interrupted ablation continues where it stopped;
+one whose saved config differs from what the recipe and ``--set`` compose now stops the script (a fresh ``--out``).
 """
 
 from __future__ import annotations
@@ -69,8 +70,6 @@ GT_OVERRIDE = "model.scene.query_agg.gt_boxes=true"
 def fit(config: str, seed: int, args: argparse.Namespace) -> Path:
     """The run directory of ``config`` at ``seed`` (trained first unless a finished one is there)."""
     out = Path(args.out) / f"{config}-seed{seed}"
-    if (out / "metrics.json").is_file():
-        return out
     overrides = [
         f"seed={seed}",
         "trainer.enable_progress_bar=false",
@@ -78,6 +77,20 @@ def fit(config: str, seed: int, args: argparse.Namespace) -> Path:
         f"trainer.max_epochs={args.epochs}",
         *args.set,
     ]
+    if (out / "config.yaml").is_file():  # reuse (or resume) only a run of the config the recipe composes today
+        import yaml
+
+        from occplug import runner
+
+        if yaml.safe_load((out / "config.yaml").read_text()) != runner.load_config([f"duocc/{config}"], overrides):
+            print(
+                f"error: {out} was trained with another config than duocc/{config} {' '.join(overrides)} composes "
+                "now (a recipe or --set changed); choose a fresh --out",
+                file=sys.stderr,
+            )
+            raise SystemExit(2)
+    if (out / "metrics.json").is_file():
+        return out
     command = [sys.executable, "-m", "occplug.cli", "fit", "-c", f"duocc/{config}", *overrides]
     command += ["--resume", str(out)] if (out / "config.yaml").is_file() else ["--run-dir", str(out)]
     start = time.monotonic()

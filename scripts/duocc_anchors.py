@@ -97,9 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         }
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_name(args.out.name + ".tmp")
-    tmp.write_text(header + yaml.safe_dump(body, sort_keys=False, default_flow_style=None))
-    tmp.replace(args.out)
+    runner.write_text_atomic(args.out, header + yaml.safe_dump(body, sort_keys=False, default_flow_style=None))
     print(f"{args.out}: {k} anchors from {boxes.shape[0]} boxes; mean size {[round(float(v), 2) for v in size]}")
     return 0
 

@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         cfg = runner.load_config(args.config, args.overrides)
-        source = (cfg["model"].get("supervision") or {}).get(args.source)
+        source = ((cfg.get("model") or {}).get("supervision") or {}).get(args.source)
         if not isinstance(source, dict) or source.get("type") != "voxel_ce":
             raise ConfigError(f"model.supervision.{args.source}: expected a voxel_ce source to weight, got {source!r}")
         dm = runner.build_datamodule(cfg)
@@ -59,9 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     body = {"model": {"supervision": {args.source: {"class_weights": [round(float(w), 3) for w in weights]}}}}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_name(args.out.name + ".tmp")
-    tmp.write_text(header + yaml.safe_dump(body, sort_keys=False, default_flow_style=None))
-    tmp.replace(args.out)
+    runner.write_text_atomic(args.out, header + yaml.safe_dump(body, sort_keys=False, default_flow_style=None))
     print(
         f"{args.out}: {len(names)} class weights from {counts.frames} frames: {[round(float(w), 3) for w in weights]}"
     )

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 import torch
 import torch.nn.functional as F
@@ -26,7 +26,8 @@ class VoxelCrossEntropy(SupervisionSource):
     ``batch.mask_lidar`` is set there.
     The loss is the mean over counted voxels, exactly ``F.cross_entropy(logits[counted],
     labels[counted], weight=class_weights, label_smoothing=label_smoothing)`` (with class weights,
-    normalised by the summed weights of the counted labels, as PyTorch does). A batch with no
+    normalised by the summed weights of the counted labels, as PyTorch does; ``normalize: count`` divides the
+    weighted sum by the number of counted voxels instead, as e.g. the public DuOcc and FlashOcc code do). A batch with no
     counted voxel gives a zero loss that still depends on the logits, so every rank of a
     distributed run reaches the same backward.
 
@@ -38,6 +39,8 @@ class VoxelCrossEntropy(SupervisionSource):
         ignore_label: label id never counted (filled from the data module when left out); None: none.
         class_weights: ``K`` per-class weights, or None for uniform.
         label_smoothing: as in :func:`torch.nn.functional.cross_entropy`.
+        normalize: ``weights`` (the summed class weight of the counted voxels, PyTorch's ``mean``) or ``count``
+            (the number of counted voxels); the two agree without class weights.
 
     Needs batch fields: ``voxel_labels`` ``(B, X, Y, Z)`` (integer class ids, same shape as the
     logits' grid), ``has_voxel_labels`` ``(B,)``, and ``mask_camera`` / ``mask_lidar`` when asked.
@@ -55,6 +58,7 @@ class VoxelCrossEntropy(SupervisionSource):
         ignore_label: int | None = 255,
         class_weights: list[Annotated[float, NonNegative]] | None = None,
         label_smoothing: Annotated[float, UnitInterval] = 0.0,
+        normalize: Literal["weights", "count"] = "weights",
     ) -> None:
         super().__init__()
         if not 0.0 <= label_smoothing <= 1.0:
@@ -65,6 +69,9 @@ class VoxelCrossEntropy(SupervisionSource):
         self.lidar_mask = bool(lidar_mask)
         self.ignore_label = ignore_label
         self.label_smoothing = float(label_smoothing)
+        if normalize not in ("weights", "count"):
+            raise ValueError(f"voxel_ce normalize must be 'weights' or 'count', got {normalize!r}")
+        self.normalize = normalize
         cw = None if class_weights is None else torch.tensor([float(v) for v in class_weights], dtype=torch.float32)
         self.register_buffer("class_weights", cw, persistent=False)
 
@@ -125,7 +132,7 @@ class VoxelCrossEntropy(SupervisionSource):
             logits, target, weight=weights, ignore_index=_IGNORE, label_smoothing=self.label_smoothing, reduction="none"
         )
         # PyTorch's "mean": divide by the summed weight of the counted targets (their count if unweighted).
-        if weights is None:
+        if weights is None or self.normalize == "count":
             denom = keep.sum().to(per_voxel.dtype)
         else:
             denom = (weights[target.clamp_min(0)] * keep).sum()

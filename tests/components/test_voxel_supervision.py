@@ -65,6 +65,14 @@ def test_equals_cross_entropy_on_the_counted_voxels() -> None:
     expected = by_hand(logits, labels, valid, weight=torch.tensor(cw), label_smoothing=0.1)
     torch.testing.assert_close(weighted, expected)
 
+    # normalize=count: the same weighted sum over the number of counted voxels (the DuOcc / FlashOcc code's rule)
+    per_voxel = by_hand(logits, labels, valid, weight=torch.tensor(cw), label_smoothing=0.1, reduction="none")
+    by_count = VoxelCrossEntropy(class_weights=cw, label_smoothing=0.1, normalize="count")(batch, outputs_with(logits))
+    torch.testing.assert_close(by_count["voxel_ce"], per_voxel.sum() / valid.sum())
+    assert not torch.allclose(by_count["voxel_ce"], weighted)
+    unweighted = VoxelCrossEntropy(normalize="count")(batch, outputs_with(logits))["voxel_ce"]
+    torch.testing.assert_close(unweighted, loss)  # without class weights the two rules agree
+
 
 def test_unlabeled_samples_do_not_count() -> None:
     logits, labels, _ = problem()

@@ -34,6 +34,8 @@ def test_free_is_halved_and_an_absent_class_takes_the_largest_weight():
     assert w[1] == pytest.approx(5 / torch.log(torch.tensor(100.0, dtype=torch.float64)).item(), rel=1e-6)
     assert w[0] == w[1] == w.max()  # absent: at least as rare as the rarest seen
     assert w[3] == pytest.approx(0.5 * 5 / 13.815510557964274, rel=1e-6)  # ln(1e6), halved
+    first = duocc_class_weights([1_000_000, 100, 10_000], free_index=0)  # free elsewhere than last
+    assert first[0] == pytest.approx(w[3].item()) and first[1] == pytest.approx(w[1].item())
     with pytest.raises(ValueError, match="no class is counted"):
         duocc_class_weights([0, 1, 0])
 

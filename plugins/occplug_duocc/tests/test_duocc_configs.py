@@ -1,5 +1,5 @@
-"""DuOcc's real-data recipes: the paper's settings, composed and validated (the synthetic recipes train in
-tests/test_configs.py's sweep)."""
+"""DuOcc's recipes composed and validated: the real-data ones with the paper's settings, the synthetic ones' class
+weights (the synthetic recipes train in tests/test_configs.py's sweep)."""
 
 from __future__ import annotations
 
@@ -32,6 +32,7 @@ def test_occ3d_nuscenes_has_the_papers_settings_and_validates():
     detector = model["scene"]["query_agg"]["detector"]
     cw = model["supervision"]["occupancy"]["class_weights"]  # the code's: others .. vegetation, free (halved)
     assert len(cw) == 18 and cw[4] == 0.300 and cw[-1] == 0.117 and min(cw[:-1]) == 0.263
+    assert model["supervision"]["occupancy"]["normalize"] == "count"  # the code's: over the visible voxels
     # not the synthetic world's 48 k-means anchors of duocc/full: uniform until the user makes the data's own
     assert detector["anchor_centres"] is None and detector["anchor_size"] == [4.0, 1.8, 1.6]
     assert (detector["num_queries"], detector["num_layers"]) == (900, 6)
