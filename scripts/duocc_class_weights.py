@@ -57,12 +57,11 @@ def main(argv: list[str] | None = None) -> int:
         f"# {[int(c) for c in counts.counts]}\n"
         f"# Made from: {' '.join(['-c ' + c for c in args.config] + list(args.overrides))}\n"
     )
-    body = {"model": {"supervision": {args.source: {"class_weights": [round(float(w), 3) for w in weights]}}}}
+    rounded = [round(float(w), 3) for w in weights]
+    body = {"model": {"supervision": {args.source: {"class_weights": rounded}}}}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     runner.write_text_atomic(args.out, header + yaml.safe_dump(body, sort_keys=False, default_flow_style=None))
-    print(
-        f"{args.out}: {len(names)} class weights from {counts.frames} frames: {[round(float(w), 3) for w in weights]}"
-    )
+    print(f"{args.out}: {len(names)} class weights from {counts.frames} frames: {rounded}")
     return 0
 
 

@@ -131,7 +131,7 @@ class VoxelCrossEntropy(SupervisionSource):
         per_voxel = F.cross_entropy(
             logits, target, weight=weights, ignore_index=_IGNORE, label_smoothing=self.label_smoothing, reduction="none"
         )
-        # PyTorch's "mean": divide by the summed weight of the counted targets (their count if unweighted).
+        # "weights" is PyTorch's mean: the summed weight of the counted targets; "count": how many there are.
         if weights is None or self.normalize == "count":
             denom = keep.sum().to(per_voxel.dtype)
         else:
