@@ -30,7 +30,9 @@ Assumptions (where the paper, §3.2 "I2Q"/"V2Q" and suppl. A.4, is silent; the p
   freezes them).
 * §3.2 I2Q, layer order (code ``operation_order``): layer 1 = image deformable aggregation, FFN, LN, refine;
   later layers = temporal cross-attention (only with a valid state), self-attention, LN, image deformable
-  aggregation, FFN, LN, refine. No denoising groups, no quality (centerness / yawness) head, no point drop.
+  aggregation, FFN, LN, refine. No quality (centerness / yawness) head, no point drop. Sparse4D v3's instance
+  denoising (the code's 5 groups) is ``num_dn_groups`` (:mod:`.denoising`; 0, off, by default), without its
+  temporal groups.
 * Attention uses DETR's ``q = k = feature + anchor embedding, v = feature`` (the code concatenates the two
   into a 2C-wide attention); the anchor encoder is the code's four MLPs (position, size, yaw, velocity) with
   two (Linear, ReLU, LN) blocks each instead of four, channel split 1/2, 1/8, 1/8, 1/4.
@@ -73,9 +75,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from occplug.constraints import Positive
+from occplug.constraints import NonNegative, Positive
 from occplug.geometry import GridSpec, project_to_image, relative_pose, sample_volume, transform_points
 
+from .denoising import DN_NOISE_SCALE, DenoisingQueries, denoising_loss, make_denoising_queries
 from .matching import SPARSE4D_REG_WEIGHTS, encode_boxes, hungarian_match
 
 if TYPE_CHECKING:
@@ -383,6 +386,7 @@ class _DecoderLayer(nn.Module):
         anchor_embed: Tensor,
         cams: tuple,
         temporal: tuple[Tensor, Tensor, Tensor] | None,
+        attn_mask: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         if self.interaction:
             if temporal is not None:
@@ -390,7 +394,7 @@ class _DecoderLayer(nn.Module):
                 att = self.temporal_attn(x + anchor_embed, t_feat + t_embed, t_feat, need_weights=False)[0]
                 x = x + att * t_valid[:, None, None].to(x.dtype)
             q = x + anchor_embed
-            x = self.norm_attn(x + self.self_attn(q, q, x, need_weights=False)[0])
+            x = self.norm_attn(x + self.self_attn(q, q, x, attn_mask=attn_mask, need_weights=False)[0])
         agg = self.deformable(x, anchor_embed, anchors, *cams)
         x = self.norm_ffn(self.ffn(torch.cat([x, agg], dim=-1)))
         anchors = anchors + self.refine(x + anchor_embed)
@@ -497,6 +501,9 @@ class DetectorOutput:
         features: ``(B, Q, C)`` instance features after the last layer (``q_img`` of Eq. 6).
         anchor_embed: ``(B, Q, C)`` embedding of the final boxes (a positional term for V2Q / DQA), or None.
         state: the state to pass to the next frame (detached), or None.
+        denoising: the step's denoising queries (training only, :mod:`.denoising`), or None.
+        dn_cls_logits: per layer ``(B, M, K)`` the denoising queries' class logits (with ``denoising``).
+        dn_encoded_boxes: per layer ``(B, M, 10)`` their encoded boxes (with ``denoising``).
     """
 
     cls_logits: list[Tensor]
@@ -504,6 +511,9 @@ class DetectorOutput:
     features: Tensor | None = None
     anchor_embed: Tensor | None = None
     state: DetectorState | None = None
+    denoising: DenoisingQueries | None = None
+    dn_cls_logits: list[Tensor] | None = None
+    dn_encoded_boxes: list[Tensor] | None = None
 
     @property
     def boxes(self) -> list[Tensor]:
@@ -537,6 +547,10 @@ class SparseDetector(nn.Module):
         use_velocity: move cached anchors by constant velocity as well as by ego motion.
         max_time_interval: seconds beyond which a cached state is dropped.
         dropout: attention / FFN / aggregation dropout (code 0.1).
+        num_dn_groups: Sparse4D v3's denoising groups in training (code 5; 0: off), :mod:`.denoising`.
+        dn_noise_scale: their noise per encoded box dimension (code ``[2.0] * 3 + [0.5] * 7``).
+        max_dn_gt: ground truths per sample that get denoising queries (code 32).
+        dn_negatives: add a negative (1 to 2 noise scales away) per ground truth (code: on).
 
     Forward: :meth:`forward` (tensors) or :meth:`forward_batch` (a :class:`~occplug.Batch`).
     """
@@ -560,8 +574,16 @@ class SparseDetector(nn.Module):
         use_velocity: bool = True,
         max_time_interval: float = 2.0,
         dropout: float = 0.1,
+        num_dn_groups: Annotated[int, NonNegative] = 0,
+        dn_noise_scale: Sequence[float] = DN_NOISE_SCALE,
+        max_dn_gt: Annotated[int, Positive] = 32,
+        dn_negatives: bool = True,
     ) -> None:
         super().__init__()
+        if len(dn_noise_scale) != BOX_DIM:
+            raise ValueError(f"SparseDetector: dn_noise_scale needs {BOX_DIM} values, got {list(dn_noise_scale)}")
+        self.num_dn_groups, self.max_dn_gt, self.dn_negatives = int(num_dn_groups), int(max_dn_gt), bool(dn_negatives)
+        self.dn_noise_scale = tuple(float(v) for v in dn_noise_scale)
         if not 0 <= num_temporal < num_queries:
             raise ValueError(f"SparseDetector: num_temporal must be in [0, num_queries), got {num_temporal}")
         if channels % heads:
@@ -610,6 +632,7 @@ class SparseDetector(nn.Module):
         ego_to_global: Tensor | None = None,
         timestamp: Tensor | None = None,
         reset: Tensor | None = None,
+        denoising: DenoisingQueries | None = None,
     ) -> DetectorOutput:
         """Detect boxes in one frame, optionally continuing from the previous frame's state.
 
@@ -624,9 +647,13 @@ class SparseDetector(nn.Module):
             ego_to_global: ``(B, 4, 4)`` float64 pose of this frame (needed with a state that has one).
             timestamp: ``(B,)`` float64 seconds of this frame, or None.
             reset: ``(B,)`` bool: samples that start a new sequence (their state is ignored), or None.
+            denoising: :meth:`denoising_queries` of this frame's ground truth (training), or None. They run
+                beside the ``Q`` queries, masked from them (module :mod:`.denoising`), and change none of their
+                outputs.
 
         Returns:
-            :class:`DetectorOutput` with ``Q = num_queries`` queries per layer and the next state.
+            :class:`DetectorOutput` with ``Q = num_queries`` queries per layer and the next state (and the
+            denoising queries' outputs with ``denoising``).
         """
         levels = [levels] if isinstance(levels, Tensor) else list(levels)
         b = levels[0].shape[0]
@@ -649,16 +676,50 @@ class SparseDetector(nn.Module):
         if state is not None and len(self.layers) == 1:  # no later layer: prepend to the first Q - k anchors
             x, anchors = self._merge_cache(x, anchors, None, state, valid)
         cls_out, box_out = [], []
+        dn_cls, dn_box, mask = [], [], None
+        if denoising is not None:
+            q, m = self.num_queries, denoising.anchors.shape[1]
+            x_dn, a_dn = x.new_zeros(b, m, self.channels), denoising.anchors.to(anchors)  # zero features (Sparse4D)
+            mask = torch.ones(q + m, q + m, dtype=torch.bool, device=x.device)  # True: may not attend
+            mask[:q, :q] = False
+            mask[q:, q:] = denoising.attn_mask.to(x.device)
         for i, layer in enumerate(self.layers):
-            embed = self.anchor_encoder(anchors)
-            x, anchors, logits = layer(x, anchors, embed, cams, temporal if i > 0 else None)
+            t = temporal if i > 0 else None
+            if denoising is None:
+                x, anchors, logits = layer(x, anchors, self.anchor_encoder(anchors), cams, t)
+            else:
+                both = torch.cat([anchors, a_dn], dim=1)
+                xs, both, both_logits = layer(torch.cat([x, x_dn], 1), both, self.anchor_encoder(both), cams, t, mask)
+                x, x_dn = xs[:, :q], xs[:, q:]
+                anchors, a_dn = both[:, :q], both[:, q:]
+                logits = both_logits[:, :q]
+                dn_cls.append(both_logits[:, q:])
+                dn_box.append(a_dn)
             cls_out.append(logits)
             box_out.append(anchors)
             if i == 0 and state is not None and len(self.layers) > 1:
                 x, anchors = self._merge_cache(x, anchors, logits, state, valid)
         scores = cls_out[-1].sigmoid().amax(-1)
         new_state = self._cache(x, anchors, scores, state, valid, ego_to_global, timestamp)
-        return DetectorOutput(cls_out, box_out, x, self.anchor_encoder(anchors), new_state)
+        out = DetectorOutput(cls_out, box_out, x, self.anchor_encoder(anchors), new_state)
+        if denoising is not None:
+            out.denoising, out.dn_cls_logits, out.dn_encoded_boxes = denoising, dn_cls, dn_box
+        return out
+
+    def denoising_queries(
+        self, gt_labels: Sequence[Tensor], gt_boxes: Sequence[Tensor], generator: torch.Generator | None = None
+    ) -> DenoisingQueries | None:
+        """This detector's denoising queries for a frame's ground truth (:func:`~.denoising.make_denoising_queries`
+        with ``num_dn_groups``, ``dn_noise_scale``, ``max_dn_gt``, ``dn_negatives``); None when off or no box."""
+        return make_denoising_queries(
+            gt_labels,
+            gt_boxes,
+            self.num_dn_groups,
+            noise_scale=self.dn_noise_scale,
+            max_gt=self.max_dn_gt,
+            negatives=self.dn_negatives,
+            generator=generator,
+        )
 
     def forward_batch(
         self, levels: Tensor | Sequence[Tensor], batch: Batch, state: DetectorState | None = None
@@ -794,7 +855,8 @@ def detection_loss(
         layer_weights: weight of each layer (default 1 each).
 
     Returns:
-        ``{"det_cls": scalar, "det_box": scalar}``.
+        ``{"det_cls": scalar, "det_box": scalar}``, plus ``{"det_dn_cls", "det_dn_box"}`` when ``outputs`` carries
+        denoising queries (:func:`~.denoising.denoising_loss`, same weights).
     """
     if len(gt_labels) != len(gt_boxes):
         raise ValueError("detection_loss: gt_labels and gt_boxes need one entry per sample")
@@ -843,7 +905,21 @@ def detection_loss(
         norm = max(num_pos, 1)
         total_cls = total_cls + w_layer * cls_weight * sigmoid_focal(logits, cls_target, alpha, gamma) / norm
         total_box = total_box + w_layer * box_weight * box_loss / norm
-    return {"det_cls": total_cls, "det_box": total_box}
+    out = {"det_cls": total_cls, "det_box": total_box}
+    if outputs.denoising is not None and outputs.dn_cls_logits and outputs.dn_encoded_boxes:
+        out.update(
+            denoising_loss(
+                outputs.denoising,
+                outputs.dn_cls_logits,
+                outputs.dn_encoded_boxes,
+                lambda logits, targets: sigmoid_focal(logits, targets, alpha, gamma),
+                cls_weight,
+                box_weight,
+                reg_weights,
+                layer_weights,
+            )
+        )
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- V2Q

@@ -3,7 +3,9 @@
 Per frame, after StreamAgg has produced ``V_S.A`` ``(B, C, x, y, z)`` (coarse grid, current ego frame):
 
 1. **I2Q**: :class:`~.detector.SparseDetector` reads the image encoder's levels (``outputs.image_levels``) and
-   continues from the previous frame's :class:`~.detector.DetectorState` of the same batch slot;
+   continues from the previous frame's :class:`~.detector.DetectorState` of the same batch slot; in training,
+   with ``detector.num_dn_groups`` > 0 and boxes in the batch, Sparse4D v3's denoising queries of the frame's
+   detection-class boxes run beside it (:mod:`.denoising`; only the detection loss reads them);
 2. **selection** (suppl. A.2, :func:`~.dqa.select_queries`): in training the last layer's boxes are checked
    against the ground truth (the paper's rule by default, the public code's with ``selection: code``); with no
    ground truth (prediction, evaluation without boxes, or ``select_with_gt: false``) by score only
@@ -292,6 +294,18 @@ class QueryAggregation(nn.Module):
                 ego_to_global=pose @ prev_to_current.to(pose),
                 timestamp=batch.timestamp.to(torch.float64) - dt.to(torch.float64),
             )
+        denoising = None
+        if (
+            self.training
+            and self.detector.num_dn_groups > 0
+            and batch.boxes is not None
+            and batch.box_labels is not None
+        ):
+            labels, gts = detection_targets(batch, self.classes, "duocc_stream query_agg")
+            denoising = self.detector.denoising_queries(
+                [lab.to(volume.device) for lab in labels],
+                [g.to(device=volume.device, dtype=self.detector.anchors.dtype) for g in gts],
+            )
         h, w = batch.images.shape[-2:]
         det = self.detector(
             list(levels),
@@ -303,6 +317,7 @@ class QueryAggregation(nn.Module):
             ego_to_global=pose,
             timestamp=batch.timestamp,
             reset=reset,
+            denoising=denoising,
         )
         new_state = None
         if det.state is not None:

@@ -36,6 +36,7 @@ def test_occ3d_nuscenes_has_the_papers_settings_and_validates():
     # not the synthetic world's 48 k-means anchors of duocc/full: uniform until the user makes the data's own
     assert detector["anchor_centres"] is None and detector["anchor_size"] == [4.0, 1.8, 1.6]
     assert (detector["num_queries"], detector["num_layers"]) == (900, 6)
+    assert (detector["num_dn_groups"], detector["max_dn_gt"]) == (5, 32)  # the code's Sparse4D v3 denoising
     weights = {name: model["supervision"][name]["weight"] for name in ("depth", *LOSSES, "detection", "mask")}
     assert weights == {
         "depth": 0.05,

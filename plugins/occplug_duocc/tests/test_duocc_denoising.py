@@ -1,0 +1,180 @@
+"""Sparse4D v3's instance denoising in DuOcc's detector: the noised queries, their re-assignment, the attention
+mask that keeps them from the ordinary queries, and their loss."""
+
+import itertools
+
+import pytest
+import torch
+from test_duocc_detector import GT_BOX, H, W, _cameras, _detector, _levels, _pose
+
+from occplug import runner
+from occplug_duocc.denoising import DN_NOISE_SCALE, make_denoising_queries
+from occplug_duocc.detector import SparseDetector, _DecoderLayer, detection_loss
+from occplug_duocc.matching import SPARSE4D_REG_WEIGHTS, encode_boxes
+
+SCALE = torch.tensor(DN_NOISE_SCALE)
+
+
+def _boxes(*centres):
+    return torch.tensor([[x, y, 0.5, 4.0, 1.8, 1.6, 0.3, 1.0, -0.5] for x, y in centres])
+
+
+def test_queries_layout_noise_bounds_padding_and_group_mask():
+    gen = torch.Generator().manual_seed(0)
+    labels = [torch.tensor([0, 2, 1]), torch.tensor([1])]
+    boxes = [_boxes((5.0, 0.0), (20.0, 5.0), (-10.0, -8.0)), _boxes((3.0, 3.0))]
+    dn = make_denoising_queries(labels, boxes, groups=2, generator=gen)
+    assert dn is not None and dn.groups == 2
+    assert dn.anchors.shape == dn.box_target.shape == (2, 12, 10)  # 2 groups x (3 positives + 3 negatives)
+    # group layout: positives then negatives of the batch's 3 slots; sample 1 has one real ground truth
+    assert dn.valid[0].all()
+    assert dn.valid[1].tolist() == [True, False, False, True, False, False] * 2
+    enc = [encode_boxes(b) for b in boxes]
+    for i, e in enumerate(enc):
+        n = e.shape[0]
+        for g in range(2):
+            pos = dn.anchors[i, g * 6 : g * 6 + n]
+            neg = dn.anchors[i, g * 6 + 3 : g * 6 + 3 + n]
+            assert ((pos - e).abs() <= SCALE + 1e-5).all()  # U(-1, 1) x scale
+            off = (neg - e).abs()
+            assert ((off >= SCALE - 1e-5) & (off <= 2 * SCALE + 1e-5)).all()  # 1 to 2 scales away
+            # every ground truth is assigned to exactly one query of the group, with its class and box
+            cls = dn.cls_target[i, g * 6 : (g + 1) * 6]
+            assert sorted(cls[cls >= 0].tolist()) == sorted(labels[i].tolist())
+            for q in (cls >= 0).nonzero().squeeze(1).tolist():
+                hit = (dn.box_target[i, g * 6 + q] - e).abs().sum(-1).min()
+                assert hit < 1e-5
+    assert (dn.cls_target[~dn.valid] == -1).all()
+    expected = torch.block_diag(torch.ones(6, 6), torch.ones(6, 6)) == 0
+    assert torch.equal(dn.attn_mask, expected)
+
+
+def test_reassignment_is_the_minimum_cost_assignment_of_each_group():
+    gen = torch.Generator().manual_seed(3)
+    # three boxes within a metre: large noise often lands a query nearer another box than its own
+    boxes = [_boxes((5.0, 0.0), (5.6, 0.4), (4.5, -0.5))]
+    dn = make_denoising_queries([torch.tensor([0, 1, 2])], boxes, groups=4, generator=gen)
+    target = encode_boxes(boxes[0])
+    w = torch.tensor(SPARSE4D_REG_WEIGHTS)
+    swapped = 0
+    for g in range(4):
+        anchors = dn.anchors[0, g * 6 : (g + 1) * 6]
+        cost = 0.25 * ((anchors[:, None] - target[None]).abs() * w).sum(-1)  # (6 queries, 3 boxes)
+        best = min(sum(cost[q, j] for j, q in enumerate(p)) for p in itertools.permutations(range(6), 3))
+        cls = dn.cls_target[0, g * 6 : (g + 1) * 6]
+        chosen = sum(cost[q, int(cls[q])] for q in range(6) if cls[q] >= 0)  # label j is box j here
+        torch.testing.assert_close(chosen, best)
+        swapped += int((cls[:3] != torch.arange(3)).any())
+    assert swapped > 0  # the example does exercise the re-assignment
+
+
+def test_no_ground_truth_or_no_group_gives_no_queries():
+    empty = [torch.zeros(0, dtype=torch.long)]
+    assert make_denoising_queries(empty, [torch.zeros(0, 9)], groups=5) is None
+    assert make_denoising_queries([torch.tensor([1])], [GT_BOX], groups=0) is None
+    with pytest.raises(ValueError, match="noise_scale needs 10"):
+        make_denoising_queries([torch.tensor([1])], [GT_BOX], groups=1, noise_scale=[1.0])
+
+
+def test_seven_column_boxes_leave_velocity_unknown_and_max_gt_cuts():
+    dn = make_denoising_queries([torch.tensor([0, 1, 2])], [_boxes((1, 1), (2, 2), (3, 3))[:, :7]], 1, max_gt=2)
+    assert dn.anchors.shape == (1, 4, 10)  # two ground truths kept
+    assigned = dn.cls_target[0] >= 0
+    assert dn.box_target[0, assigned, 8:].isnan().all() and not dn.anchors.isnan().any()
+
+
+def test_the_ordinary_queries_are_unchanged_by_denoising_queries_beside_them(monkeypatch):
+    """The attention mask keeps every ordinary output (logits, boxes, features, the state) as without denoising,
+    on a first frame and on a second one that reads the propagated state."""
+    torch.manual_seed(0)
+    det = _detector(num_dn_groups=3)
+    k, c2e, a = _cameras(b=2, n=2)
+    gen = torch.Generator().manual_seed(1)
+    dn = det.denoising_queries(
+        [torch.tensor([0, 2]), torch.tensor([1])], [_boxes((8, 1), (12, -3)), _boxes((6, 2))], generator=gen
+    )
+    kw = {"ego_to_global": _pose(b=2), "timestamp": torch.zeros(2, dtype=torch.float64)}
+    plain = det(_levels(2, 2), (H, W), k, c2e, a, **kw)
+    with_dn = det(_levels(2, 2), (H, W), k, c2e, a, denoising=dn, **kw)
+    assert with_dn.dn_cls_logits[0].shape == (2, 12, 3) and with_dn.dn_encoded_boxes[-1].shape == (2, 12, 10)
+    assert plain.dn_cls_logits is None and plain.denoising is None
+
+    def same(x, y):
+        for u, v in zip(x.cls_logits + x.encoded_boxes, y.cls_logits + y.encoded_boxes, strict=True):
+            torch.testing.assert_close(u, v, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(x.features, y.features, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(x.state.anchors, y.state.anchors, atol=1e-5, rtol=1e-5)
+
+    same(plain, with_dn)
+    kw2 = {"ego_to_global": _pose(t=(1.0, 0.0, 0.0), b=2), "timestamp": torch.full((2,), 0.5, dtype=torch.float64)}
+    second = det(_levels(2, 2, seed=1), (H, W), k, c2e, a, state=plain.state, **kw2)
+    second_dn = det(_levels(2, 2, seed=1), (H, W), k, c2e, a, state=plain.state, denoising=dn, **kw2)
+    same(second, second_dn)
+    # without the mask the denoising queries would leak into the ordinary ones through self-attention
+    forward = _DecoderLayer.forward
+    monkeypatch.setattr(_DecoderLayer, "forward", lambda self, *args: forward(self, *args[:5], None))
+    leaky = det(_levels(2, 2, seed=1), (H, W), k, c2e, a, state=plain.state, denoising=dn, **kw2)
+    assert not torch.allclose(second.cls_logits[-1], leaky.cls_logits[-1], atol=1e-3)
+
+
+def test_denoising_loss_prefers_recovered_boxes_and_trains_the_detector():
+    torch.manual_seed(0)
+    det = _detector(num_dn_groups=2, dropout=0.0)
+    k, c2e, a = _cameras()
+    levels = _levels(seed=3)
+    labels, gts = [torch.tensor([1])], [GT_BOX]
+    dn = det.denoising_queries(labels, gts, generator=torch.Generator().manual_seed(0))
+    out = det(levels, (H, W), k, c2e, a, denoising=dn)
+    loss = detection_loss(out, labels, gts)
+    assert {"det_cls", "det_box", "det_dn_cls", "det_dn_box"} == set(loss)
+    # a perfect denoising output: the assigned queries at their boxes with their class, the rest background
+    perfect = [torch.full((*dn.cls_target.shape, 3), -10.0)]
+    pos = dn.cls_target >= 0
+    perfect[0][pos, dn.cls_target[pos]] = 10.0
+    box = torch.nan_to_num(dn.box_target, nan=0.0)
+    out_perfect = type(out)(
+        out.cls_logits[-1:], out.encoded_boxes[-1:], denoising=dn, dn_cls_logits=perfect, dn_encoded_boxes=[box]
+    )
+    ideal = detection_loss(out_perfect, labels, gts)
+    assert ideal["det_dn_box"] == 0 and ideal["det_dn_cls"] < 1e-6
+    # the denoising loss alone reaches the detector and falls when fitted
+    opt = torch.optim.Adam(det.parameters(), lr=3e-3)
+    history = []
+    for step in range(25):
+        dn = det.denoising_queries(labels, gts, generator=torch.Generator().manual_seed(step))
+        out = det(levels, (H, W), k, c2e, a, denoising=dn)
+        terms = detection_loss(out, labels, gts)
+        loss = terms["det_dn_cls"] + terms["det_dn_box"]
+        opt.zero_grad()
+        loss.backward()
+        if step == 0:
+            assert det.layers[0].refine[-1].weight.grad.abs().sum() > 0
+        opt.step()
+        history.append(float(loss.detach()))
+    assert sum(history[-5:]) < 0.6 * sum(history[:5]), history
+
+
+def test_bad_noise_scale_is_one_line():
+    with pytest.raises(ValueError, match="dn_noise_scale needs 10 values"):
+        SparseDetector(num_classes=2, dn_noise_scale=[1.0, 2.0])
+
+
+def test_the_full_model_trains_with_denoising_and_evaluates_without():
+    from test_duocc_model import SMALL, _batch, _loss
+
+    torch.manual_seed(0)
+    cfg = runner.load_config(
+        ["duocc/full", "occplug/trainer/debug"], [*SMALL, "model.scene.query_agg.detector.num_dn_groups=2"]
+    )
+    dm, model = runner.build_run(cfg)
+    assert model.scene.query_agg.detector.num_dn_groups == 2
+    batch = _batch(dm, [0, 3])
+    model.train()
+    loss, terms = _loss(model, batch)
+    assert {"detection/det_dn_cls", "detection/det_dn_box"} <= set(terms)
+    assert torch.isfinite(loss)
+    loss.backward()
+    model.eval()
+    with torch.no_grad():
+        _, terms = _loss(model, batch)
+    assert not any("det_dn" in k for k in terms)
