@@ -16,19 +16,26 @@ What :func:`make_denoising_queries` builds, per sample and group (Sparse4D v3 ``
 * re-assignment: a Hungarian match of the group's noised boxes to its ground truths by the matching cost's box
   term (``box_weight * sum_d r_d |a_d - g_d|``, :data:`~.matching.SPARSE4D_REG_WEIGHTS`); a noised box assigned
   to a ground truth regresses it and classifies as its class, the others are background (a large positive
-  noise can land nearer another object than its own).
+  noise can land nearer another object than its own). Only a sample's real queries and ground truths take part;
+  the official code matches the padded ones too (zero boxes), so there a padding query can become a positive and
+  a real one can be matched to a padding box and dropped.
 
 The detector runs the groups beside its ordinary queries with an attention mask (Sparse4D v3): the ordinary
 queries never see a denoising query and each group sees only itself, so the ordinary outputs are what they would
-be without denoising (tested); denoising queries start from zero instance features and are left out of the
-temporal cache, the top-k merge, V2Q, DQA, selection and evaluation. Not reproduced: Sparse4D v3's temporal
-denoising groups (3 of the code's 5 groups carried to the next frame by instance id; the synthetic frames give
-boxes no track ids) and the quality (centerness / yawness) targets (this detector has no quality head).
+be without denoising (exactly so without dropout; in training the extra queries draw from the same random
+stream); denoising queries start from zero instance features, read the temporal cache through the temporal
+cross-attention as the ordinary ones do, and are left out of the temporal cache itself, the top-k merge, V2Q, DQA,
+selection and evaluation. Not reproduced: Sparse4D v3's temporal denoising groups (3 of the code's 5 groups
+carried to the next frame by instance id; the synthetic frames give boxes no track ids). The ground truths are
+every box of a detection class in the batch: ``duocc_detection``'s ``max_distance`` (off in every recipe) does
+not reach them.
 
 Loss (:func:`denoising_loss`, per decoder layer as Sparse4D v3's head): sigmoid focal over the valid (not padding)
 denoising queries, one-hot for the assigned ones and zero for background, and the weighted L1 on the assigned
 ones' encoded boxes (the loss's per-dimension weights), both divided by the number of valid denoising queries
-(Sparse4D v3's ``num_dn_pos``, which counts every valid one).
+(Sparse4D v3's ``num_dn_pos``, which counts every valid one; the official code averages it over GPUs, here it is
+per process as the ordinary detection loss's count is). No class-wise box weights, no score threshold on the
+regression and no quality term, as in the official dn loss.
 """
 
 from __future__ import annotations
@@ -93,7 +100,7 @@ def make_denoising_queries(
         max_gt: ground truths used per sample (the first ones).
         negatives: add a negative per ground truth.
         box_weight, match_reg_weights: the re-assignment cost (the matching cost's box term).
-        generator: random source (default torch's global one).
+        generator: a CPU random source (default torch's global one).
 
     Returns:
         :class:`DenoisingQueries`, or None.
@@ -102,6 +109,8 @@ def make_denoising_queries(
         raise ValueError("make_denoising_queries: gt_labels and gt_boxes need one entry per sample")
     if len(noise_scale) != _BOX_DIM:
         raise ValueError(f"make_denoising_queries: noise_scale needs {_BOX_DIM} values, got {len(noise_scale)}")
+    if any(bool((lab < 0).any()) for lab in gt_labels):
+        raise ValueError("make_denoising_queries: gt_labels must be detection class ids >= 0")
     labels = [lab[:max_gt].long() for lab in gt_labels]
     boxes = [box[:max_gt] for box in gt_boxes]
     g = max((int(lab.numel()) for lab in labels), default=0)

@@ -649,7 +649,7 @@ class SparseDetector(nn.Module):
             reset: ``(B,)`` bool: samples that start a new sequence (their state is ignored), or None.
             denoising: :meth:`denoising_queries` of this frame's ground truth (training), or None. They run
                 beside the ``Q`` queries, masked from them (module :mod:`.denoising`), and change none of their
-                outputs.
+                outputs (exactly so without dropout).
 
         Returns:
             :class:`DetectorOutput` with ``Q = num_queries`` queries per layer and the next state (and the

@@ -176,8 +176,9 @@ class DuOccDetection(SupervisionSource):
         max_distance: the ground-truth radius, metres, or None.
         free_label, ignore_label: unused (the model fills them in).
 
-    Returns ``{"det_cls": scalar, "det_box": scalar}`` (summed over layers); ``{}`` outside training when the batch
-    has no boxes.
+    Returns ``{"det_cls": scalar, "det_box": scalar}`` (summed over layers; with the detector's denoising groups
+    in training also ``{"det_dn_cls", "det_dn_box"}``, :mod:`~occplug_duocc.denoising`); ``{}`` outside training
+    when the batch has no boxes.
     """
 
     requires = frozenset({"boxes", "box_labels"})

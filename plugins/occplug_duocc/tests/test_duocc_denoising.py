@@ -8,8 +8,8 @@ import torch
 from test_duocc_detector import GT_BOX, H, W, _cameras, _detector, _levels, _pose
 
 from occplug import runner
-from occplug_duocc.denoising import DN_NOISE_SCALE, make_denoising_queries
-from occplug_duocc.detector import SparseDetector, _DecoderLayer, detection_loss
+from occplug_duocc.denoising import DN_NOISE_SCALE, denoising_loss, make_denoising_queries
+from occplug_duocc.detector import SparseDetector, _DecoderLayer, detection_loss, sigmoid_focal
 from occplug_duocc.matching import SPARSE4D_REG_WEIGHTS, encode_boxes
 
 SCALE = torch.tensor(DN_NOISE_SCALE)
@@ -41,9 +41,9 @@ def test_queries_layout_noise_bounds_padding_and_group_mask():
             # every ground truth is assigned to exactly one query of the group, with its class and box
             cls = dn.cls_target[i, g * 6 : (g + 1) * 6]
             assert sorted(cls[cls >= 0].tolist()) == sorted(labels[i].tolist())
-            for q in (cls >= 0).nonzero().squeeze(1).tolist():
-                hit = (dn.box_target[i, g * 6 + q] - e).abs().sum(-1).min()
-                assert hit < 1e-5
+            for q in (cls >= 0).nonzero().squeeze(1).tolist():  # the class's own box (labels are distinct here)
+                j = labels[i].tolist().index(int(cls[q]))
+                torch.testing.assert_close(dn.box_target[i, g * 6 + q], e[j])
     assert (dn.cls_target[~dn.valid] == -1).all()
     expected = torch.block_diag(torch.ones(6, 6), torch.ones(6, 6)) == 0
     assert torch.equal(dn.attn_mask, expected)
@@ -87,7 +87,7 @@ def test_the_ordinary_queries_are_unchanged_by_denoising_queries_beside_them(mon
     """The attention mask keeps every ordinary output (logits, boxes, features, the state) as without denoising,
     on a first frame and on a second one that reads the propagated state."""
     torch.manual_seed(0)
-    det = _detector(num_dn_groups=3)
+    det = _detector(num_dn_groups=2)
     k, c2e, a = _cameras(b=2, n=2)
     gen = torch.Generator().manual_seed(1)
     dn = det.denoising_queries(
@@ -96,7 +96,7 @@ def test_the_ordinary_queries_are_unchanged_by_denoising_queries_beside_them(mon
     kw = {"ego_to_global": _pose(b=2), "timestamp": torch.zeros(2, dtype=torch.float64)}
     plain = det(_levels(2, 2), (H, W), k, c2e, a, **kw)
     with_dn = det(_levels(2, 2), (H, W), k, c2e, a, denoising=dn, **kw)
-    assert with_dn.dn_cls_logits[0].shape == (2, 12, 3) and with_dn.dn_encoded_boxes[-1].shape == (2, 12, 10)
+    assert with_dn.dn_cls_logits[0].shape == (2, 8, 3) and with_dn.dn_encoded_boxes[-1].shape == (2, 8, 10)
     assert plain.dn_cls_logits is None and plain.denoising is None
 
     def same(x, y):
@@ -110,6 +110,18 @@ def test_the_ordinary_queries_are_unchanged_by_denoising_queries_beside_them(mon
     second = det(_levels(2, 2, seed=1), (H, W), k, c2e, a, state=plain.state, **kw2)
     second_dn = det(_levels(2, 2, seed=1), (H, W), k, c2e, a, state=plain.state, denoising=dn, **kw2)
     same(second, second_dn)
+    # and the other way: a group's outputs depend on neither the ordinary queries (their anchors and learned
+    # features) nor the other groups' anchors; the denoising queries start from zero features
+    moved = type(dn)(dn.anchors.clone(), dn.cls_target, dn.box_target, dn.valid, dn.attn_mask, dn.groups)
+    moved.anchors[:, 4:, :3] += 3.0  # group 1 of 2 (4 queries each)
+    with torch.no_grad():
+        det.anchors[:, :3] += 1.0
+        det.instance_feature += 0.5
+    other = det(_levels(2, 2, seed=1), (H, W), k, c2e, a, state=plain.state, denoising=moved, **kw2)
+    before = second_dn.dn_cls_logits + second_dn.dn_encoded_boxes
+    for u, v in zip(before, other.dn_cls_logits + other.dn_encoded_boxes, strict=True):
+        torch.testing.assert_close(u[:, :4], v[:, :4], atol=1e-5, rtol=1e-5)  # group 0 unchanged
+        assert not torch.allclose(u[:, 4:], v[:, 4:], atol=1e-3)  # group 1 moved
     # without the mask the denoising queries would leak into the ordinary ones through self-attention
     forward = _DecoderLayer.forward
     monkeypatch.setattr(_DecoderLayer, "forward", lambda self, *args: forward(self, *args[:5], None))
@@ -152,6 +164,44 @@ def test_denoising_loss_prefers_recovered_boxes_and_trains_the_detector():
         opt.step()
         history.append(float(loss.detach()))
     assert sum(history[-5:]) < 0.6 * sum(history[:5]), history
+
+
+def test_loss_of_a_padded_batch_by_hand():
+    """Two samples (2 and 1 boxes), one group with negatives: 4 queries each, sample 1's slot 1 and 3 are
+    padding. The loss counts the 6 valid queries (focal on their logits, L1 on the 3 assigned ones) over 6."""
+    torch.manual_seed(0)
+    labels, boxes = [torch.tensor([0, 1]), torch.tensor([1])], [_boxes((5, 0), (15, 5)), _boxes((3, 3))]
+    dn = make_denoising_queries(labels, boxes, groups=1, generator=torch.Generator().manual_seed(2))
+    assert dn.valid.tolist() == [[True, True, True, True], [True, False, True, False]]
+    logits = torch.randn(2, 4, 2)
+    enc = torch.randn(2, 4, 10)
+    got = denoising_loss(
+        dn, [logits], [enc], _focal, cls_weight=2.0, box_weight=0.25, reg_weights=[2.0] * 3 + [1.0] * 7
+    )
+    cls_sum, box_sum = torch.zeros(()), torch.zeros(())
+    reg = torch.tensor([2.0] * 3 + [1.0] * 7)
+    for i in range(2):
+        for q in range(4):
+            if not dn.valid[i, q]:
+                continue
+            target = torch.zeros(2)
+            c = int(dn.cls_target[i, q])
+            if c >= 0:
+                target[c] = 1.0
+                box_sum = box_sum + ((enc[i, q] - dn.box_target[i, q]).abs() * reg).sum()
+            cls_sum = cls_sum + _focal(logits[i, q], target)
+    assert int((dn.cls_target >= 0).sum()) == 3
+    torch.testing.assert_close(got["det_dn_cls"], 2.0 * cls_sum / 6)
+    torch.testing.assert_close(got["det_dn_box"], 0.25 * box_sum / 6)
+
+
+def _focal(logits, targets):
+    return sigmoid_focal(logits, targets, 0.25, 2.0)
+
+
+def test_negative_labels_are_refused():
+    with pytest.raises(ValueError, match="class ids >= 0"):
+        make_denoising_queries([torch.tensor([0, -1])], [_boxes((1, 1), (2, 2))], groups=1)
 
 
 def test_bad_noise_scale_is_one_line():
