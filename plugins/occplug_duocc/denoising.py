@@ -191,14 +191,15 @@ def denoising_loss(
     norm = max(int(dn.valid.sum()), 1)
     total_cls = cls_logits[0].new_zeros(())
     total_box = cls_logits[0].new_zeros(())
-    pos = dn.cls_target >= 0
-    tgt = dn.box_target.to(encoded_boxes[0].dtype)
+    # the targets are the same for every layer: built once
+    pos, valid = dn.cls_target >= 0, dn.valid
+    onehot = torch.zeros_like(cls_logits[0])
+    onehot[pos] = torch.nn.functional.one_hot(dn.cls_target[pos], onehot.shape[-1]).to(onehot.dtype)
+    onehot = onehot[valid]
+    tgt = dn.box_target.to(encoded_boxes[0].dtype)[pos]
     w = tgt.new_tensor([float(v) for v in reg_weights]) * (~tgt.isnan()).to(tgt.dtype)
+    tgt = torch.nan_to_num(tgt, nan=0.0)
     for w_layer, logits, enc in zip(weights, cls_logits, encoded_boxes, strict=True):
-        onehot = torch.zeros_like(logits)
-        onehot[pos] = torch.nn.functional.one_hot(dn.cls_target[pos], logits.shape[-1]).to(logits.dtype)
-        valid = dn.valid
-        total_cls = total_cls + w_layer * cls_weight * focal(logits[valid], onehot[valid]) / norm
-        diff = (enc[pos] - torch.nan_to_num(tgt[pos], nan=0.0)).abs() * w[pos]
-        total_box = total_box + w_layer * box_weight * diff.sum() / norm
+        total_cls = total_cls + w_layer * cls_weight * focal(logits[valid], onehot) / norm
+        total_box = total_box + w_layer * box_weight * ((enc[pos] - tgt).abs() * w).sum() / norm
     return {"det_dn_cls": total_cls, "det_dn_box": total_box}
