@@ -46,6 +46,9 @@ RECIPES = [
     pytest.param((("duocc/stacking",), (), None), id="duocc_stacking"),
     # DuOcc C: StreamAgg + the detector, whose propagated instances are stream state too
     pytest.param((("duocc/det_only",), (), None), id="duocc_det_only"),
+    # DuOcc D: + V2Q and DQA (traced on its dense masked path: fixed shapes, no edge list); every query selected,
+    # so DQA writes into voxels after 2 training steps too
+    pytest.param((("duocc/full",), ("model.scene.query_agg.score_threshold=0.0",), None), id="duocc_full"),
     # OccLE: LiDAR points as a graph input (dynamic point count), the Hilbert-serialised Dual Mamba
     pytest.param((("occle/base",), OCCLE_SMALL, None), id="occle"),
 ]

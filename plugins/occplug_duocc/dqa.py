@@ -358,8 +358,44 @@ class DynamicQueryAggregation(nn.Module):
         voxel_idx = (ijk[:, 0] * shape[1] + ijk[:, 1]) * shape[2] + ijk[:, 2]
         return voxel_idx, query_idx
 
+    def membership(self, boxes: Tensor, selected: Tensor) -> Tensor:
+        """Dense form of :meth:`edges` for a batch: voxel ``i`` of the flat ``X*Y*Z`` grid lies in selected box ``j``.
+
+        The same coverage rule as :meth:`edges`, tested for every voxel and box (no data-dependent shapes).
+
+        Args:
+            boxes: ``(B, Q, >=7)`` boxes, ego frame.
+            selected: ``(B, Q)`` bool.
+
+        Returns:
+            ``(B, N, Q)`` bool, ``N = X * Y * Z``.
+        """
+        device = boxes.device
+        shape = torch.tensor(self.grid.shape, device=device)
+        lower = torch.tensor(self.grid.lower, dtype=torch.float64, device=device)
+        size = torch.tensor(self.grid.voxel_size, dtype=torch.float64, device=device)
+        ijk = torch.stack(torch.meshgrid(*(torch.arange(n, device=device) for n in self.grid.shape), indexing="ij"), -1)
+        ijk = ijk.view(-1, 3)  # (N, 3)
+        bx = boxes[..., :7].to(torch.float64)
+        if self.coverage == "center":
+            centers = lower + (ijk.to(torch.float64) + 0.5) * size
+            inside = _inside(centers[None, :, None, :], bx[:, None, :, :])
+        else:  # the code's rounded axis-aligned index range, as in edges()
+            c, s = torch.cos(bx[..., 6]).abs(), torch.sin(bx[..., 6]).abs()
+            half = torch.stack([bx[..., 3] * c + bx[..., 4] * s, bx[..., 3] * s + bx[..., 4] * c, bx[..., 5]], -1) / 2
+            lo = torch.round((bx[..., :3] - half - lower) / size).long()[:, None]  # (B, 1, Q, 3)
+            hi = torch.round((bx[..., :3] + half - lower) / size).long()[:, None]
+            at = ijk[None, :, None, :]
+            inside = ((at >= lo) & (at <= hi) & (at < shape)).all(-1)
+        return inside & selected[:, None, :]
+
     def forward(self, volume: Tensor, queries: Tensor, boxes: Tensor, selected: Tensor) -> Tensor:
         """Write the selected queries into the voxels of their boxes.
+
+        Eager runs on the edge list (:meth:`edges`, a scatter softmax per voxel); a traced graph (``torch.export``,
+        ``torch.compile``) cannot hold its data-dependent sizes and runs :meth:`dense`, the same equations over
+        every voxel and query with a mask (``B * N * Q * heads`` logits: fine on the synthetic grids, heavy at the
+        paper's 100 x 100 x 8 x 900).
 
         Args:
             volume: ``V_S.A``, ``(B, C, X, Y, Z)`` on the grid, ego frame.
@@ -370,9 +406,48 @@ class DynamicQueryAggregation(nn.Module):
         Returns:
             ``V_DQA``, ``(B, C, X, Y, Z)``: equal to ``volume`` bit for bit at every voxel no selected box covers.
         """
-        b, c = volume.shape[:2]
         if tuple(volume.shape[2:]) != self.grid.shape:
             raise ValueError(f"DynamicQueryAggregation: volume {tuple(volume.shape)} is not on grid {self.grid.shape}")
+        if torch.compiler.is_compiling():
+            return self.dense(volume, queries, boxes, selected)
+        return self.sparse(volume, queries, boxes, selected)
+
+    def _positional(self, flat_idx: Tensor) -> Tensor:
+        """``sigma_p`` of flat voxel indices ``(N,)`` -> ``(N, C)``."""
+        assert self.pos is not None
+        ny, nz = self.grid.shape[1:]
+        ijk = (flat_idx // (ny * nz), (flat_idx // nz) % ny, flat_idx % nz)
+        return torch.cat([table[k] for table, k in zip(self.pos, ijk, strict=True)], -1)
+
+    def dense(self, volume: Tensor, queries: Tensor, boxes: Tensor, selected: Tensor) -> Tensor:
+        """:meth:`forward` with a ``(B, N, Q)`` mask in place of the edge list: fixed shapes, so it traces.
+
+        The masked softmax runs over the queries covering each voxel; a voxel no selected box covers keeps
+        ``volume`` bit for bit (``torch.where``), as on the edge list.
+        """
+        b, c = volume.shape[:2]
+        h, d = self.heads, c // self.heads
+        flat = volume.reshape(b, c, -1).transpose(1, 2)  # (B, N, C)
+        member = self.membership(boxes, selected)  # (B, N, Q)
+        qin = flat
+        if self.pos is not None:
+            qin = flat + self._positional(torch.arange(flat.shape[1], device=flat.device)).to(flat)
+        q = self.w_q(qin).view(b, -1, h, d)
+        k = self.w_k(queries).view(b, -1, h, d)
+        v = self.w_v(queries).view(b, -1, h, d)
+        logits = torch.einsum("bnhd,bqhd->bnqh", q, k) / math.sqrt(d)
+        logits = logits.masked_fill(~member[..., None], -math.inf)
+        covered = member.any(-1)  # (B, N)
+        # an uncovered voxel's row is all -inf: give it zeros (its result is discarded below) so no NaN appears
+        alpha = torch.softmax(torch.where(covered[..., None, None], logits, torch.zeros_like(logits)), dim=2)
+        z = torch.einsum("bnqh,bqhd->bnhd", alpha, v).reshape(b, -1, c)
+        gate = torch.sigmoid(self.w_gate(torch.cat([flat, z], -1)))
+        updated = torch.where(covered[..., None], flat + gate * z, flat)
+        return updated.transpose(1, 2).reshape(volume.shape)
+
+    def sparse(self, volume: Tensor, queries: Tensor, boxes: Tensor, selected: Tensor) -> Tensor:
+        """:meth:`forward` on the edge list of each sample (only the covered voxels are computed)."""
+        b, c = volume.shape[:2]
         h, d = self.heads, c // self.heads
         out = []
         for i in range(b):
@@ -386,9 +461,7 @@ class DynamicQueryAggregation(nn.Module):
             v_cov = flat[:, covered].t()  # (Nc, C)
             qin = v_cov
             if self.pos is not None:
-                ny, nz = self.grid.shape[1:]
-                ijk = (covered // (ny * nz), (covered // nz) % ny, covered % nz)
-                qin = v_cov + torch.cat([table[k] for table, k in zip(self.pos, ijk, strict=True)], -1).to(v_cov)
+                qin = v_cov + self._positional(covered).to(v_cov)
             q = self.w_q(qin).view(-1, h, d)
             feats = queries[i, sel]
             k = self.w_k(feats).view(-1, h, d)[edge_q]  # (E, h, d)

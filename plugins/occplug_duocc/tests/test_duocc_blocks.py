@@ -356,6 +356,50 @@ def test_dqa_matches_eqs_7_to_10_at_a_voxel_of_two_boxes():
     assert dqa.w_k.weight.grad.abs().sum() > 0 and dqa.pos[0].grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("coverage", ["center", "aabb"])
+def test_dqa_dense_path_equals_the_edge_list(coverage, monkeypatch):
+    """The traceable dense path (export, torch.compile) computes the edge list's result: same membership, same
+    values and gradients in float64, uncovered voxels bit for bit; a traced forward takes it."""
+    torch.manual_seed(1)
+    dqa = DynamicQueryAggregation(16, GRID, query_channels=12, heads=2, coverage=coverage).double()
+    centre = torch.rand(2, 9, 3, dtype=torch.float64) * torch.tensor([10.0, 10.0, 2.0]) - torch.tensor([5.0, 5.0, 1.0])
+    size = torch.rand(2, 9, 3, dtype=torch.float64) * 4 + 1.5
+    yaw = torch.rand(2, 9, 1, dtype=torch.float64) * 2 * math.pi
+    boxes = torch.cat([centre, size, yaw], -1)  # some overlap, some straddle or miss the grid
+    selected = torch.rand(2, 9) > 0.3
+    selected[1] = False  # a sample with nothing selected
+    member = dqa.membership(boxes, selected)
+    for b in range(2):
+        sel = selected[b].nonzero().flatten()
+        vi, qi = dqa.edges(boxes[b, sel])
+        assert sorted(zip(vi.tolist(), sel[qi].tolist(), strict=True)) == sorted(
+            map(tuple, member[b].nonzero().tolist())
+        )
+    assert 0 < int(member[0].any(-1).sum()) and bool((member[0].sum(-1) >= 2).any())  # overlaps are exercised
+
+    def run(path):
+        torch.manual_seed(2)
+        volume = torch.randn(2, 16, *GRID.shape, dtype=torch.float64, requires_grad=True)
+        queries = torch.randn(2, 9, 12, dtype=torch.float64, requires_grad=True)
+        dqa.zero_grad()
+        out = path(volume, queries, boxes, selected)
+        (out * torch.randn_like(out)).sum().backward()
+        return out, volume, [volume.grad, queries.grad, dqa.w_q.weight.grad, dqa.w_k.weight.grad, dqa.pos[2].grad]
+
+    (sparse, volume, g_sparse), (dense, _, g_dense) = run(dqa.sparse), run(dqa.dense)
+    assert torch.allclose(dense, sparse, rtol=0, atol=1e-12)
+    for a, b in zip(g_dense, g_sparse, strict=True):
+        assert torch.allclose(a, b, rtol=0, atol=1e-12)
+    uncovered = ~member.any(-1).view(2, *GRID.shape)
+    assert torch.equal(dense.detach().movedim(1, -1)[uncovered], volume.detach().movedim(1, -1)[uncovered])
+    assert torch.equal(dense[1], volume[1])
+    monkeypatch.setattr(torch.compiler, "is_compiling", lambda: True)
+    calls = []
+    monkeypatch.setattr(dqa, "dense", lambda *a: calls.append(1) or dqa.sparse(*a))
+    dqa(volume, torch.randn(2, 9, 12, dtype=torch.float64), boxes, selected)
+    assert calls == [1]
+
+
 def test_voxel_ffn_shape_and_residual():
     ffn = VoxelFFN(16, final_norm=False)
     torch.nn.init.zeros_(ffn.mlp[2].weight)
