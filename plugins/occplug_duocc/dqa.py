@@ -8,8 +8,9 @@ set ``N^i`` of selected queries whose boxes contain it (Eqs. 7-10)::
     g^i = sigmoid(W_gate [V^i, z^i])
     V_DQA^i = V^i + g^i * z^i   if N^i is not empty,   V^i otherwise (bit for bit).
 
-Attention runs per head (``heads=1`` is the equation as printed); its softmax runs over the edges of
-each voxel only (an edge list, no dense voxel-by-query matrix). The feed-forward step that turns
+Attention runs per head (``heads=1`` is the equation as printed); in eager its softmax runs over the edges
+of each voxel only (an edge list, no dense voxel-by-query matrix); a traced graph (export, ``torch.compile``)
+runs the same equations on a dense voxel-by-query mask (:meth:`DynamicQueryAggregation.dense`). The feed-forward step that turns
 ``V_DQA`` into ``V_fin`` (§3.2, last paragraph) is :class:`VoxelFFN`, applied over the whole grid.
 
 Boxes are ``(..., 7)`` ``[cx, cy, cz, l, w, h, yaw]`` in the ego frame (extra columns, e.g. velocity,
@@ -315,6 +316,22 @@ class DynamicQueryAggregation(nn.Module):
                 nn.Parameter(torch.rand(n, c)) for n, c in zip(self.grid.shape, sizes, strict=True)
             )
 
+    def _metric(self, device: torch.device) -> tuple[Tensor, Tensor]:
+        """``(lower, voxel_size)`` of the grid, ``(3,)`` float64 metres each."""
+        lower = torch.tensor(self.grid.lower, dtype=torch.float64, device=device)
+        return lower, torch.tensor(self.grid.voxel_size, dtype=torch.float64, device=device)
+
+    def _index_range(self, bx: Tensor) -> tuple[Tensor, Tensor]:
+        """``(..., 7)`` float64 boxes -> ``(lo, hi)`` ``(..., 3)`` int64: the voxel index range (inclusive, unclipped)
+        of each box's axis-aligned extent (``"center"``: floored; ``"aabb"``: the code's rounded corners)."""
+        lower, size = self._metric(bx.device)
+        c, s = torch.cos(bx[..., 6]).abs(), torch.sin(bx[..., 6]).abs()
+        half = torch.stack([bx[..., 3] * c + bx[..., 4] * s, bx[..., 3] * s + bx[..., 4] * c, bx[..., 5]], -1) / 2
+        lo, hi = (bx[..., :3] - half - lower) / size, (bx[..., :3] + half - lower) / size  # in voxel units
+        if self.coverage == "aabb":  # the code: round the corners' positions, keep the whole index range
+            return torch.round(lo).long(), torch.round(hi).long()
+        return torch.floor(lo).long(), torch.floor(hi).long()
+
     def edges(self, boxes: Tensor) -> tuple[Tensor, Tensor]:
         """The (voxel, query) pairs of one sample's boxes: voxel ``i`` of the flat ``X*Y*Z`` grid lies in box ``j``.
 
@@ -328,16 +345,9 @@ class DynamicQueryAggregation(nn.Module):
         """
         device = boxes.device
         shape = torch.tensor(self.grid.shape, device=device)
-        lower = torch.tensor(self.grid.lower, dtype=torch.float64, device=device)
-        size = torch.tensor(self.grid.voxel_size, dtype=torch.float64, device=device)
+        lower, size = self._metric(device)
         bx = boxes[:, :7].to(torch.float64)
-        c, s = torch.cos(bx[:, 6]).abs(), torch.sin(bx[:, 6]).abs()
-        half = torch.stack([bx[:, 3] * c + bx[:, 4] * s, bx[:, 3] * s + bx[:, 4] * c, bx[:, 5]], -1) / 2
-        lo, hi = (bx[:, :3] - half - lower) / size, (bx[:, :3] + half - lower) / size  # in voxel units
-        if self.coverage == "aabb":  # the code: round the corners' positions, keep the whole index range
-            lo, hi = torch.round(lo).long(), torch.round(hi).long()
-        else:
-            lo, hi = torch.floor(lo).long(), torch.floor(hi).long()
+        lo, hi = self._index_range(bx)
         hits_grid = ((hi >= 0) & (lo < shape)).all(-1)
         lo, hi = torch.maximum(lo, torch.zeros_like(lo)), torch.minimum(hi, shape - 1)
         extent = torch.where(hits_grid[:, None], hi - lo + 1, torch.zeros_like(lo))  # (Q, 3)
@@ -370,23 +380,18 @@ class DynamicQueryAggregation(nn.Module):
         Returns:
             ``(B, N, Q)`` bool, ``N = X * Y * Z``.
         """
-        device = boxes.device
-        shape = torch.tensor(self.grid.shape, device=device)
-        lower = torch.tensor(self.grid.lower, dtype=torch.float64, device=device)
-        size = torch.tensor(self.grid.voxel_size, dtype=torch.float64, device=device)
-        ijk = torch.stack(torch.meshgrid(*(torch.arange(n, device=device) for n in self.grid.shape), indexing="ij"), -1)
-        ijk = ijk.view(-1, 3)  # (N, 3)
+        ijk = torch.stack(
+            torch.meshgrid(*(torch.arange(n, device=boxes.device) for n in self.grid.shape), indexing="ij"), -1
+        ).view(-1, 3)  # (N, 3), flat order
         bx = boxes[..., :7].to(torch.float64)
         if self.coverage == "center":
+            lower, size = self._metric(boxes.device)
             centers = lower + (ijk.to(torch.float64) + 0.5) * size
             inside = _inside(centers[None, :, None, :], bx[:, None, :, :])
-        else:  # the code's rounded axis-aligned index range, as in edges()
-            c, s = torch.cos(bx[..., 6]).abs(), torch.sin(bx[..., 6]).abs()
-            half = torch.stack([bx[..., 3] * c + bx[..., 4] * s, bx[..., 3] * s + bx[..., 4] * c, bx[..., 5]], -1) / 2
-            lo = torch.round((bx[..., :3] - half - lower) / size).long()[:, None]  # (B, 1, Q, 3)
-            hi = torch.round((bx[..., :3] + half - lower) / size).long()[:, None]
+        else:  # every voxel of the box's index range, as in edges()
+            lo, hi = self._index_range(bx)
             at = ijk[None, :, None, :]
-            inside = ((at >= lo) & (at <= hi) & (at < shape)).all(-1)
+            inside = ((at >= lo[:, None]) & (at <= hi[:, None])).all(-1)
         return inside & selected[:, None, :]
 
     def forward(self, volume: Tensor, queries: Tensor, boxes: Tensor, selected: Tensor) -> Tensor:
@@ -394,8 +399,8 @@ class DynamicQueryAggregation(nn.Module):
 
         Eager runs on the edge list (:meth:`edges`, a scatter softmax per voxel); a traced graph (``torch.export``,
         ``torch.compile``) cannot hold its data-dependent sizes and runs :meth:`dense`, the same equations over
-        every voxel and query with a mask (``B * N * Q * heads`` logits: fine on the synthetic grids, heavy at the
-        paper's 100 x 100 x 8 x 900).
+        every voxel and query with a mask: tensors of ``B * N * Q * heads`` floats, a few alive at once (nothing on the
+        synthetic grids; 2.3 GB each in float32 per sample at the paper's 100 x 100 x 8 voxels, 900 queries, 8 heads).
 
         Args:
             volume: ``V_S.A``, ``(B, C, X, Y, Z)`` on the grid, ego frame.
@@ -422,8 +427,9 @@ class DynamicQueryAggregation(nn.Module):
     def dense(self, volume: Tensor, queries: Tensor, boxes: Tensor, selected: Tensor) -> Tensor:
         """:meth:`forward` with a ``(B, N, Q)`` mask in place of the edge list: fixed shapes, so it traces.
 
-        The masked softmax runs over the queries covering each voxel; a voxel no selected box covers keeps
-        ``volume`` bit for bit (``torch.where``), as on the edge list.
+        Same arguments and result as :meth:`forward` (``N = X * Y * Z`` voxels in flat order). The logits are
+        ``(B, N, Q, heads)``; the softmax runs over the queries covering each voxel; a voxel no selected box covers
+        keeps ``volume`` bit for bit (``torch.where``), as on the edge list.
         """
         b, c = volume.shape[:2]
         h, d = self.heads, c // self.heads
@@ -433,6 +439,8 @@ class DynamicQueryAggregation(nn.Module):
         if self.pos is not None:
             qin = flat + self._positional(torch.arange(flat.shape[1], device=flat.device)).to(flat)
         q = self.w_q(qin).view(b, -1, h, d)
+        # an unselected query's weight is 0, but 0 * inf is NaN: keep its (possibly non-finite) features out
+        queries = queries.masked_fill(~selected[..., None], 0.0)
         k = self.w_k(queries).view(b, -1, h, d)
         v = self.w_v(queries).view(b, -1, h, d)
         logits = torch.einsum("bnhd,bqhd->bnqh", q, k) / math.sqrt(d)

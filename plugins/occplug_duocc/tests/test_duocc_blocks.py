@@ -359,44 +359,54 @@ def test_dqa_matches_eqs_7_to_10_at_a_voxel_of_two_boxes():
 @pytest.mark.parametrize("coverage", ["center", "aabb"])
 def test_dqa_dense_path_equals_the_edge_list(coverage, monkeypatch):
     """The traceable dense path (export, torch.compile) computes the edge list's result: same membership, same
-    values and gradients in float64, uncovered voxels bit for bit; a traced forward takes it."""
+    values and every gradient in float64, uncovered voxels bit for bit; a traced forward takes it."""
     torch.manual_seed(1)
     dqa = DynamicQueryAggregation(16, GRID, query_channels=12, heads=2, coverage=coverage).double()
-    centre = torch.rand(2, 9, 3, dtype=torch.float64) * torch.tensor([10.0, 10.0, 2.0]) - torch.tensor([5.0, 5.0, 1.0])
-    size = torch.rand(2, 9, 3, dtype=torch.float64) * 4 + 1.5
-    yaw = torch.rand(2, 9, 1, dtype=torch.float64) * 2 * math.pi
-    boxes = torch.cat([centre, size, yaw], -1)  # some overlap, some straddle or miss the grid
-    selected = torch.rand(2, 9) > 0.3
-    selected[1] = False  # a sample with nothing selected
+    centre = torch.rand(3, 9, 3, dtype=torch.float64) * torch.tensor([10.0, 10.0, 2.0]) - torch.tensor([5.0, 5.0, 1.0])
+    size = torch.rand(3, 9, 3, dtype=torch.float64) * 4 + 1.5
+    yaw = torch.rand(3, 9, 1, dtype=torch.float64) * 2 * math.pi
+    boxes = torch.cat([centre, size, yaw], -1)  # overlapping, some straddling the grid's edge
+    boxes[:, 0, :3] = torch.tensor([9.0, 0.0, 0.0], dtype=torch.float64)  # wholly off the grid
+    selected = torch.rand(3, 9) > 0.3
+    selected[:, 0] = True
+    selected[2] = False  # a sample with nothing selected
     member = dqa.membership(boxes, selected)
-    for b in range(2):
+    for b in range(3):
         sel = selected[b].nonzero().flatten()
         vi, qi = dqa.edges(boxes[b, sel])
-        assert sorted(zip(vi.tolist(), sel[qi].tolist(), strict=True)) == sorted(
-            map(tuple, member[b].nonzero().tolist())
-        )
-    assert 0 < int(member[0].any(-1).sum()) and bool((member[0].sum(-1) >= 2).any())  # overlaps are exercised
+        pairs = sorted(zip(vi.tolist(), sel[qi].tolist(), strict=True))
+        assert pairs == sorted(map(tuple, member[b].nonzero().tolist()))
+    assert not member[:, :, 0].any() and not member[2].any()
+    for b in range(2):  # both active samples cover voxels, some of them by two boxes or more
+        assert bool(member[b].any(-1).any()) and bool((member[b].sum(-1) >= 2).any())
+    assert dqa.membership(boxes[:, :0], selected[:, :0]).shape == (3, GRID.shape[0] * GRID.shape[1] * GRID.shape[2], 0)
 
     def run(path):
         torch.manual_seed(2)
-        volume = torch.randn(2, 16, *GRID.shape, dtype=torch.float64, requires_grad=True)
-        queries = torch.randn(2, 9, 12, dtype=torch.float64, requires_grad=True)
+        volume = torch.randn(3, 16, *GRID.shape, dtype=torch.float64, requires_grad=True)
+        queries = torch.randn(3, 9, 12, dtype=torch.float64, requires_grad=True)
         dqa.zero_grad()
         out = path(volume, queries, boxes, selected)
         (out * torch.randn_like(out)).sum().backward()
-        return out, volume, [volume.grad, queries.grad, dqa.w_q.weight.grad, dqa.w_k.weight.grad, dqa.pos[2].grad]
+        return out, volume, [volume.grad, queries.grad, *(p.grad for p in dqa.parameters())]
 
     (sparse, volume, g_sparse), (dense, _, g_dense) = run(dqa.sparse), run(dqa.dense)
     assert torch.allclose(dense, sparse, rtol=0, atol=1e-12)
+    assert len(g_dense) == 2 + len(list(dqa.parameters()))
     for a, b in zip(g_dense, g_sparse, strict=True):
-        assert torch.allclose(a, b, rtol=0, atol=1e-12)
-    uncovered = ~member.any(-1).view(2, *GRID.shape)
+        assert a is not None and torch.isfinite(a).all() and torch.allclose(a, b, rtol=0, atol=1e-12)
+    uncovered = ~member.any(-1).view(3, *GRID.shape)
     assert torch.equal(dense.detach().movedim(1, -1)[uncovered], volume.detach().movedim(1, -1)[uncovered])
-    assert torch.equal(dense[1], volume[1])
+    assert torch.equal(dense[2], volume[2])
+    # an unselected query never enters, whatever its features
+    poisoned = torch.randn(3, 9, 12, dtype=torch.float64)
+    clean = dqa.dense(volume, poisoned, boxes, selected)
+    poisoned[~selected] = math.inf
+    assert torch.equal(dqa.dense(volume, poisoned, boxes, selected), clean)
     monkeypatch.setattr(torch.compiler, "is_compiling", lambda: True)
     calls = []
     monkeypatch.setattr(dqa, "dense", lambda *a: calls.append(1) or dqa.sparse(*a))
-    dqa(volume, torch.randn(2, 9, 12, dtype=torch.float64), boxes, selected)
+    dqa(volume, torch.randn(3, 9, 12, dtype=torch.float64), boxes, selected)
     assert calls == [1]
 
 
