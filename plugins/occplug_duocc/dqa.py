@@ -11,7 +11,8 @@ set ``N^i`` of selected queries whose boxes contain it (Eqs. 7-10)::
 Attention runs per head (``heads=1`` is the equation as printed); in eager its softmax runs over the edges
 of each voxel only (an edge list, no dense voxel-by-query matrix); a traced graph (export, ``torch.compile``)
 runs the same equations on a dense voxel-by-query mask (:meth:`DynamicQueryAggregation.dense`). The
-feed-forward step that turns ``V_DQA`` into ``V_fin`` (§3.2, last paragraph) is :class:`VoxelFFN`, applied over the whole grid.
+feed-forward step that turns ``V_DQA`` into ``V_fin`` (§3.2, last paragraph) is :class:`VoxelFFN`, applied over
+the whole grid.
 
 Boxes are ``(..., 7)`` ``[cx, cy, cz, l, w, h, yaw]`` in the ego frame (extra columns, e.g. velocity,
 are ignored): centre, length along the heading, width, height (metres), yaw about +z from +x (radians).
