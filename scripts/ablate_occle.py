@@ -100,10 +100,11 @@ def overrides(name: str, seed: int, args: argparse.Namespace) -> list[str]:
     ]
     if args.val_scenes is not None:
         out.append(f"data.val_scenes={args.val_scenes}")
-    for phase, epochs in base_epochs(name).items():
+    trained = trained_phases(name, args)
+    for phase, epochs in trained.items():
         out.append(f"phases.{phase}.trainer.max_epochs={max(1, round(epochs * args.epochs))}")
-    declared = set(base_epochs(name))
-    return [*out, *(item for item in args.set if _phase_of(item) in (None, *declared))]
+    out += [f"~phases.{phase}" for phase in base_epochs(name) if phase not in trained]  # past --until
+    return [*out, *(item for item in args.set if _phase_of(item) in (None, *trained))]
 
 
 def _phase_of(item: str) -> str | None:
@@ -124,6 +125,16 @@ def base_epochs(name: str) -> dict[str, int]:
         cfg = load_config([f"occle/{name}"])
         _EPOCHS[name] = {s.name: int(s.config["trainer"]["max_epochs"]) for s in phase_specs(cfg)}
     return _EPOCHS[name]
+
+
+def trained_phases(name: str, args: argparse.Namespace) -> dict[str, int]:
+    """``base_epochs`` of the phases a row trains: every one, or those up to and including ``--until``."""
+    phases = base_epochs(name)
+    until = getattr(args, "until", None)
+    if until is None:
+        return phases
+    names = list(phases)
+    return {k: phases[k] for k in names[: names.index(until) + 1]}
 
 
 def specs(name: str, seed: int, args: argparse.Namespace) -> tuple[dict[str, Any], list[Any]]:
@@ -202,11 +213,23 @@ def seed_from_donor(name: str, seed: int, args: argparse.Namespace, out: Path) -
 
 
 def run(name: str, seed: int, args: argparse.Namespace) -> dict:
-    """The run's metrics.json (training it first unless a finished one is there)."""
+    """The run's metrics.json (training it first unless a finished one is there).
+
+    With ``--until`` the run trains in ``<row>-seed<N>-until-<phase>``, so it never meets a whole run's folder;
+    a whole run that finished already answers for its leading phases.
+    """
     out = Path(args.out) / f"{name}-seed{seed}"
+    trained = trained_phases(name, args)
+    if args.until is not None:
+        if (out / "metrics.json").is_file():
+            summary = json.loads((out / "metrics.json").read_text())
+            if set(trained) <= set(summary.get("phases", {})):
+                phases = {k: summary["phases"][k] for k in trained}
+                return {**phases[args.until], "final_phase": args.until, "phases": phases}
+        out = out.with_name(f"{out.name}-until-{args.until}")
     if (out / "metrics.json").is_file():
         summary = json.loads((out / "metrics.json").read_text())
-        if set(summary.get("phases", {})) == set(base_epochs(name)):
+        if set(summary.get("phases", {})) == set(trained):
             return summary
     start = time.monotonic()
     copied = 0 if (out / "config.yaml").is_file() else seed_from_donor(name, seed, args, out)
@@ -268,6 +291,7 @@ def main() -> None:
     parser.add_argument("--val-scenes", type=int, default=None, help="validation scenes (default: the preset's)")
     parser.add_argument("--set", nargs="*", default=[], help="extra key=value overrides for every run")
     parser.add_argument("--out", default="runs/ablate_occle")
+    parser.add_argument("--until", help="train each row's phases up to and including this one (e.g. semantic: Tab. 3)")
     parser.add_argument("--dry-run", action="store_true", help="print the planned optimizer steps and stop")
     args = parser.parse_args()
     args.rows = sorted(set(args.rows), key=lambda r: (r != DONOR, list(ROWS).index(r)))  # the donor first
@@ -278,6 +302,9 @@ def main() -> None:
             phase = _phase_of(item)
             if phase is not None and not any(phase in base_epochs(r) for r in args.rows):
                 raise ConfigError(f"--set {item}: none of the rows {args.rows} declares a phase {phase!r}")
+        lacking = [r for r in args.rows if args.until is not None and args.until not in base_epochs(r)]
+        if lacking:
+            raise ConfigError(f"--until {args.until}: the rows {lacking} have no phase {args.until!r}")
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
@@ -293,6 +320,9 @@ def main() -> None:
     def values(name: str, key: str, phase: str | None = None) -> list[float]:
         out = []
         for m in results.get(name, []):
+            if phase is None and args.until is not None:  # the pipeline's numbers need its last phase
+                out.append(float("nan"))
+                continue
             src = m if phase is None else m.get("phases", {}).get(phase, {})
             out.append(float(src.get(key, float("nan"))))
         return out
@@ -306,7 +336,7 @@ def main() -> None:
 
     def section(title: str, header: list[str], rows: list[tuple[str, list[list[float]], str]]) -> None:
         rows = [r for r in rows if r[0] in results]
-        if not rows:
+        if not rows or not title:
             return
         lines.extend(
             ["", title, "", "| row | " + " | ".join(header) + " | paper |", "|---|" + "--:|" * (len(header) + 1)]
@@ -329,13 +359,14 @@ def main() -> None:
         ["IoU(G)"],
         [(n, [v], PAPER["tab4a"][n]) for n, v in geometry],
     )
+    whole = args.until is None
     section(
-        "Tab. 4(b) (overall pipeline)",
+        "Tab. 4(b) (overall pipeline)" if whole else "",
         ["mIoU", "IoU"],
         [(n, [values(n, "mIoU"), values(n, "IoU")], PAPER["tab4b"][n]) for n in PAPER["tab4b"]],
     )
     section(
-        "Tab. C.2 (supplementary)",
+        "Tab. C.2 (supplementary)" if whole else "",
         ["mIoU", "IoU"],
         [(n, [values(n, "mIoU"), values(n, "IoU")], PAPER["tabc2"][n]) for n in PAPER["tabc2"]],
     )
@@ -348,6 +379,8 @@ def main() -> None:
             "IoU_student": values(name, "IoU", "student"),
         }
     ours = statistics.mean(values(DONOR, "mIoU")) if DONOR in results else None
+    if not whole:
+        ours = None
     if ours is not None and "baseline_10pct" in results:
         base = statistics.mean(values("baseline_10pct", "mIoU"))
         verdict = "PASS" if ours > base else "FAIL"

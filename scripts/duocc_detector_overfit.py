@@ -1,0 +1,148 @@
+"""Can DuOcc's detector fit a few training frames? Bug or budget, for its ~1 % validation mAP.
+
+Trains a DuOcc config (default ``duocc/det_only``) with its own losses on the first ``--batches`` training batches
+only, in stream order, over and over, and prints the detector's mAP (``detection_map``, nuScenes centre distance)
+on those same batches as it goes, then on the validation split. A pipeline whose box coding, matching, loss or
+frames were wrong could not fit the frames it trains on; one that fits them but not the validation split is
+limited by data and budget::
+
+    python scripts/duocc_detector_overfit.py                       # the first 12 training batches, 40 passes
+    python scripts/duocc_detector_overfit.py --batches 4 --passes 60 --set data.num_cameras=1
+    python scripts/duocc_detector_overfit.py --run runs/ablate_duocc/full-seed0 --batches 48 --val-batches 48
+
+``--run`` evaluates a trained run's last checkpoint on the first training and validation batches, training
+nothing: a detector that scores far higher on its training frames than on the validation split has memorised
+them; one that scores low on both has not fitted the data (budget).
+
+Every pass clears the stream state first, so each pass sees the same sequence. The learning rate is the config's
+(no schedule), gradients clipped at the config's ``trainer.gradient_clip_val``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+from pathlib import Path
+
+import torch
+
+from occplug import runner
+from occplug.streams import find_streams, set_stream_stage
+
+
+def detections_and_targets(model, batches: list, stage: str) -> dict:
+    """mAP of the detector over ``batches`` in order (stream state of ``stage`` cleared first)."""
+    from occplug_duocc.detector import detection_map, select_detections
+    from occplug_duocc.queryagg import detection_targets
+    from occplug_duocc.scene import DETECTION_CLASSES_KEY, DETECTION_KEY
+
+    model.eval()
+    set_stream_stage(model, stage)
+    for _, state in find_streams(model):
+        state.clear(stage)
+    preds: list[list] = [[], [], []]
+    gts: list[list] = [[], []]
+    with torch.no_grad():
+        for batch in batches:
+            out = model(batch)
+            for boxes, scores, labels in select_detections(out.extras[DETECTION_KEY], top_k=100):
+                preds[0].append(boxes)
+                preds[1].append(scores)
+                preds[2].append(labels)
+            labels, boxes = detection_targets(batch, out.extras[DETECTION_CLASSES_KEY], "duocc_detector_overfit")
+            gts[0].extend(boxes)
+            gts[1].extend(labels)
+    return detection_map(*preds, *gts)
+
+
+def per_class(result: dict) -> dict[int, float]:
+    """``{class: AP %}`` of a ``detection_map`` result, one decimal."""
+    return {c: round(100 * a, 1) for c, a in result["AP"].items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-c", "--config", default="duocc/det_only")
+    parser.add_argument("--batches", type=int, default=12, help="training batches to fit (the first, in order)")
+    parser.add_argument("--passes", type=int, default=40, help="passes over those batches")
+    parser.add_argument("--every", type=int, default=10, help="print the training-batch mAP every this many passes")
+    parser.add_argument("--val-every", action="store_true", help="print the validation mAP every --every passes too")
+    parser.add_argument("--val-batches", type=int, default=12, help="validation batches for the final mAP")
+    parser.add_argument("--run", help="a finished run folder: evaluate its last checkpoint, train nothing")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--set", nargs="*", default=[], help="key=value overrides")
+    args = parser.parse_args()
+
+    torch.manual_seed(args.seed)
+    if args.run:
+        import yaml
+
+        run = Path(args.run)
+        cfg = runner.load_config([], args.set, saved=yaml.safe_load((run / "config.yaml").read_text()))
+        dm, model = runner.build_run(cfg)
+        last = run / "checkpoints" / "last.ckpt"
+        ckpt = last if last.is_file() else sorted((run / "checkpoints").glob("*.ckpt"))[-1]
+        model.load_state_dict(runner.load_checkpoint(ckpt)["state_dict"])
+        args.passes, args.config = 0, str(ckpt)
+    else:
+        cfg = runner.load_config([args.config], [f"seed={args.seed}", *args.set])
+        dm, model = runner.build_run(cfg)
+    dm.prepare_data()
+    dm.setup("fit")
+    train = list(itertools.islice(dm.train_dataloader(), args.batches))
+    val = list(itertools.islice(dm.val_dataloader(), args.val_batches))
+    n_boxes = sum(len(b.boxes[i]) if b.boxes is not None else 0 for b in train for i in range(len(b)))
+    print(
+        f"{args.config}: fitting {len(train)} training batches ({sum(len(b) for b in train)} frames, "
+        f"{n_boxes} boxes of every class) for {args.passes} passes",
+        flush=True,
+    )
+    spec = cfg.get("optimizer") or {}
+    optimizer = torch.optim.AdamW(
+        model.parameters(), lr=float(spec.get("lr", 2e-4)), weight_decay=float(spec.get("weight_decay", 0.01))
+    )
+    clip = (cfg.get("trainer") or {}).get("gradient_clip_val")
+    start = time.monotonic()
+    if args.run:
+        result = detections_and_targets(model, train, "train")
+        print(f"training batches: mAP {100 * result['mAP']:.2f} %, AP per class {per_class(result)}", flush=True)
+    for p in range(1, args.passes + 1):
+        model.train()
+        set_stream_stage(model, "train")
+        for _, state in find_streams(model):
+            state.clear("train")
+        totals: dict[str, float] = {}
+        for batch in train:
+            losses = model.losses(batch, model(batch))
+            loss = torch.stack(list(losses.values())).sum()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if clip:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), float(clip))
+            optimizer.step()
+            for k, v in losses.items():
+                totals[k] = totals.get(k, 0.0) + float(v.detach()) / len(train)
+        if p % args.every == 0 or p == args.passes:
+            result = detections_and_targets(model, train, "train")
+            det = {k.split("/", 1)[1]: round(v, 3) for k, v in totals.items() if k.startswith("detection/")}
+            print(
+                f"pass {p:4d} ({time.monotonic() - start:5.0f} s): train-batch mAP {100 * result['mAP']:.2f} %, "
+                f"AP per class {per_class(result)}, AP@ {{{', '.join(f'{t}: {100 * a:.1f}' for t, a in result['AP@'].items())}}}, "
+                f"detection loss {det}",
+                flush=True,
+            )
+            if args.val_every:
+                held = detections_and_targets(model, val, "val")
+                print(
+                    f"pass {p:4d}: validation mAP {100 * held['mAP']:.2f} %, AP per class {per_class(held)}", flush=True
+                )
+    result = detections_and_targets(model, val, "val")
+    print(
+        f"validation ({len(val)} batches): mAP {100 * result['mAP']:.2f} %, AP per class {per_class(result)}",
+        flush=True,
+    )
+
+
+if __name__ == "__main__":
+    main()
