@@ -28,11 +28,16 @@ from pathlib import Path
 import torch
 
 from occplug import runner
+from occplug.data import OCC3D_CLASSES
 from occplug.streams import find_streams, set_stream_stage
 
 
 def detections_and_targets(model, batches: list, stage: str) -> dict:
-    """mAP of the detector over ``batches`` in order (stream state of ``stage`` cleared first)."""
+    """mAP of the detector over ``batches`` in order (stream state of ``stage`` cleared first).
+
+    ``detection_map`` numbers classes by their index in the detector's class list; the result's ``"names"``
+    maps that index to the class name.
+    """
     from occplug_duocc.detector import detection_map, select_detections
     from occplug_duocc.queryagg import detection_targets
     from occplug_duocc.scene import DETECTION_CLASSES_KEY, DETECTION_KEY
@@ -50,15 +55,18 @@ def detections_and_targets(model, batches: list, stage: str) -> dict:
                 preds[0].append(boxes)
                 preds[1].append(scores)
                 preds[2].append(labels)
-            labels, boxes = detection_targets(batch, out.extras[DETECTION_CLASSES_KEY], "duocc_detector_overfit")
+            classes = out.extras[DETECTION_CLASSES_KEY]
+            labels, boxes = detection_targets(batch, classes, "duocc_detector_overfit")
             gts[0].extend(boxes)
             gts[1].extend(labels)
-    return detection_map(*preds, *gts)
+    result = detection_map(*preds, *gts)
+    result["names"] = [OCC3D_CLASSES[int(c)] for c in classes] if batches else []
+    return result
 
 
-def per_class(result: dict) -> dict[int, float]:
-    """``{class: AP %}`` of a ``detection_map`` result, one decimal."""
-    return {c: round(100 * a, 1) for c, a in result["AP"].items()}
+def per_class(result: dict) -> dict[str, float]:
+    """``{class name: AP %}`` of the classes in the ground truth, one decimal."""
+    return {result["names"][c]: round(100 * a, 1) for c, a in result["AP"].items()}
 
 
 def main() -> None:
