@@ -33,6 +33,10 @@ run ``--seeds 0 --preset tiny --epochs 0.02 --rows three_phase_10pct baseline_10
 ``--set`` items go to every run; one under ``phases.<name>.`` only to the rows that declare that phase (e.g.
 ``--set phases.fusion.trainer.max_epochs=6`` lengthens Phase III of the OccLE rows, not the baseline).
 
+``--until PHASE`` trains each row only up to and including PHASE, in ``<row>-seed<N>-until-<PHASE>``; a whole run
+of the row that finished already answers for it. ``--until semantic --rows three_phase_10pct primary_only`` is
+Tab. 3 (mIoU of ``S``) at Phase I's cost; the pipeline's columns are then left empty.
+
 ``--val-scenes N`` evaluates on N validation scenes (the ``default`` world holds 4 x 6 frames; more lowers the
 spread between seeds). Results go to ``--out`` (default ``runs/ablate_occle``): one run directory per row and
 seed, and ``table.json``. A finished run directory is reused, so an interrupted ablation continues where it
