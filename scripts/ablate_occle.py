@@ -39,8 +39,8 @@ Tab. 3 (mIoU of ``S``) at Phase I's cost; the pipeline's columns are then left e
 
 ``--val-scenes N`` evaluates on N validation scenes (the ``default`` world holds 4 x 6 frames; more lowers the
 spread between seeds). Results go to ``--out`` (default ``runs/ablate_occle``): one run directory per row and
-seed, and ``table.json``. A finished run directory is reused, so an interrupted ablation continues where it
-stopped.
+seed, and ``table.json`` (``table-until-<phase>.json`` with ``--until``). A finished run directory is reused,
+so an interrupted ablation continues where it stopped.
 """
 
 from __future__ import annotations
@@ -131,14 +131,24 @@ def base_epochs(name: str) -> dict[str, int]:
     return _EPOCHS[name]
 
 
+def partial(name: str, args: argparse.Namespace) -> bool:
+    """Whether ``--until`` stops the row before its last phase."""
+    return args.until is not None and list(base_epochs(name))[-1] != args.until
+
+
 def trained_phases(name: str, args: argparse.Namespace) -> dict[str, int]:
     """``base_epochs`` of the phases a row trains: every one, or those up to and including ``--until``."""
     phases = base_epochs(name)
-    until = getattr(args, "until", None)
-    if until is None:
+    if not partial(name, args):
         return phases
     names = list(phases)
-    return {k: phases[k] for k in names[: names.index(until) + 1]}
+    return {k: phases[k] for k in names[: names.index(args.until) + 1]}
+
+
+def run_folder(name: str, seed: int, args: argparse.Namespace) -> Path:
+    """Where a row's run trains: ``<row>-seed<N>``, or ``<row>-seed<N>-until-<phase>`` when ``--until`` cuts it."""
+    out = Path(args.out) / f"{name}-seed{seed}"
+    return out.with_name(f"{out.name}-until-{args.until}") if partial(name, args) else out
 
 
 def specs(name: str, seed: int, args: argparse.Namespace) -> tuple[dict[str, Any], list[Any]]:
@@ -183,27 +193,30 @@ def _copy(src: Path, dst: Path) -> None:
 
 
 def seed_from_donor(name: str, seed: int, args: argparse.Namespace, out: Path) -> int:
-    """Copy the finished phases the row shares with the donor run into ``out``; return how many."""
-    donor = Path(args.out) / f"{DONOR}-seed{seed}"
-    shared = [s for s in shared_phases(name, seed, args)]
-    done = []
-    for spec in shared:
-        if not (donor / spec.name / "DONE").is_file():
+    """Copy the finished phases the row shares with the donor run into ``out``; return how many.
+
+    The donor's whole run is the first source; under ``--until`` its cut run is the second.
+    """
+    sources = list(dict.fromkeys([Path(args.out) / f"{DONOR}-seed{seed}", run_folder(DONOR, seed, args)]))
+    done = []  # (phase spec, the donor folder holding it finished)
+    for spec in shared_phases(name, seed, args):
+        found = [src for src in sources if (src / spec.name / "DONE").is_file()]
+        if not found:
             break
-        done.append(spec)
+        done.append((spec, found[0]))
     if not done:
         return 0
     import yaml
 
     cfg, all_specs = specs(name, seed, args)
     out.mkdir(parents=True, exist_ok=True)
-    for spec in done:
+    for spec, donor in done:
         _copy(donor / spec.name, out / spec.name)
         if spec.pseudo_labels_from is not None:
             folder = Path("pseudo_labels") / spec.pseudo_labels_from.folder_name
             _copy(donor / folder, out / folder)
-    if (donor / "plugins.json").is_file():
-        shutil.copy2(donor / "plugins.json", out / "plugins.json")
+    if (done[0][1] / "plugins.json").is_file():
+        shutil.copy2(done[0][1] / "plugins.json", out / "plugins.json")
     (out / "config.yaml").write_text(
         "# resolved occplug config with phases; each phase's own config in <phase>/config.yaml\n"
         + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None)
@@ -219,18 +232,17 @@ def seed_from_donor(name: str, seed: int, args: argparse.Namespace, out: Path) -
 def run(name: str, seed: int, args: argparse.Namespace) -> dict:
     """The run's metrics.json (training it first unless a finished one is there).
 
-    With ``--until`` the run trains in ``<row>-seed<N>-until-<phase>``, so it never meets a whole run's folder;
-    a whole run that finished already answers for its leading phases.
+    When ``--until`` cuts the row, a finished whole run answers for its leading phases; otherwise the run
+    trains in ``<row>-seed<N>-until-<phase>`` (:func:`run_folder`), never in a whole run's folder.
     """
-    out = Path(args.out) / f"{name}-seed{seed}"
+    whole = Path(args.out) / f"{name}-seed{seed}"
     trained = trained_phases(name, args)
-    if args.until is not None:
-        if (out / "metrics.json").is_file():
-            summary = json.loads((out / "metrics.json").read_text())
-            if set(trained) <= set(summary.get("phases", {})):
-                phases = {k: summary["phases"][k] for k in trained}
-                return {**phases[args.until], "final_phase": args.until, "phases": phases}
-        out = out.with_name(f"{out.name}-until-{args.until}")
+    if partial(name, args) and (whole / "metrics.json").is_file():
+        summary = json.loads((whole / "metrics.json").read_text())
+        if set(trained) <= set(summary.get("phases", {})):
+            phases = {k: summary["phases"][k] for k in trained}
+            return {**phases[args.until], "final_phase": args.until, "phases": phases}
+    out = run_folder(name, seed, args)
     if (out / "metrics.json").is_file():
         summary = json.loads((out / "metrics.json").read_text())
         if set(summary.get("phases", {})) == set(trained):
@@ -324,7 +336,7 @@ def main() -> None:
     def values(name: str, key: str, phase: str | None = None) -> list[float]:
         out = []
         for m in results.get(name, []):
-            if phase is None and args.until is not None:  # the pipeline's numbers need its last phase
+            if phase is None and partial(name, args):  # the pipeline's numbers need its last phase
                 out.append(float("nan"))
                 continue
             src = m if phase is None else m.get("phases", {}).get(phase, {})
@@ -363,7 +375,7 @@ def main() -> None:
         ["IoU(G)"],
         [(n, [v], PAPER["tab4a"][n]) for n, v in geometry],
     )
-    whole = args.until is None
+    whole = not any(partial(n, args) for n in args.rows)
     section(
         "Tab. 4(b) (overall pipeline)" if whole else "",
         ["mIoU", "IoU"],
@@ -398,7 +410,9 @@ def main() -> None:
         ]
     print("\n".join(lines))
     Path(args.out).mkdir(parents=True, exist_ok=True)
-    (Path(args.out) / "table.json").write_text(json.dumps({"args": vars(args), "rows": table}, indent=2) + "\n")
+    rows = {n: {k: [v if v == v else None for v in vs] for k, vs in cols.items()} for n, cols in table.items()}
+    file = "table.json" if args.until is None else f"table-until-{args.until}.json"  # beside the whole runs' table
+    (Path(args.out) / file).write_text(json.dumps({"args": vars(args), "rows": rows}, indent=2) + "\n")
 
 
 if __name__ == "__main__":
