@@ -10,7 +10,8 @@ Sections:
   state carried between chunks) on the same random inputs: ``u``, ``delta = softplus(N(0,1) - 1)``,
   ``A = -exp(N(0, 1))`` ``(D, N)``, ``B``, ``C``, skip ``D`` and gate ``z``. Prints the wall-clock
   milliseconds of each (median and best of ``--repeats`` forward calls after one warm-up, without autograd,
-  CUDA synchronised), their ratio ref / chunked, and the largest absolute difference of the outputs.
+  CUDA synchronised), their ratio ref / chunked, and the largest absolute difference of the outputs. On CUDA in
+  float32/16/bfloat16 with ``mamba_ssm`` installed, its fused kernel (``selective_scan(mode="auto")``) is a third row.
 
 * ``geometry``: the geometric branch (Tab. 4(a)'s module time, the paper: 26.08 ms vs 138.62 ms on an A6000) --
   :class:`~occplug_occle.geometry_branch.CrossPlaneGeometryBranch` (cross-plane image/LiDAR synergy + 3D header)
@@ -32,6 +33,7 @@ Usage: ``python scripts/bench_occle.py [--section scan|geometry|all] [--length 4
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import statistics
 import time
 from collections.abc import Callable
@@ -40,7 +42,7 @@ import torch
 import torch.nn.functional as F
 
 from occplug_occle.geometry_branch import Conv3dDeformableBaseline, CrossPlaneGeometryBranch
-from occplug_occle.selective_scan import selective_scan_chunked, selective_scan_ref
+from occplug_occle.selective_scan import selective_scan, selective_scan_chunked, selective_scan_ref
 
 
 def _time(fn: Callable[[], torch.Tensor], repeats: int, device: torch.device) -> tuple[list[float], torch.Tensor]:
@@ -84,13 +86,20 @@ def bench_scan(args: argparse.Namespace) -> None:
             args.repeats,
             device,
         )
-    for name, times in (("ref", t_ref), ("chunked", t_chunk)):
-        print(f"  {name:8s} median {statistics.median(times) * 1e3:9.2f} ms   best {min(times) * 1e3:9.2f} ms")
-    print(f"  ratio ref / chunked: median {statistics.median(t_ref) / statistics.median(t_chunk):.2f}x", end="")
-    print(f"   best {min(t_ref) / min(t_chunk):.2f}x")
-    print(
-        f"  max |chunked - ref| = {float((y_chunk - y_ref).abs().max()):.3e} (max |ref| {float(y_ref.abs().max()):.3e})"
-    )
+        rows = {"ref": (t_ref, y_ref), "chunked": (t_chunk, y_chunk)}
+        if device.type == "cuda" and dtype != torch.float64 and importlib.util.find_spec("mamba_ssm") is not None:
+            # selective_scan's "auto" mode on CUDA: mamba_ssm's fused kernel
+            rows["mamba_ssm"] = _time(
+                lambda: selective_scan(u, delta, A, B, C, D, z, mode="auto"), args.repeats, device
+            )
+    for name, (times, _) in rows.items():
+        print(f"  {name:9s} median {statistics.median(times) * 1e3:9.2f} ms   best {min(times) * 1e3:9.2f} ms")
+    for name, (times, y) in list(rows.items())[1:]:
+        print(f"  ratio ref / {name}: median {statistics.median(t_ref) / statistics.median(times):.2f}x", end="")
+        print(f"   best {min(t_ref) / min(times):.2f}x", end="")
+        print(
+            f"   max |{name} - ref| = {float((y - y_ref).abs().max()):.3e} (max |ref| {float(y_ref.abs().max()):.3e})"
+        )
 
 
 def bench_geometry(args: argparse.Namespace) -> None:

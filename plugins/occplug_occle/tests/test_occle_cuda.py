@@ -1,5 +1,7 @@
 """OccLE on CUDA equals OccLE on the CPU (the pure-PyTorch reference). Skipped without a GPU."""
 
+import sys
+
 import pytest
 import torch
 
@@ -21,6 +23,30 @@ def test_chunked_scan_on_cuda_equals_the_cpu_reference_in_float64():
     for mode in ("ref", "chunked"):
         y = selective_scan(*moved, mode=mode).cpu()
         assert float((y - y_ref).abs().max()) < 1e-10, mode
+
+
+def test_mamba_ssm_kernel_equals_the_reference_forward_and_backward():
+    """``auto`` on CUDA float32 dispatches to ``mamba_ssm``'s kernel: its output, last state and input gradients
+    equal the step-loop reference in float64 (the kernel computes in float32)."""
+    pytest.importorskip("mamba_ssm.ops.selective_scan_interface", reason="mamba_ssm is not installed")
+    g = torch.Generator().manual_seed(0)
+    u, B, C, z = (torch.randn(2, 300, s, generator=g, dtype=torch.float64) for s in (6, 4, 4, 6))
+    delta = torch.nn.functional.softplus(torch.randn(2, 300, 6, generator=g, dtype=torch.float64) - 1)
+    A, D = -torch.exp(torch.randn(6, 4, generator=g, dtype=torch.float64)), torch.randn(6, dtype=torch.float64)
+    ref_in = [t.clone().requires_grad_() for t in (u, delta, A, B, C, D, z)]
+    y_ref, last_ref = selective_scan_ref(*ref_in, return_last_state=True)
+    kernel_in = [t.float().cuda().requires_grad_() for t in (u, delta, A, B, C, D, z)]
+    y, last = selective_scan(*kernel_in, mode="auto", return_last_state=True)
+    assert "mamba_ssm.ops.selective_scan_interface" in sys.modules  # the kernel ran, not the chunked scan
+    scale = float(y_ref.abs().max())
+    assert float((y.double().cpu() - y_ref).abs().max()) < 1e-4 * scale
+    assert float((last.double().cpu() - last_ref).abs().max()) < 1e-4 * float(last_ref.abs().max())
+    w = torch.randn(y_ref.shape, generator=g, dtype=torch.float64)
+    (y_ref * w).sum().backward()
+    (y * w.float().cuda()).sum().backward()
+    for name, a, b in zip("u delta A B C D z".split(), ref_in, kernel_in, strict=True):
+        err = float((b.grad.double().cpu() - a.grad).abs().max())
+        assert err < 1e-3 * float(a.grad.abs().max()), name
 
 
 def test_model_on_cuda_matches_cpu_and_backpropagates(monkeypatch):

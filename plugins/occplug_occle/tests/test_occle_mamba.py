@@ -10,6 +10,8 @@ import torch.nn.functional as F
 from occplug_occle.mamba import DualMambaBlock, DualMambaUNet, MambaBlock, channel_exchange, exchange_mask
 from occplug_occle.selective_scan import (
     SelectiveScanFn,
+    _mamba_ssm_kernel,
+    _scan_mamba_ssm,
     selective_scan,
     selective_scan_chunked,
     selective_scan_lean,
@@ -202,6 +204,63 @@ def test_selective_scan_dispatch_on_cpu():
         selective_scan(u, delta, A, B, C, mode="cuda")
     with pytest.raises(ValueError, match="must be"):
         selective_scan(u, delta[:, :-1], A, B, C)
+
+
+def _fake_mamba_ssm(root, kernel_source):
+    """A ``mamba_ssm`` package under ``root`` whose ``selective_scan_interface`` module is ``kernel_source``."""
+    ops = root / "mamba_ssm" / "ops"
+    ops.mkdir(parents=True)
+    (root / "mamba_ssm" / "__init__.py").write_text("")
+    (ops / "__init__.py").write_text("")
+    (ops / "selective_scan_interface.py").write_text(kernel_source)
+
+
+@pytest.fixture
+def fresh_mamba_ssm(monkeypatch, tmp_path):
+    """sys.path and sys.modules restored, the kernel lookup's cache cleared before and after."""
+    for name in [m for m in sys.modules if m == "mamba_ssm" or m.startswith("mamba_ssm.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    _mamba_ssm_kernel.cache_clear()
+    yield tmp_path
+    _mamba_ssm_kernel.cache_clear()
+    for name in [m for m in sys.modules if m == "mamba_ssm" or m.startswith("mamba_ssm.")]:
+        del sys.modules[name]
+
+
+def test_mamba_ssm_without_its_kernel_falls_back_with_one_warning(fresh_mamba_ssm):
+    # what a mamba_ssm installed without its CUDA build looks like: the package imports, its kernel does not
+    _fake_mamba_ssm(fresh_mamba_ssm, "import selective_scan_cuda_that_was_never_built\n")
+    with pytest.warns(UserWarning, match="chunked scan"):
+        assert _mamba_ssm_kernel() is None
+    assert _mamba_ssm_kernel() is None  # cached: warned once
+
+
+def test_mamba_ssm_layout_adapter_equals_the_reference(fresh_mamba_ssm):
+    # a stand-in kernel with mamba_ssm's channels-first signature, computed by the reference: what the adapter
+    # hands it and how it reads the result back must give the reference's (B, L, D) output and (B, D, N) state
+    _fake_mamba_ssm(
+        fresh_mamba_ssm,
+        "from occplug_occle.selective_scan import selective_scan_ref\n"
+        "def selective_scan_fn(u, delta, A, B, C, D=None, z=None, delta_bias=None, delta_softplus=False,\n"
+        "                      return_last_state=False):\n"
+        "    assert delta_bias is None and not delta_softplus and u.is_contiguous() and B.is_contiguous()\n"
+        "    t = lambda x: None if x is None else x.transpose(1, 2)\n"
+        "    out = selective_scan_ref(t(u), t(delta), A, t(B), t(C), D, t(z), return_last_state=True)\n"
+        "    y = out[0].transpose(1, 2)\n"
+        "    return (y, out[1]) if return_last_state else y\n",
+    )
+    kernel = _mamba_ssm_kernel()
+    assert kernel is not None and kernel.__module__ == "mamba_ssm.ops.selective_scan_interface"
+    u, delta, A, B, C, D, z = _scan_inputs(dtype=torch.float32)
+    y_ref, last_ref = selective_scan_ref(u, delta, A, B, C, D, z, return_last_state=True)
+    y, last = _scan_mamba_ssm(u, delta, A, B, C, D, z, True, kernel)
+    assert y.shape == y_ref.shape and last.shape == last_ref.shape
+    torch.testing.assert_close(y, y_ref)
+    torch.testing.assert_close(last, last_ref)
+    torch.testing.assert_close(
+        _scan_mamba_ssm(u, delta, A, B, C, None, None, False, kernel), selective_scan_ref(u, delta, A, B, C)
+    )
 
 
 def _inner_sequence(block, tokens):
