@@ -123,39 +123,18 @@ def detection_map_of(run: Path, gt_boxes: bool) -> float:
     path = run / ("det_map_gt_boxes.json" if gt_boxes else "det_map.json")
     if path.is_file():
         return float(json.loads(path.read_text())["mAP"])
-    import torch
     import yaml
 
     from occplug import runner
-    from occplug.streams import find_streams, set_stream_stage
-    from occplug_duocc.detector import detection_map, select_detections
-    from occplug_duocc.queryagg import detection_targets
-    from occplug_duocc.scene import DETECTION_CLASSES_KEY, DETECTION_KEY
+    from occplug_duocc.detection_eval import stream_detection_map
 
     saved = yaml.safe_load((run / "config.yaml").read_text())
     cfg = runner.load_config([], [GT_OVERRIDE] if gt_boxes else [], saved=saved)
     dm, model = runner.build_run(cfg)
     model.load_state_dict(runner.load_checkpoint(checkpoint(run))["state_dict"])
-    model.eval()
     dm.prepare_data()
     dm.setup("validate")
-    set_stream_stage(model, "val")
-    for _, state in find_streams(model):
-        state.clear("val")
-    preds: list[list] = [[], [], []]
-    gts: list[list] = [[], []]
-    with torch.no_grad():
-        for batch in dm.val_dataloader():
-            out = model(batch)
-            classes = out.extras[DETECTION_CLASSES_KEY]
-            for boxes, scores, labels in select_detections(out.extras[DETECTION_KEY], top_k=100):
-                preds[0].append(boxes)
-                preds[1].append(scores)
-                preds[2].append(labels)
-            labels, boxes = detection_targets(batch, classes, "ablate_duocc")
-            gts[0].extend(boxes)
-            gts[1].extend(labels)
-    result = detection_map(*preds, *gts)
+    result = stream_detection_map(model, dm.val_dataloader(), "val")
     value = 100.0 * float(result["mAP"])
     path.write_text(json.dumps({"mAP": value, "AP": result["AP"]}, indent=2) + "\n")
     return value

@@ -34,37 +34,14 @@ from occplug import runner
 from occplug.data import OCC3D_CLASSES
 from occplug.streams import find_streams, set_stream_stage
 from occplug.training import build_optimizer
+from occplug_duocc.detection_eval import stream_detection_map
 
 
 def detector_map(model, batches: list, stage: str) -> dict:
-    """mAP of the detector over ``batches`` in order (stream state of ``stage`` cleared first).
-
-    ``detection_map`` numbers classes by their index in the detector's class list; the result's ``"names"``
-    maps that index to the class name.
-    """
-    from occplug_duocc.detector import detection_map, select_detections
-    from occplug_duocc.queryagg import detection_targets
-    from occplug_duocc.scene import DETECTION_CLASSES_KEY, DETECTION_KEY
-
-    model.eval()
-    set_stream_stage(model, stage)
-    for _, state in find_streams(model):
-        state.clear(stage)
-    preds: list[list] = [[], [], []]
-    gts: list[list] = [[], []]
-    with torch.no_grad():
-        for batch in batches:
-            out = model(batch)
-            for boxes, scores, labels in select_detections(out.extras[DETECTION_KEY], top_k=100):
-                preds[0].append(boxes)
-                preds[1].append(scores)
-                preds[2].append(labels)
-            classes = out.extras[DETECTION_CLASSES_KEY]
-            labels, boxes = detection_targets(batch, classes, "duocc_detector_overfit")
-            gts[0].extend(boxes)
-            gts[1].extend(labels)
-    result = detection_map(*preds, *gts)
-    result["names"] = [OCC3D_CLASSES[int(c)] for c in classes] if batches else []
+    """:func:`~occplug_duocc.detection_eval.stream_detection_map` over ``batches`` in order, with ``"names"``: the
+    class name of each detection class index."""
+    result = stream_detection_map(model, batches, stage)
+    result["names"] = [OCC3D_CLASSES[c] for c in result["classes"]]
     return result
 
 
