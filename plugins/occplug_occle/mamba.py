@@ -61,7 +61,7 @@ class MambaBlock(nn.Module):
         expand: ``D / C``.
         dt_rank: rank of the ``delta`` projection; None: ``ceil(dim / 16)``.
         dt_min, dt_max: range of the initial step sizes (log-uniform, through the ``dt_proj`` bias).
-        scan: :func:`~.selective_scan.selective_scan` mode (``"auto"``: ``mamba_ssm`` on CUDA if installed,
+        scan: :func:`~.selective_scan.selective_scan` mode (``"auto"``: ``mamba_ssm`` on CUDA where its kernel loads,
             else the chunked scan).
         chunk_size: chunk length of the chunked scan.
         checkpoint_scan: in training, wrap the scan in ``torch.utils.checkpoint`` (recompute it in backward).

@@ -154,7 +154,9 @@ class OccleScene(SceneRepresentation):
         self.semantic, self.geometric, self.projection = bool(semantic), bool(geometric), bool(projection)
         self.history = [int(k) for k in (history or [])]
         if 0 in self.history or len(set(self.history)) != len(self.history):
-            raise ValueError(f"occle_scene history: past frame offsets other than 0, each once, got {list(history or [])}")
+            raise ValueError(
+                f"occle_scene history: past frame offsets other than 0, each once, got {list(history or [])}"
+            )
         frames = len(self.history) + 1
         both = self.in_channels + self.lidar_channels
         # plain stems stand in for a switched-off branch, so the fusion always sees two grids

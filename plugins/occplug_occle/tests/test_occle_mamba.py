@@ -1,7 +1,9 @@
 """OccLE's Dual Mamba pieces against their definitions: Hilbert serialisation, the selective scan, the blocks."""
 
+import importlib
 import itertools
 import sys
+import warnings
 
 import pytest
 import torch
@@ -213,6 +215,7 @@ def _fake_mamba_ssm(root, kernel_source):
     (root / "mamba_ssm" / "__init__.py").write_text("")
     (ops / "__init__.py").write_text("")
     (ops / "selective_scan_interface.py").write_text(kernel_source)
+    importlib.invalidate_caches()  # the path finder may have listed root before these files existed
 
 
 @pytest.fixture
@@ -233,7 +236,9 @@ def test_mamba_ssm_without_its_kernel_falls_back_with_one_warning(fresh_mamba_ss
     _fake_mamba_ssm(fresh_mamba_ssm, "import selective_scan_cuda_that_was_never_built\n")
     with pytest.warns(UserWarning, match="chunked scan"):
         assert _mamba_ssm_kernel() is None
-    assert _mamba_ssm_kernel() is None  # cached: warned once
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _mamba_ssm_kernel() is None  # cached: warned once
 
 
 def test_mamba_ssm_layout_adapter_equals_the_reference(fresh_mamba_ssm):
