@@ -241,6 +241,71 @@ def test_two_semantic_sources_the_primary_lacks_cones_the_auxiliary_supplies_the
     assert lut[1] == cone and (lut[[0, 2, 3, 4, 5, 6]] == 255).all()
 
 
+def test_primary_lacks_a_class_the_auxiliary_supplies_it_and_the_written_tables_agree(tmp_path):
+    frames = _train_frames()
+    veg, terrain = OCC3D_CLASSES.index("vegetation"), OCC3D_CLASSES.index("terrain")
+    lacks = {"primary_lacks": ["vegetation"]}
+    aligned = SyntheticPseudoLabels(lacks)
+    primary_only = SyntheticPseudoLabels({**lacks, "auxiliary": False})
+    default = SyntheticPseudoLabels("default")
+    perfect, perfect_lacking = SyntheticPseudoLabels("perfect"), SyntheticPseudoLabels({**lacks, "preset": "perfect"})
+    tree = 4  # the auxiliary's "tree" prompt
+    truth_veg = filled = default_veg = 0
+    for f in frames:
+        maps = aligned.maps(f)
+        # the primary has no vegetation class: its raw ids never name it, noise included
+        assert not (aligned._lut[maps["semantics"]] == veg).any()
+        alone = primary_only.attach(f).pseudo_semantics
+        merged = aligned.attach(f).pseudo_semantics
+        assert not (alone == veg).any()
+        speaks = alone != 255
+        assert torch.equal(merged[speaks], alone[speaks])  # the auxiliary only fills unknown pixels
+        assert torch.equal(
+            merged[~speaks & (maps["semantics_aux"] == tree)],
+            torch.full_like(merged, veg)[~speaks & (maps["semantics_aux"] == tree)],
+        )
+        truth = f.semantics_2d == veg
+        truth_veg += int(truth.sum())
+        filled += int((merged[truth] == veg).sum())
+        default_veg += int((default.attach(f).pseudo_semantics[truth] == veg).sum())
+        # with perfect segmenters the perfect auxiliary supplies exactly what the primary lacks: nothing changes
+        assert torch.equal(perfect_lacking.attach(f).pseudo_semantics, perfect.attach(f).pseudo_semantics)
+    assert truth_veg > 1000
+    # the auxiliary misses blobs (auxiliary_miss) and the primary's boundary errors bleed in: most, not all
+    assert 0.6 < filled / truth_veg < default_veg / truth_veg + 0.05
+    assert default_veg / truth_veg > 0.8
+    # the tables say the same: the auxiliary's maps "tree" (and the cone), the primary's leaves vegetation out
+    aux = load_mapping(
+        _write_tmp(mapping_table("occ3d", source="auxiliary", primary_lacks=["vegetation"])), OCC3D_CLASSES
+    )
+    assert aux[tree] == veg and aux[1] == OCC3D_CLASSES.index("traffic_cone") and (aux[[0, 2, 3, 5, 6]] == 255).all()
+    primary_table = mapping_table("occ3d", primary_lacks=["vegetation"])
+    assert "vegetation" not in primary_table.split("map:")[0] and "terrain" in primary_table
+    assert load_mapping(_write_tmp(primary_table), OCC3D_CLASSES)[102] == terrain
+    # written and read back through those tables, the merged labels are what attach() makes
+    f = next(f for f in frames if (f.semantics_2d == veg).any())
+    aligned.write(f, tmp_path)
+    (tmp_path / "mapping.yaml").write_text(primary_table)
+    (tmp_path / "mapping_aux.yaml").write_text(mapping_table("occ3d", source="auxiliary", primary_lacks=["vegetation"]))
+    read = PseudoLabelSource(sources(tmp_path), OCC3D_CLASSES).attach(f)
+    assert torch.equal(read.pseudo_semantics, aligned.attach(f).pseudo_semantics)
+    # SemanticKITTI: "person" names its person class; it has no cone, so the cone prompt stays unmapped
+    ssc = mapping_table("semantickitti", source="auxiliary", primary_lacks=["pedestrian"])
+    assert "person: person" in ssc and "traffic cone: ignore" in ssc
+    # the maps change only with the knob (the cache key too)
+    assert SyntheticPseudoLabels(lacks).cache_key() != default.cache_key()
+
+
+def test_primary_lacks_rejects_what_is_no_class_list():
+    with pytest.raises(ValueError, match=r"primary_lacks: unknown class 'trees' \(valid: barrier, .*vegetation"):
+        pseudo_realism({"primary_lacks": ["trees"]})
+    with pytest.raises(ValueError, match="primary_lacks: unknown class 'traffic_cone'"):
+        pseudo_realism({"primary_lacks": ["traffic_cone"]})  # lacked always; naming it is a mistake
+    with pytest.raises(ValueError, match="primary_lacks must be a list of class names, got 'vegetation'"):
+        pseudo_realism({"primary_lacks": "vegetation"})
+    assert pseudo_realism({"primary_lacks": ["manmade", "manmade"]}).primary_lacks == ("manmade",)
+
+
 def _write_tmp(text):
     import tempfile
     from pathlib import Path

@@ -177,9 +177,14 @@ def write_occ3d_nuscenes(
     (out / "splits.json").write_text(json.dumps(scene_names, indent=2))
     write_grid_record(out, config.grid.shape, config.grid.range, config.grid.voxel_size)
     if labeler is not None:
-        (out / "pseudo" / "semantics_mapping.yaml").write_text(mapping_table("occ3d", labeler.realism.foreign_taxonomy))
+        lacks = labeler.realism.primary_lacks
+        (out / "pseudo" / "semantics_mapping.yaml").write_text(
+            mapping_table("occ3d", labeler.realism.foreign_taxonomy, primary_lacks=lacks)
+        )
         if labeler.has_auxiliary:
-            (out / "pseudo" / "semantics_aux_mapping.yaml").write_text(mapping_table("occ3d", source="auxiliary"))
+            (out / "pseudo" / "semantics_aux_mapping.yaml").write_text(
+                mapping_table("occ3d", source="auxiliary", primary_lacks=lacks)
+            )
     return written
 
 

@@ -161,11 +161,13 @@ def write_semantickitti(
     write_grid_record(out, grid.shape, grid.range, grid.voxel_size)
     if labeler is not None:
         (out / "pseudo" / "semantics_mapping.yaml").write_text(
-            mapping_table("semantickitti", labeler.realism.foreign_taxonomy)
+            mapping_table(
+                "semantickitti", labeler.realism.foreign_taxonomy, primary_lacks=labeler.realism.primary_lacks
+            )
         )
         if labeler.has_auxiliary:
             (out / "pseudo" / "semantics_aux_mapping.yaml").write_text(
-                mapping_table("semantickitti", source="auxiliary")
+                mapping_table("semantickitti", source="auxiliary", primary_lacks=labeler.realism.primary_lacks)
             )
     return names
 

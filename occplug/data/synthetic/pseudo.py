@@ -16,16 +16,19 @@ realism set by :class:`PseudoRealism`:
     of that table: man-made structure splits into ``building`` (above 2.5 m) and ``wall``; a
     bicycle / motorcycle splits into the vehicle and its ``bicyclist`` / ``motorcyclist`` rider
     (above 1 m); construction vehicles merge into ``truck`` (an error no mapping table can undo);
-    it has **no traffic-cone class** (cones are ``unlabeled``); sky and ``others`` have no target
-    class. Label noise: blobs (``semantic_noise`` of the pixels) relabelled with a random foreign
+    it has **no traffic-cone class** (cones are ``unlabeled``), nor a class for any of the world's
+    classes named in ``primary_lacks`` (their pixels are ``unlabeled`` too); sky and ``others`` have no
+    target class. Label noise: blobs (``semantic_noise`` of the pixels) relabelled with a random foreign
     class; boundary errors: pixels within ``boundary_error`` px of a class boundary take a
     neighbour's label. :func:`mapping_table` writes the YAML table back to the target taxonomy
     (Occ3D or SemanticKITTI).
   - the *auxiliary*, open-vocabulary one (``auxiliary``; :data:`AUXILIARY_CLASSES`, a few prompted
     names) that has the cone: coarse (every vehicle is ``vehicle``), with over-reaching masks
     (``auxiliary_boundary_error``) and missed regions (``auxiliary_miss`` of the pixels become
-    ``background``). Its table (``mapping_table(..., source="auxiliary")``) maps only what the
-    primary lacks (``traffic cone``), so it fills exactly those pixels.
+    ``background``). Its table (``mapping_table(..., source="auxiliary")``) maps only the prompts
+    naming a class the primary lacks (``traffic cone`` always; ``person``, ``tree``, ``building``,
+    ``road`` when ``primary_lacks`` names pedestrian, vegetation, manmade, driveable_surface), so it
+    fills exactly those classes, where the primary leaves its pixels unknown.
 
 * **features**: ``feature_dim`` channels at ``1 / feature_stride`` resolution, like a vision
   foundation model's: they cluster by class but are no one-to-one code of it. A fixed random
@@ -44,6 +47,7 @@ import copy
 import hashlib
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -135,8 +139,12 @@ _OCC3D_TO_AUX = {
     2: "vehicle", 3: "vehicle", 4: "vehicle", 5: "vehicle", 6: "vehicle", 9: "vehicle", 10: "vehicle", 7: "person",
     8: "traffic cone", 11: "road", 15: "building", 16: "tree",
 }  # fmt: skip
-#: Auxiliary name -> target class per taxonomy: only what the primary lacks (SemanticKITTI has no cone class).
-_AUX_TO_TARGET: dict[str, dict[str, str]] = {"occ3d": {"traffic cone": "traffic_cone"}, "semantickitti": {}}
+#: Auxiliary prompt -> the one Occ3D class it names (``vehicle`` names many, so it never maps).
+_AUX_NAMES_OCC3D = {"traffic cone": 8, "person": 7, "road": 11, "building": 15, "tree": 16}
+#: The Occ3D classes the primary segmenter always lacks (its foreign taxonomy has no cone class).
+_ALWAYS_LACKS = (8,)
+#: The world's classes ``primary_lacks`` may name: the Occ3D classes its 2D maps hold.
+LACKABLE_CLASSES = tuple(OCC3D_CLASSES[i] for i in range(1, 17) if i not in _ALWAYS_LACKS)
 
 # Occ3D id -> coarse feature group (0 others, 1 vehicles, 2 road users, 3 flat ground, 4 structure, 5 nature).
 _FEATURE_GROUP = {
@@ -164,6 +172,10 @@ class PseudoRealism:
         feature_noise: std of the feature noise.
         feature_class_weight: weight of the class embedding against the (unit) group embedding.
         feature_position_weight: weight of the position embedding.
+        primary_lacks: Occ3D class names (:data:`LACKABLE_CLASSES`) the primary segmenter has no class
+            for, beyond the traffic cone it always lacks: their pixels are ``unlabeled`` in its maps and
+            its noise never draws them; the auxiliary fills those its prompts name. Makes worlds where
+            OccLE's label alignment (Tab. 3) has classes to supply.
         seed: seed of the noise and of the fixed embeddings.
     """
 
@@ -181,7 +193,23 @@ class PseudoRealism:
     feature_noise: float = 0.4
     feature_class_weight: float = 0.4
     feature_position_weight: float = 0.9
+    primary_lacks: tuple[str, ...] = ()
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        lacks = self.primary_lacks
+        if isinstance(lacks, str) or not isinstance(lacks, Sequence):
+            raise ValueError(f"pseudo-label realism: primary_lacks must be a list of class names, got {lacks!r}")
+        for name in lacks:
+            if name not in LACKABLE_CLASSES:
+                raise ValueError(
+                    f"pseudo-label realism: primary_lacks: unknown class {name!r} (valid: {', '.join(LACKABLE_CLASSES)})"
+                )
+        object.__setattr__(self, "primary_lacks", tuple(dict.fromkeys(lacks)))
+
+    def lacked_ids(self) -> tuple[int, ...]:
+        """The Occ3D ids the primary segmenter has no class for (the cone and ``primary_lacks``), sorted."""
+        return tuple(sorted({*_ALWAYS_LACKS, *(OCC3D_CLASSES.index(n) for n in self.primary_lacks)}))
 
 
 #: ``perfect`` (no noise; the foreign taxonomy's merges remain), ``default`` and ``noisy``.
@@ -229,17 +257,47 @@ def pseudo_realism(spec: str | dict[str, Any] | PseudoRealism | None) -> PseudoR
     return PseudoRealism(**{**asdict(base), **spec})
 
 
-def mapping_table(taxonomy: str = "occ3d", foreign: bool = True, source: str = "primary") -> str:
+def _foreign_lacked(lacked: tuple[int, ...]) -> set[str]:
+    """The foreign class names the primary segmenter lacks: those whose every Occ3D source is lacked."""
+    sources: dict[str, set[int]] = {}
+    for occ, name in _OCC3D_TO_FOREIGN.items():
+        sources.setdefault(name, set()).add(occ)
+    for occ, low, high, _ in _HEIGHT_SPLITS:
+        sources.setdefault(low, set()).add(occ)
+        sources.setdefault(high, set()).add(occ)
+    return {name for name, occs in sources.items() if occs <= set(lacked)}
+
+
+def _auxiliary_targets(taxonomy: str, lacked: tuple[int, ...]) -> dict[str, str]:
+    """Auxiliary prompt -> target class name, for the prompts naming a class the primary lacks (and
+    the target taxonomy has: SemanticKITTI has no cone class)."""
+    out = {}
+    for prompt, occ in _AUX_NAMES_OCC3D.items():
+        if occ not in lacked:
+            continue
+        target = OCC3D_CLASSES[occ] if taxonomy == "occ3d" else OCC3D_TO_SSC[occ]
+        if taxonomy != "occ3d":
+            target = None if target == 255 else SEMANTIC_KITTI_CLASSES[target]
+        if target is not None:
+            out[prompt] = target
+    return out
+
+
+def mapping_table(
+    taxonomy: str = "occ3d", foreign: bool = True, source: str = "primary", primary_lacks: Sequence[str] = ()
+) -> str:
     """The YAML class-mapping table (see :mod:`occplug.data.pseudo_labels`) from the synthetic
     segmenter's maps to ``taxonomy`` (``occ3d`` or ``semantickitti``); ``foreign=False`` gives the
     identity table of maps written in target ids; ``source="auxiliary"`` the auxiliary segmenter's
-    table (only the classes the primary lacks are mapped)."""
+    table (only the prompts naming a class the primary lacks are mapped). ``primary_lacks``: as
+    :attr:`PseudoRealism.primary_lacks` (the primary's table leaves out the foreign classes it lacks)."""
     if taxonomy not in _TAXONOMIES:
         raise ValueError(f"unknown target taxonomy '{taxonomy}' (valid: {', '.join(_TAXONOMIES)})")
     if source not in ("primary", "auxiliary"):
         raise ValueError(f"unknown semantic source '{source}' (valid: primary, auxiliary)")
+    lacked = PseudoRealism(primary_lacks=tuple(primary_lacks)).lacked_ids()
     if source == "auxiliary":
-        mapped = _AUX_TO_TARGET[taxonomy]
+        mapped = _auxiliary_targets(taxonomy, lacked)
         data = {
             "classes": dict(AUXILIARY_CLASSES),
             "map": {n: mapped.get(n, "ignore") for n in AUXILIARY_CLASSES.values()},
@@ -251,9 +309,10 @@ def mapping_table(taxonomy: str = "occ3d", foreign: bool = True, source: str = "
         data = {"classes": dict(enumerate(names)), "map": {n: n for n in names}}
         header = f"# identity table: the maps hold {taxonomy} class ids\n"
     else:
+        missing = _foreign_lacked(lacked) - {"unlabeled"}
         data = {
-            "classes": dict(sorted(FOREIGN_CLASSES.items())),
-            "map": {name: (target or "ignore") for name, target in _TO_TARGET[taxonomy].items()},
+            "classes": {i: n for i, n in sorted(FOREIGN_CLASSES.items()) if n not in missing},
+            "map": {name: (target or "ignore") for name, target in _TO_TARGET[taxonomy].items() if name not in missing},
         }
         header = (
             f"# the synthetic segmenter's foreign taxonomy -> {taxonomy} (splits and merges as in OccLE's Table B.1)\n"
@@ -318,7 +377,7 @@ class SyntheticPseudoLabels:
         self._lut = torch.from_numpy(lut.astype(np.int64))
         aux = torch.full((256,), 255, dtype=torch.int64)
         targets = {n: i for i, n in enumerate(_TAXONOMIES[taxonomy])}
-        for name, target in _AUX_TO_TARGET[taxonomy].items():
+        for name, target in _auxiliary_targets(taxonomy, self.realism.lacked_ids()).items():
             aux[_AUX_ID[name]] = targets[target]
         self._aux_lut = aux
         g = _generator(self.realism.seed, "embeddings")
@@ -358,11 +417,17 @@ class SyntheticPseudoLabels:
         """``(H, W)`` int64 foreign class ids (or target ids without the foreign taxonomy)."""
         r = self.realism
         truth = frame.semantics_2d[cam].long()
+        extra = torch.tensor([OCC3D_CLASSES.index(n) for n in r.primary_lacks], dtype=torch.int64)
         if not r.foreign_taxonomy:
             out = truth.clone()
+            to_target = torch.arange(256)
             if self.taxonomy == "semantickitti":
-                out = torch.tensor(OCC3D_TO_SSC, dtype=torch.int64)[truth.clamp(0, 255)]
-            pool = torch.tensor(sorted(set(range(len(_TAXONOMIES[self.taxonomy]))) - {0}))
+                to_target = torch.tensor(OCC3D_TO_SSC, dtype=torch.int64)
+                out = to_target[truth.clamp(0, 255)]
+            out = torch.where(torch.isin(truth, extra), torch.full_like(out, 255), out)
+            lacked = set(extra.tolist())
+            missing = {int(t) for t in to_target[extra] if set(torch.where(to_target[:17] == t)[0].tolist()) <= lacked}
+            pool = torch.tensor(sorted(set(range(len(_TAXONOMIES[self.taxonomy]))) - {0} - missing))
         else:
             lut = torch.full((256,), _ID["unlabeled"], dtype=torch.int64)
             for occ, name in _OCC3D_TO_FOREIGN.items():
@@ -373,7 +438,9 @@ class SyntheticPseudoLabels:
                 for occ, low, high, height in _HEIGHT_SPLITS:
                     out = torch.where((truth == occ) & (z >= height), torch.full_like(out, _ID[high]), out)
                     out = torch.where((truth == occ) & (z < height), torch.full_like(out, _ID[low]), out)
-            pool = torch.tensor(sorted(i for i, n in FOREIGN_CLASSES.items() if n not in ("sky", "unlabeled")))
+            out = torch.where(torch.isin(truth, extra), torch.full_like(out, _ID["unlabeled"]), out)
+            missing = _foreign_lacked(r.lacked_ids()) | {"sky", "unlabeled"}
+            pool = torch.tensor(sorted(i for i, n in FOREIGN_CLASSES.items() if n not in missing))
         g = _generator(r.seed, frame.token, frame.camera_names[cam], "semantics")
         h, w = out.shape
         if r.boundary_error > 0:
