@@ -4,13 +4,14 @@ import numpy as np
 import pytest
 import torch
 
-from occplug.data import OCC3D_CLASSES
+from occplug.data import OCC3D_CLASSES, SEMANTIC_KITTI_CLASSES
 from occplug.data.formats import FormatError
 from occplug.data.pseudo_labels import PseudoLabelSource, load_mapping
 from occplug.data.synthetic import SyntheticDataModule, SyntheticDataset, default_cache_dir, preset
 from occplug.data.synthetic.pseudo import FOREIGN_CLASSES, SyntheticPseudoLabels, mapping_table, pseudo_realism
 
 TINY = preset("tiny")
+FOREIGN_CLASSES_ID = {name: i for i, name in FOREIGN_CLASSES.items()}
 
 
 @pytest.fixture(scope="module")
@@ -243,7 +244,7 @@ def test_two_semantic_sources_the_primary_lacks_cones_the_auxiliary_supplies_the
 
 def test_primary_lacks_a_class_the_auxiliary_supplies_it_and_the_written_tables_agree(tmp_path):
     frames = _train_frames()
-    veg, terrain = OCC3D_CLASSES.index("vegetation"), OCC3D_CLASSES.index("terrain")
+    veg = OCC3D_CLASSES.index("vegetation")
     lacks = {"primary_lacks": ["vegetation"]}
     aligned = SyntheticPseudoLabels(lacks)
     primary_only = SyntheticPseudoLabels({**lacks, "auxiliary": False})
@@ -280,8 +281,9 @@ def test_primary_lacks_a_class_the_auxiliary_supplies_it_and_the_written_tables_
     )
     assert aux[tree] == veg and aux[1] == OCC3D_CLASSES.index("traffic_cone") and (aux[[0, 2, 3, 5, 6]] == 255).all()
     primary_table = mapping_table("occ3d", primary_lacks=["vegetation"])
-    assert "vegetation" not in primary_table.split("map:")[0] and "terrain" in primary_table
-    assert load_mapping(_write_tmp(primary_table), OCC3D_CLASSES)[102] == terrain
+    assert "vegetation" not in primary_table.split("map:")[0]
+    assert load_mapping(_write_tmp(primary_table), OCC3D_CLASSES)[FOREIGN_CLASSES_ID["vegetation"]] == 255
+    assert load_mapping(_write_tmp(mapping_table("occ3d")), OCC3D_CLASSES)[FOREIGN_CLASSES_ID["vegetation"]] == veg
     # written and read back through those tables, the merged labels are what attach() makes
     f = next(f for f in frames if (f.semantics_2d == veg).any())
     aligned.write(f, tmp_path)
@@ -296,6 +298,42 @@ def test_primary_lacks_a_class_the_auxiliary_supplies_it_and_the_written_tables_
     assert SyntheticPseudoLabels(lacks).cache_key() != default.cache_key()
 
 
+def test_primary_lacks_drops_merged_and_split_foreign_classes_in_every_path():
+    frames = _train_frames()
+    occ = {n: OCC3D_CLASSES.index(n) for n in ("manmade", "truck", "construction_vehicle", "pedestrian", "vegetation")}
+    ids = FOREIGN_CLASSES_ID
+    # manmade splits into building and wall; truck takes the construction vehicles merged into it
+    noisy = SyntheticPseudoLabels({"preset": "noisy", "primary_lacks": ["truck", "manmade"]})
+    plain = SyntheticPseudoLabels("noisy")
+    seen_before = set()
+    for f in frames:
+        raw = noisy.maps(f)["semantics"]
+        assert not torch.isin(raw, torch.tensor([ids["building"], ids["wall"], ids["truck"]])).any()
+        assert (raw[f.semantics_2d == occ["construction_vehicle"]] == ids["unlabeled"]).all()
+        seen_before |= set(plain.maps(f)["semantics"].unique().tolist())
+    assert {ids["building"], ids["wall"], ids["truck"]} <= seen_before  # the frames do hold them without the knob
+    table = load_mapping(
+        _write_tmp(mapping_table("occ3d", source="auxiliary", primary_lacks=["manmade"])), OCC3D_CLASSES
+    )
+    assert table[5] == occ["manmade"]  # the "building" prompt
+    # SemanticKITTI: the auxiliary's "person" fills the person class the primary lacks
+    person = SEMANTIC_KITTI_CLASSES.index("person")
+    kitti = SyntheticPseudoLabels({"primary_lacks": ["pedestrian"]}, taxonomy="semantickitti")
+    kitti_alone = SyntheticPseudoLabels({"primary_lacks": ["pedestrian"], "auxiliary": False}, taxonomy="semantickitti")
+    filled = 0
+    for f in frames:
+        assert not (kitti_alone.attach(f).pseudo_semantics == person).any()
+        merged = kitti.attach(f).pseudo_semantics
+        filled += int((merged[f.semantics_2d == occ["pedestrian"]] == person).sum())
+    assert filled > 0
+    # without the foreign taxonomy (target ids, no auxiliary) the lacked class is unknown, noise included
+    identity = SyntheticPseudoLabels({"preset": "noisy", "foreign_taxonomy": False, "primary_lacks": ["vegetation"]})
+    for f in frames:
+        sem = identity.attach(f).pseudo_semantics
+        assert not (sem == occ["vegetation"]).any()
+        assert (sem[f.semantics_2d == occ["vegetation"]] == 255).float().mean() > 0.5  # boundary errors move some
+
+
 def test_primary_lacks_rejects_what_is_no_class_list():
     with pytest.raises(ValueError, match=r"primary_lacks: unknown class 'trees' \(valid: barrier, .*vegetation"):
         pseudo_realism({"primary_lacks": ["trees"]})
@@ -303,7 +341,12 @@ def test_primary_lacks_rejects_what_is_no_class_list():
         pseudo_realism({"primary_lacks": ["traffic_cone"]})  # lacked always; naming it is a mistake
     with pytest.raises(ValueError, match="primary_lacks must be a list of class names, got 'vegetation'"):
         pseudo_realism({"primary_lacks": "vegetation"})
-    assert pseudo_realism({"primary_lacks": ["manmade", "manmade"]}).primary_lacks == ("manmade",)
+    with pytest.raises(ValueError, match="primary_lacks must be a list of class names, got 'vegetation'"):
+        mapping_table("occ3d", source="auxiliary", primary_lacks="vegetation")
+    assert pseudo_realism({"primary_lacks": ["vegetation", "manmade", "manmade"]}).primary_lacks == (
+        "manmade",
+        "vegetation",
+    )
 
 
 def _write_tmp(text):

@@ -58,7 +58,7 @@ import torch.nn.functional as F
 import yaml
 from torch import Tensor
 
-from occplug.data.classes import OCC3D_CLASSES, SEMANTIC_KITTI_CLASSES
+from occplug.data.classes import OCC3D_CLASSES, OCC3D_FREE, SEMANTIC_KITTI_CLASSES
 from occplug.data.classes import OCC3D_TO_SEMANTIC_KITTI as OCC3D_TO_SSC
 from occplug.data.frame import Frame
 from occplug.geometry import camera_rays
@@ -66,6 +66,7 @@ from occplug.geometry import camera_rays
 __all__ = [
     "AUXILIARY_CLASSES",
     "FOREIGN_CLASSES",
+    "LACKABLE_CLASSES",
     "PSEUDO_PRESETS",
     "PseudoRealism",
     "SyntheticPseudoLabels",
@@ -173,9 +174,12 @@ class PseudoRealism:
         feature_class_weight: weight of the class embedding against the (unit) group embedding.
         feature_position_weight: weight of the position embedding.
         primary_lacks: Occ3D class names (:data:`LACKABLE_CLASSES`) the primary segmenter has no class
-            for, beyond the traffic cone it always lacks: their pixels are ``unlabeled`` in its maps and
-            its noise never draws them; the auxiliary fills those its prompts name. Makes worlds where
-            OccLE's label alignment (Tab. 3) has classes to supply.
+            for, beyond the traffic cone it always lacks: their pixels are ``unlabeled`` in its maps, and
+            so are the foreign classes mapping to them (``truck`` takes the construction vehicles with
+            it); its noise never draws them. The auxiliary fills those its prompts name (its over-reaching
+            masks spill onto sky, which has no voxel, as onto every pixel the primary leaves unknown).
+            Without the foreign taxonomy there is no auxiliary: the lacked pixels are only unknown (255).
+            Makes worlds where OccLE's label alignment (Tab. 3) has classes to supply.
         seed: seed of the noise and of the fixed embeddings.
     """
 
@@ -205,10 +209,12 @@ class PseudoRealism:
                 raise ValueError(
                     f"pseudo-label realism: primary_lacks: unknown class {name!r} (valid: {', '.join(LACKABLE_CLASSES)})"
                 )
-        object.__setattr__(self, "primary_lacks", tuple(dict.fromkeys(lacks)))
+        # one order (the taxonomy's), so equal sets give equal maps and cache keys
+        object.__setattr__(self, "primary_lacks", tuple(n for n in LACKABLE_CLASSES if n in lacks))
 
     def lacked_ids(self) -> tuple[int, ...]:
-        """The Occ3D ids the primary segmenter has no class for (the cone and ``primary_lacks``), sorted."""
+        """The Occ3D ids the primary segmenter has no class for in its foreign taxonomy: the cone and
+        ``primary_lacks``, sorted (without the foreign taxonomy the maps lack only ``primary_lacks``)."""
         return tuple(sorted({*_ALWAYS_LACKS, *(OCC3D_CLASSES.index(n) for n in self.primary_lacks)}))
 
 
@@ -257,15 +263,11 @@ def pseudo_realism(spec: str | dict[str, Any] | PseudoRealism | None) -> PseudoR
     return PseudoRealism(**{**asdict(base), **spec})
 
 
-def _foreign_lacked(lacked: tuple[int, ...]) -> set[str]:
-    """The foreign class names the primary segmenter lacks: those whose every Occ3D source is lacked."""
-    sources: dict[str, set[int]] = {}
-    for occ, name in _OCC3D_TO_FOREIGN.items():
-        sources.setdefault(name, set()).add(occ)
-    for occ, low, high, _ in _HEIGHT_SPLITS:
-        sources.setdefault(low, set()).add(occ)
-        sources.setdefault(high, set()).add(occ)
-    return {name for name, occs in sources.items() if occs <= set(lacked)}
+def _foreign_lacked(primary_lacks: Sequence[str]) -> set[str]:
+    """The foreign class names the primary segmenter lacks: those whose Occ3D class is lacked (so
+    lacking ``manmade`` drops ``building`` and ``wall``, lacking ``truck`` drops the ``truck`` that
+    construction vehicles merge into)."""
+    return {name for name, target in _TO_TARGET["occ3d"].items() if target in primary_lacks}
 
 
 def _auxiliary_targets(taxonomy: str, lacked: tuple[int, ...]) -> dict[str, str]:
@@ -273,13 +275,9 @@ def _auxiliary_targets(taxonomy: str, lacked: tuple[int, ...]) -> dict[str, str]
     the target taxonomy has: SemanticKITTI has no cone class)."""
     out = {}
     for prompt, occ in _AUX_NAMES_OCC3D.items():
-        if occ not in lacked:
-            continue
-        target = OCC3D_CLASSES[occ] if taxonomy == "occ3d" else OCC3D_TO_SSC[occ]
-        if taxonomy != "occ3d":
-            target = None if target == 255 else SEMANTIC_KITTI_CLASSES[target]
-        if target is not None:
-            out[prompt] = target
+        target = occ if taxonomy == "occ3d" else OCC3D_TO_SSC[occ]
+        if occ in lacked and target != 255:
+            out[prompt] = _TAXONOMIES[taxonomy][target]
     return out
 
 
@@ -295,7 +293,8 @@ def mapping_table(
         raise ValueError(f"unknown target taxonomy '{taxonomy}' (valid: {', '.join(_TAXONOMIES)})")
     if source not in ("primary", "auxiliary"):
         raise ValueError(f"unknown semantic source '{source}' (valid: primary, auxiliary)")
-    lacked = PseudoRealism(primary_lacks=tuple(primary_lacks)).lacked_ids()
+    lacks = PseudoRealism(primary_lacks=primary_lacks).primary_lacks  # validated
+    lacked = PseudoRealism(primary_lacks=lacks).lacked_ids()
     if source == "auxiliary":
         mapped = _auxiliary_targets(taxonomy, lacked)
         data = {
@@ -309,7 +308,7 @@ def mapping_table(
         data = {"classes": dict(enumerate(names)), "map": {n: n for n in names}}
         header = f"# identity table: the maps hold {taxonomy} class ids\n"
     else:
-        missing = _foreign_lacked(lacked) - {"unlabeled"}
+        missing = _foreign_lacked(lacks)
         data = {
             "classes": {i: n for i, n in sorted(FOREIGN_CLASSES.items()) if n not in missing},
             "map": {name: (target or "ignore") for name, target in _TO_TARGET[taxonomy].items() if name not in missing},
@@ -380,6 +379,24 @@ class SyntheticPseudoLabels:
         for name, target in _auxiliary_targets(taxonomy, self.realism.lacked_ids()).items():
             aux[_AUX_ID[name]] = targets[target]
         self._aux_lut = aux
+        self._lacked_truth = torch.tensor(
+            [OCC3D_CLASSES.index(n) for n in self.realism.primary_lacks], dtype=torch.int64
+        )
+        self._lacked_foreign = torch.tensor(
+            sorted(_ID[n] for n in _foreign_lacked(self.realism.primary_lacks)), dtype=torch.int64
+        )
+        if self.realism.foreign_taxonomy:
+            excluded = {_ID[n] for n in _foreign_lacked(self.realism.primary_lacks)} | {_ID["sky"], _ID["unlabeled"]}
+            self._noise_pool = torch.tensor(sorted(set(FOREIGN_CLASSES) - excluded))
+        else:
+            # target ids whose every world class is lacked (SemanticKITTI merges some: bus + trailer -> other-vehicle)
+            to_target = range(OCC3D_FREE) if taxonomy == "occ3d" else OCC3D_TO_SSC[:OCC3D_FREE]
+            sources: dict[int, set[int]] = {}
+            for occ, t in enumerate(to_target):
+                sources.setdefault(t, set()).add(occ)
+            lacked = set(self._lacked_truth.tolist())
+            missing = {t for t, occs in sources.items() if occs <= lacked}
+            self._noise_pool = torch.tensor(sorted(set(range(1, len(_TAXONOMIES[taxonomy]))) - missing))
         g = _generator(self.realism.seed, "embeddings")
         dim = self.realism.feature_dim
         self._class_embedding = torch.randn(257, dim, generator=g)
@@ -417,17 +434,11 @@ class SyntheticPseudoLabels:
         """``(H, W)`` int64 foreign class ids (or target ids without the foreign taxonomy)."""
         r = self.realism
         truth = frame.semantics_2d[cam].long()
-        extra = torch.tensor([OCC3D_CLASSES.index(n) for n in r.primary_lacks], dtype=torch.int64)
         if not r.foreign_taxonomy:
             out = truth.clone()
-            to_target = torch.arange(256)
             if self.taxonomy == "semantickitti":
-                to_target = torch.tensor(OCC3D_TO_SSC, dtype=torch.int64)
-                out = to_target[truth.clamp(0, 255)]
-            out = torch.where(torch.isin(truth, extra), torch.full_like(out, 255), out)
-            lacked = set(extra.tolist())
-            missing = {int(t) for t in to_target[extra] if set(torch.where(to_target[:17] == t)[0].tolist()) <= lacked}
-            pool = torch.tensor(sorted(set(range(len(_TAXONOMIES[self.taxonomy]))) - {0} - missing))
+                out = torch.tensor(OCC3D_TO_SSC, dtype=torch.int64)[truth.clamp(0, 255)]
+            out = torch.where(torch.isin(truth, self._lacked_truth), torch.full_like(out, 255), out)
         else:
             lut = torch.full((256,), _ID["unlabeled"], dtype=torch.int64)
             for occ, name in _OCC3D_TO_FOREIGN.items():
@@ -438,9 +449,9 @@ class SyntheticPseudoLabels:
                 for occ, low, high, height in _HEIGHT_SPLITS:
                     out = torch.where((truth == occ) & (z >= height), torch.full_like(out, _ID[high]), out)
                     out = torch.where((truth == occ) & (z < height), torch.full_like(out, _ID[low]), out)
-            out = torch.where(torch.isin(truth, extra), torch.full_like(out, _ID["unlabeled"]), out)
-            missing = _foreign_lacked(r.lacked_ids()) | {"sky", "unlabeled"}
-            pool = torch.tensor(sorted(i for i, n in FOREIGN_CLASSES.items() if n not in missing))
+            lacked = torch.isin(truth, self._lacked_truth) | torch.isin(out, self._lacked_foreign)
+            out = torch.where(lacked, torch.full_like(out, _ID["unlabeled"]), out)
+        pool = self._noise_pool
         g = _generator(r.seed, frame.token, frame.camera_names[cam], "semantics")
         h, w = out.shape
         if r.boundary_error > 0:
@@ -516,7 +527,10 @@ class SyntheticPseudoLabels:
 
     def cache_key(self) -> str:
         """A short hash of everything that changes the maps of a given frame: realism, kinds, taxonomy, code."""
-        text = repr((asdict(self.realism), self.kinds, self.taxonomy, PSEUDO_CODE_VERSION))
+        realism = asdict(self.realism)
+        if not realism["primary_lacks"]:  # the knob's default leaves the maps and so the caches made before it
+            del realism["primary_lacks"]
+        text = repr((realism, self.kinds, self.taxonomy, PSEUDO_CODE_VERSION))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def _cache_path(self, token: str) -> Path | None:
