@@ -11,6 +11,9 @@ Per frame, after StreamAgg has produced ``V_S.A`` ``(B, C, x, y, z)`` (coarse gr
    ground truth (prediction, evaluation without boxes, or ``select_with_gt: false``) by score only
    (``score_threshold``, 0.3); ``gt_boxes: true`` (Tab. 4 "D with GT boxes", an evaluation ablation) replaces
    the detections by the ground-truth boxes, each carried by the query Hungarian-matched to it;
+   ``gt_box_drop`` / ``gt_box_noise`` degrade that oracle (each box dropped with that probability; its
+   centre moved by Gaussian noise of that std in metres along x and y, drawn from torch's global generator),
+   to ask how good a detector DQA needs;
 3. **V2Q** (Eq. 6, :class:`~.detector.VoxelToQuery`): every query samples ``V_S.A`` inside its box;
 4. **DQA** (Eqs. 7-10, :class:`~.dqa.DynamicQueryAggregation`): the selected queries are written into the voxels
    their boxes cover (``V_DQA`` equals ``V_S.A`` bit for bit elsewhere), then :class:`~.dqa.VoxelFFN` gives
@@ -67,6 +70,8 @@ QUERY_AGG_KEYS: dict[str, Any] = {
     "v2q": True,
     "dqa": True,
     "gt_boxes": False,
+    "gt_box_drop": 0.0,
+    "gt_box_noise": 0.0,
     "select_with_gt": True,
     "selection": "paper",
     "small_classes": list(DEFAULT_SMALL_CLASSES),
@@ -181,6 +186,17 @@ class QueryAggregation(nn.Module):
                 "so without DQA nothing reads its output); the detector alone is v2q: false, dqa: false"
             )
         self.gt_boxes, self.select_with_gt = bool(cfg["gt_boxes"]), bool(cfg["select_with_gt"])
+        self.gt_box_drop, self.gt_box_noise = float(cfg["gt_box_drop"]), float(cfg["gt_box_noise"])
+        if not 0.0 <= self.gt_box_drop <= 1.0:
+            raise ValueError(
+                f"duocc_stream query_agg.gt_box_drop: expected a probability in [0, 1], got {self.gt_box_drop}"
+            )
+        if not self.gt_box_noise >= 0.0:
+            raise ValueError(f"duocc_stream query_agg.gt_box_noise: expected metres >= 0, got {self.gt_box_noise}")
+        if (self.gt_box_drop or self.gt_box_noise) and not self.gt_boxes:
+            raise ValueError(
+                "duocc_stream query_agg.gt_box_drop / gt_box_noise degrade the ground-truth boxes: they need gt_boxes: true"
+            )
         self.classes = tuple(int(c) for c in cfg["detection_classes"])
         small_ids = [self.classes.index(int(c)) for c in (cfg["small_classes"] or []) if int(c) in self.classes]
         self.rule = _selection_rule(cfg["selection"], small_ids)
@@ -238,8 +254,14 @@ class QueryAggregation(nn.Module):
             selected = torch.zeros_like(scores, dtype=torch.bool)
             boxes = boxes.detach().clone()
             for b, (qi, gi) in enumerate(matches):
+                box = gts[b][gi].to(boxes)
+                if self.gt_box_noise > 0:
+                    box[:, :2] = box[:, :2] + self.gt_box_noise * torch.randn(box.shape[0], 2).to(box)
+                if self.gt_box_drop > 0:
+                    keep = torch.rand(box.shape[0]) >= self.gt_box_drop
+                    qi, box = qi[keep.to(qi.device)], box[keep.to(box.device)]
                 selected[b, qi] = True
-                boxes[b, qi] = gts[b][gi].to(boxes)
+                boxes[b, qi] = box
             return selected, boxes
         if self.training and self.select_with_gt and has_gt:
             _, gts = detection_targets(batch, self.classes, "duocc_stream query_agg")

@@ -258,6 +258,40 @@ def test_training_selection_uses_the_ground_truth_and_gt_boxes_replaces_the_dete
         assert torch.equal(got[got[:, 0].argsort()], expected[expected[:, 0].argsort()].to(got))
 
 
+def test_the_ground_truth_box_oracle_degrades_by_drop_and_centre_noise():
+    batch = None
+    for overrides, check in (
+        (["model.scene.query_agg.gt_box_drop=1.0"], "none"),
+        (["model.scene.query_agg.gt_box_noise=2.0"], "moved"),
+    ):
+        torch.manual_seed(0)
+        model, dm = _model_and_dm("full_gt_boxes", *overrides)
+        batch = batch or _batch(dm, [0, 3])
+        dqa = _capture(model.scene.query_agg.dqa)
+        model.eval()
+        with torch.no_grad():
+            model(batch)
+        _, _, boxes, sel = dqa[-1][0]
+        for b in range(2):
+            expected = batch.boxes[b][torch.isin(batch.box_labels[b], torch.arange(1, 11))].to(boxes)
+            if check == "none":
+                assert not bool(sel[b].any())
+                continue
+            got = boxes[b, sel[b]]
+            assert got.shape == expected.shape and expected.shape[0] > 0
+            # every box keeps its size, height, yaw and velocity; only its centre moves, in x and y
+            order = lambda t: t[t[:, 3:].sum(-1).argsort()]  # noqa: E731
+            got, expected = order(got), order(expected)
+            assert torch.equal(got[:, 2:], expected[:, 2:])
+            assert bool((got[:, :2] - expected[:, :2]).abs().gt(0).all())
+    with pytest.raises(
+        runner.RunError, match="gt_box_drop / gt_box_noise degrade the ground-truth boxes: they need gt_boxes"
+    ):
+        _model_and_dm("full", "model.scene.query_agg.gt_box_noise=1.0")
+    with pytest.raises(runner.RunError, match=r"gt_box_drop: expected a probability in \[0, 1\], got 1.5"):
+        _model_and_dm("full_gt_boxes", "model.scene.query_agg.gt_box_drop=1.5")
+
+
 def test_prediction_runs_without_boxes_and_matches_prediction_with_them():
     torch.manual_seed(0)
     model, dm = _model_and_dm("full")
