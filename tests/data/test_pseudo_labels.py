@@ -334,6 +334,32 @@ def test_primary_lacks_drops_merged_and_split_foreign_classes_in_every_path():
         assert (sem[f.semantics_2d == occ["vegetation"]] == 255).float().mean() > 0.5  # boundary errors move some
 
 
+def test_label_alignment_reproduces_a_hand_written_example_through_the_shipped_tables():
+    from occplug.data.pseudo_labels import merge_semantics
+
+    def align(primary, aux, lacks=()):
+        lut = load_mapping(_write_tmp(mapping_table("occ3d", primary_lacks=lacks)), OCC3D_CLASSES)
+        aux_lut = load_mapping(
+            _write_tmp(mapping_table("occ3d", source="auxiliary", primary_lacks=lacks)), OCC3D_CLASSES
+        )
+        return merge_semantics([torch.as_tensor(lut)[primary].long(), torch.as_tensor(aux_lut)[aux].long()])
+
+    # the primary's foreign ids (Table B.1's style): car, building, wall, unlabeled / road, sky, vegetation, bicyclist
+    primary = torch.tensor([[176, 35, 191, 194], [98, 142, 174, 127]])
+    # the auxiliary's prompts: background x 2, vehicle, traffic cone / person, tree, background x 2
+    aux = torch.tensor([[0, 0, 2, 1], [3, 4, 0, 0]])
+    car, manmade, cone, road, veg, bicycle = 4, 15, 8, 11, 16, 2
+    # by hand: building and wall merge into manmade, the bicyclist is a bicycle, sky has no class; the auxiliary
+    # fills only the cone (its only mapped prompt) where the primary is unknown; the primary wins where it speaks
+    assert align(primary, aux).tolist() == [[car, manmade, manmade, cone], [road, 255, veg, bicycle]]
+    # the primary lacks man-made structure and vegetation: its tables drop them, the auxiliary's building and tree
+    # prompts fill them, and the tree mask spilling onto the sky labels it vegetation
+    aux = torch.tensor([[0, 5, 5, 1], [3, 4, 4, 0]])
+    lacks = ["manmade", "vegetation"]
+    assert align(primary, aux, lacks).tolist() == [[car, manmade, manmade, cone], [road, veg, veg, bicycle]]
+    assert align(primary, torch.zeros_like(aux), lacks).tolist() == [[car, 255, 255, 255], [road, 255, 255, bicycle]]
+
+
 def test_primary_lacks_rejects_what_is_no_class_list():
     with pytest.raises(ValueError, match=r"primary_lacks: unknown class 'trees' \(valid: barrier, .*vegetation"):
         pseudo_realism({"primary_lacks": ["trees"]})

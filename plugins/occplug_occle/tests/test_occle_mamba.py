@@ -21,9 +21,12 @@ from occplug_occle.selective_scan import (
 )
 from occplug_occle.serialization import deserialize, hilbert_curve, hilbert_permutation, serialize
 
+#: the Dual Mamba stage grids the shipped recipes build (synthetic 32 x 32 x 8 and occle/semantickitti's
+#: 256 x 256 x 32, anisotropic where z is short); the 2.1 M-voxel 256 x 256 x 32 itself takes ~8 s: left out
+RECIPE_SHAPES = [(32, 32, 8), (16, 16, 8), (16, 16, 4), (8, 8, 4), (128, 128, 16), (64, 64, 8), (32, 32, 4)]
 #: grids a 4-stage U-Net meets (Occ3D-like and SemanticKITTI-like sizes, their stages, odd and flat ones)
-STAGE_SHAPES = [(32, 32, 4), (16, 16, 2), (8, 8, 1), (64, 64, 8), (24, 40, 6), (25, 25, 5), (7, 9, 3), (5, 1, 3)]
-EVEN_SHAPES = [(32, 32, 4), (16, 16, 2), (8, 8, 1), (64, 64, 8), (24, 40, 6), (2, 2, 2), (12, 2, 8)]
+STAGE_SHAPES = [*RECIPE_SHAPES, (16, 16, 2), (8, 8, 1), (24, 40, 6), (25, 25, 5), (7, 9, 3), (5, 1, 3)]
+EVEN_SHAPES = [*RECIPE_SHAPES, (16, 16, 2), (8, 8, 1), (24, 40, 6), (2, 2, 2), (12, 2, 8)]
 
 
 def _steps(shape):
