@@ -232,6 +232,21 @@ def test_dqa_leaves_every_voxel_outside_the_selected_boxes_unchanged_in_the_scen
     assert not torch.equal(after[:, covered], before[:, covered])
 
 
+def _dqa_boxes(model, batch):
+    """``(boxes (B, Q, 9), selected (B, Q))`` that DQA received in an evaluation forward of ``model``."""
+    dqa = _capture(model.scene.query_agg.dqa)
+    model.eval()
+    with torch.no_grad():
+        model(batch)
+    _, _, boxes, sel = dqa[-1][0]
+    return boxes, sel
+
+
+def _detection_class_boxes(batch, b):
+    """The ground-truth boxes of sample ``b`` whose label is a detection class (Occ3D ids 1..10)."""
+    return batch.boxes[b][torch.isin(batch.box_labels[b], torch.arange(1, 11))]
+
+
 def test_training_selection_uses_the_ground_truth_and_gt_boxes_replaces_the_detections():
     torch.manual_seed(0)
     # the uniform anchors and size this test was written for (duocc/full's k-means ones are the default world's)
@@ -245,14 +260,9 @@ def test_training_selection_uses_the_ground_truth_and_gt_boxes_replaces_the_dete
     out = model(batch)
     selected = out.extras["duocc_stream/dqa_selected"]
     assert bool(selected.any()) and not bool(selected.all())  # IoU > 0 with a ground truth box: near queries only
-    gt, _ = _model_and_dm("full_gt_boxes")
-    dqa = _capture(gt.scene.query_agg.dqa)
-    gt.eval()
-    with torch.no_grad():
-        gt(batch)
-    _, _, boxes, sel = dqa[-1][0]
+    boxes, sel = _dqa_boxes(_model_and_dm("full_gt_boxes")[0], batch)
     for b in range(2):
-        expected = batch.boxes[b][torch.isin(batch.box_labels[b], torch.arange(1, 11))]
+        expected = _detection_class_boxes(batch, b)
         assert int(sel[b].sum()) == expected.shape[0]
         got = boxes[b, sel[b]]
         assert torch.equal(got[got[:, 0].argsort()], expected[expected[:, 0].argsort()].to(got))
@@ -267,13 +277,9 @@ def test_the_ground_truth_box_oracle_degrades_by_drop_and_centre_noise():
         torch.manual_seed(0)
         model, dm = _model_and_dm("full_gt_boxes", *overrides)
         batch = batch or _batch(dm, [0, 3])
-        dqa = _capture(model.scene.query_agg.dqa)
-        model.eval()
-        with torch.no_grad():
-            model(batch)
-        _, _, boxes, sel = dqa[-1][0]
+        boxes, sel = _dqa_boxes(model, batch)
         for b in range(2):
-            expected = batch.boxes[b][torch.isin(batch.box_labels[b], torch.arange(1, 11))].to(boxes)
+            expected = _detection_class_boxes(batch, b).to(boxes)
             if check == "none":
                 assert not bool(sel[b].any())
                 continue
