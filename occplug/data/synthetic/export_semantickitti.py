@@ -160,14 +160,13 @@ def write_semantickitti(
     (out / "splits.json").write_text(json.dumps(names, indent=2))
     write_grid_record(out, grid.shape, grid.range, grid.voxel_size)
     if labeler is not None:
+        lacks = labeler.realism.primary_lacks
         (out / "pseudo" / "semantics_mapping.yaml").write_text(
-            mapping_table(
-                "semantickitti", labeler.realism.foreign_taxonomy, primary_lacks=labeler.realism.primary_lacks
-            )
+            mapping_table("semantickitti", labeler.realism.foreign_taxonomy, primary_lacks=lacks)
         )
         if labeler.has_auxiliary:
             (out / "pseudo" / "semantics_aux_mapping.yaml").write_text(
-                mapping_table("semantickitti", source="auxiliary", primary_lacks=labeler.realism.primary_lacks)
+                mapping_table("semantickitti", source="auxiliary", primary_lacks=lacks)
             )
     return names
 

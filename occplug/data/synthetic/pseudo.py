@@ -293,8 +293,8 @@ def mapping_table(
         raise ValueError(f"unknown target taxonomy '{taxonomy}' (valid: {', '.join(_TAXONOMIES)})")
     if source not in ("primary", "auxiliary"):
         raise ValueError(f"unknown semantic source '{source}' (valid: primary, auxiliary)")
-    lacks = PseudoRealism(primary_lacks=primary_lacks).primary_lacks  # validated
-    lacked = PseudoRealism(primary_lacks=lacks).lacked_ids()
+    checked = PseudoRealism(primary_lacks=primary_lacks)  # validates and orders the names
+    lacks, lacked = checked.primary_lacks, checked.lacked_ids()
     if source == "auxiliary":
         mapped = _auxiliary_targets(taxonomy, lacked)
         data = {
@@ -386,7 +386,7 @@ class SyntheticPseudoLabels:
             sorted(_ID[n] for n in _foreign_lacked(self.realism.primary_lacks)), dtype=torch.int64
         )
         if self.realism.foreign_taxonomy:
-            excluded = {_ID[n] for n in _foreign_lacked(self.realism.primary_lacks)} | {_ID["sky"], _ID["unlabeled"]}
+            excluded = set(self._lacked_foreign.tolist()) | {_ID["sky"], _ID["unlabeled"]}
             self._noise_pool = torch.tensor(sorted(set(FOREIGN_CLASSES) - excluded))
         else:
             # target ids whose every world class is lacked (SemanticKITTI merges some: bus + trailer -> other-vehicle)
