@@ -1,7 +1,7 @@
 """DuOcc's component ablation (paper Tab. 4) on the synthetic world: A, B, C, D and D evaluated with GT boxes.
 
 Also B with the public code's concat fusion (``duocc/stream_agg_concat``) and, by ``--rows``, Tab. 5's StreamAgg
-component rows.
+component rows and D with the auxiliary mask decoder (``full_mask``, which predicts as D does).
 
 Each row is one shipped config (``duocc/<name>``) trained per seed in its own ``occplug fit`` process on the same
 budget and evaluated on the validation split (camera mask), printed as mean ± std over the seeds:
@@ -48,6 +48,7 @@ ROWS = {
     "det_only": ("det_only", "C. B + detection head"),
     "full": ("full", "D. B + QueryAgg"),
     "full_gt_boxes": ("full", "D with GT boxes (eval only)"),
+    "full_mask": ("full_mask", "D + mask decoder (training only)"),
     # Tab. 5: StreamAgg's components, one at a time (the last row, + occupied mask, is B)
     "stream_warp_only": ("stream_warp_only", "Tab. 5: warping only"),
     "stream_refine": ("stream_refine", "Tab. 5: + RefineNet"),
@@ -63,7 +64,7 @@ COLUMNS = {
     "car": "IoU_car",  # the most frequent dynamic class
     "ped.": "IoU_pedestrian",
 }
-DETECTOR_ROWS = ("det_only", "full", "full_gt_boxes")
+DETECTOR_ROWS = ("det_only", "full", "full_gt_boxes", "full_mask")
 GT_OVERRIDE = "model.scene.query_agg.gt_boxes=true"
 
 

@@ -1,6 +1,8 @@
 """DuOcc's streaming against dense multi-frame stacking: per-frame time, memory and accuracy (paper Fig. 1, Tab. 1).
 
-Rows: ``duocc/stream_agg`` (StreamAgg: one warped history, whatever the horizon) and ``duocc/stacking`` with
+Rows: ``duocc/stream_agg`` (StreamAgg: one warped history, whatever the horizon; Eq. 5's sum), ``duocc/stream_agg_concat``
+(the same with the public code's bounded concat fusion: on the synthetic world the sum's history grows along the
+stream, see the README) and ``duocc/stacking`` with
 ``num_history = K`` past frames (``K = 1, 2, 4, 8``: K warped ``V_curr`` concatenated with the current one, the
 dense multi-frame fusion of Fig. 1 a). Same view transform, 3D-FPN, decoder and losses otherwise.
 
@@ -9,11 +11,14 @@ interleaved round by round, so the rows are measured side by side. Per-frame lat
 (median; the stacking rows fuse K + 1 volumes per frame, the stream one history); memory is the inference peak
 (CUDA's peak allocation on a GPU, else the process's peak RSS on CPU, which includes the data and the
 interpreter: compare rows, not absolute values); the training step (batch 1, data loading excluded) is reported
-too. Accuracy: with ``--epochs N`` each row is trained first (``occplug fit``, seed ``--seed``, in its own process)
-and the benchmark measures the run directories, reading their ``metrics.json`` (mIoU, camera mask); with
-``--epochs 0`` the configs are measured untrained (no accuracy). A finished run directory is reused::
+too. Accuracy: with ``--epochs N`` each row is trained first (``occplug fit``, once per seed of ``--seeds``, each
+in its own process) and the mIoU column is the mean ± std of the runs' ``metrics.json`` (camera mask); time and memory
+are measured on the first seed's run directories. With ``--epochs 0`` the configs are measured untrained (no
+accuracy). A finished run directory is reused, so seeds can be trained by separate invocations side by side and
+tabled by a last one over all of them::
 
-    python scripts/bench_duocc.py                                       # K = 1 2 4 8, default world, 4 epochs
+    python scripts/bench_duocc.py                                       # K = 1 2 4 8, default world, 4 epochs, seed 0
+    python scripts/bench_duocc.py --seeds 0 1 2                         # accuracy as mean ± std over 3 seeds
     python scripts/bench_duocc.py --preset tiny --epochs 1 --set trainer.max_steps=4 --repeats 2 --train-repeats 2
     python scripts/bench_duocc.py --device cuda --preset occ3d --epochs 0 --full --repeats 10 --train-repeats 0 \\
         --set "grid={range: [-40.0, -40.0, -1.0, 40.0, 40.0, 5.4], voxel_size: 0.4}"
@@ -32,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import subprocess
 import sys
 import time
@@ -40,9 +46,18 @@ from pathlib import Path
 
 def rows(ks: list[int], full: bool = False) -> list[tuple[str, str, list[str]]]:
     """``(name, config, overrides)`` of every row (``full``: the whole DuOcc, D, last)."""
-    out = [("stream_agg", "duocc/stream_agg", [])]
+    out = [("stream_agg", "duocc/stream_agg", []), ("stream_agg_concat", "duocc/stream_agg_concat", [])]
     out += [(f"stacking_K{k}", "duocc/stacking", [f"model.scene.num_history={k}"]) for k in ks]
     return out + ([("full", "duocc/full", [])] if full else [])
+
+
+def mean_std(values: list[float]) -> str:
+    """``mean ± std`` (sample std) of the seeds' values; one value alone; ``—`` for none."""
+    if not values:
+        return "—"
+    if len(values) == 1:
+        return f"{values[0]:.2f}"
+    return f"{statistics.mean(values):.2f} ± {statistics.stdev(values):.2f}"
 
 
 def _num(value: float | None) -> str:
@@ -53,9 +68,9 @@ def common(args: argparse.Namespace) -> list[str]:
     return [f"data.preset={args.preset}", *args.set]
 
 
-def train(name: str, config: str, overrides: list[str], args: argparse.Namespace) -> Path:
-    """The run directory of a row (trained first unless a finished one is there)."""
-    out = Path(args.out) / f"{name}-seed{args.seed}"
+def train(name: str, config: str, overrides: list[str], seed: int, args: argparse.Namespace) -> Path:
+    """The run directory of a row at ``seed`` (trained first unless a finished one is there)."""
+    out = Path(args.out) / f"{name}-seed{seed}"
     if (out / "metrics.json").is_file():
         return out
     command = [
@@ -65,7 +80,7 @@ def train(name: str, config: str, overrides: list[str], args: argparse.Namespace
         "fit",
         "-c",
         config,
-        f"seed={args.seed}",
+        f"seed={seed}",
         "trainer.enable_progress_bar=false",
         f"trainer.max_epochs={args.epochs}",
         *common(args),
@@ -74,7 +89,7 @@ def train(name: str, config: str, overrides: list[str], args: argparse.Namespace
     command += ["--resume", str(out)] if (out / "config.yaml").is_file() else ["--run-dir", str(out)]
     start = time.monotonic()
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
-    print(f"{name}: trained in {time.monotonic() - start:.0f} s", file=sys.stderr)
+    print(f"{name}, seed {seed}: trained in {time.monotonic() - start:.0f} s", file=sys.stderr)
     return out
 
 
@@ -82,7 +97,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ks", type=int, nargs="+", default=[1, 2, 4, 8], help="past frames K of the stacking rows")
     parser.add_argument("--epochs", type=int, default=4, help="training epochs per row (0: measure untrained)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--seeds", type=int, nargs="+", default=[0], help="training seeds (accuracy: mean ± std; timing: the first)"
+    )
     parser.add_argument("--preset", default="default", help="synthetic world preset (default: default)")
     parser.add_argument("--set", nargs="*", default=[], help="extra key=value overrides for every row")
     parser.add_argument("--repeats", type=int, default=5, help="latency rounds per model")
@@ -96,26 +113,29 @@ def main() -> None:
     if args.train_repeats < 0:
         parser.error(f"--train-repeats: expected an int >= 0 (0: inference only), got {args.train_repeats}")
 
-    from occplug.bench import BenchSettings, resolve_target, run_bench
+    from occplug.bench import BenchSettings, read_accuracy, resolve_target, run_bench
 
     settings = BenchSettings(
         repeats=args.repeats, warmup=1, train_repeats=args.train_repeats, batch_size=1, device=args.device
     )
     start = time.monotonic()
-    targets = []
+    targets, mious = [], []
     for name, config, overrides in rows(args.ks, args.full):
         if args.epochs > 0:
-            targets.append(resolve_target(str(train(name, config, overrides, args)), settings))
+            runs = [train(name, config, overrides, seed, args) for seed in args.seeds]
+            mious.append([read_accuracy(json.loads((run / "metrics.json").read_text()))["mIoU"] for run in runs])
+            targets.append(resolve_target(str(runs[0]), settings))
         else:
             target = resolve_target(config, settings, [*common(args), *overrides])
             target.name = name
             targets.append(target)
+            mious.append([])
     report = run_bench(targets, settings, progress=lambda line: print(line, file=sys.stderr))
     names = [name for name, _, _ in rows(args.ks, args.full)]
     base = report.rows[0]
     lines = [
         f"{report.machine}; {report.device}; torch {report.versions.get('torch', '?')}; world '{args.preset}'; "
-        f"{'untrained' if args.epochs == 0 else f'{args.epochs} epochs, seed {args.seed}'}; "
+        f"{'untrained' if args.epochs == 0 else f'{args.epochs} epochs, seeds {args.seeds} (timed: the first)'}; "
         f"{time.monotonic() - start:.0f} s",
         "",
         "| model | frames fused | params | latency / frame (ms) | inference peak (MiB) | train step (ms) | "
@@ -123,9 +143,9 @@ def main() -> None:
         "|---|--:|--:|--:|--:|--:|--:|--:|",
     ]
     table = []
-    for name, row in zip(names, report.rows, strict=True):
+    for name, row, values in zip(names, report.rows, mious, strict=True):
         frames = str(int(name.split("K")[1]) + 1) if name.startswith("stacking") else "stream"
-        miou = "—" if row.mIoU is None else f"{row.mIoU:.2f}"
+        miou = mean_std(values)
         lines.append(
             f"| {name} | {frames} | {row.params} | {row.latency_ms:.1f} ({row.latency_ms / base.latency_ms:.2f}x) | "
             f"{row.memory_mib:.0f} | {_num(row.train_step_ms)} | {_num(row.train_memory_mib)} | {miou} |"
@@ -135,8 +155,9 @@ def main() -> None:
                 "model": name,
                 **{
                     k: getattr(row, k)
-                    for k in ("params", "latency_ms", "memory_mib", "train_step_ms", "train_memory_mib", "mIoU")
+                    for k in ("params", "latency_ms", "memory_mib", "train_step_ms", "train_memory_mib")
                 },
+                "mIoU": values,
             }
         )
     lines += [
