@@ -434,6 +434,19 @@ def test_datamodule_resolves_knobs_and_serves_batches(tmp_path, monkeypatch):
     assert len(list((root / "test").glob("*.pt"))) == 1 * 2
 
 
+def test_image_noise_knob_reaches_the_world_and_changes_only_the_images(tmp_path):
+    clean = SyntheticDataModule(preset="tiny", cache_dir=str(tmp_path), image_noise=0.0)
+    noisy = SyntheticDataModule(preset="tiny", cache_dir=str(tmp_path), image_noise=0.2)
+    assert clean.world_config.image_noise == 0.0 and noisy.world_config.image_noise == 0.2
+    assert SyntheticDataModule(preset="tiny", cache_dir=str(tmp_path)).world_config.image_noise == TINY.image_noise
+    assert clean.world_config.cache_key() != noisy.world_config.cache_key()
+    a, b = clean.dataset("val")[0], noisy.dataset("val")[0]
+    assert torch.equal(a.voxel_labels, b.voxel_labels) and torch.equal(a.points, b.points)
+    # 8-bit quantised noise of std 0.2, clamped to [0, 1]: the residual's std is well above 0.1, its mean near 0
+    residual = b.images - a.images
+    assert 0.1 < residual.std().item() < 0.2 and abs(residual.mean().item()) < 0.05
+
+
 def test_unknown_preset_names_the_valid_ones():
     with pytest.raises(ValueError, match="unknown synthetic world preset 'huge'.*tiny, default, occ3d"):
         SyntheticDataModule(preset="huge")

@@ -39,6 +39,8 @@ class SyntheticDataModule(ReaderDataModule):
         num_cameras: 1..6 (front, front-right, front-left, back, back-left, back-right).
         lidar_beams: LiDAR rings.
         fps: frame rate, Hz.
+        image_noise: standard deviation of the cameras' per-pixel sensor noise (images in [0, 1]; default
+            world 0.01): a harder world, where one frame's images say less.
         adjacent_offsets: frame offsets to load as ``Frame.adjacent`` (e.g. ``[-1, 1]``).
         cache: store generated frames on disk.
         cache_dir: cache root; default ``$OCCPLUG_CACHE/synthetic`` or ``~/.cache/occplug/synthetic``.
@@ -75,6 +77,7 @@ class SyntheticDataModule(ReaderDataModule):
         num_cameras: Annotated[int | None, Range(low=1, high=6)] = None,
         lidar_beams: Annotated[int | None, Positive] = None,
         fps: Annotated[float | None, Positive] = None,
+        image_noise: Annotated[float | None, NonNegative] = None,
         adjacent_offsets: list[int] | None = None,
         cache: bool = True,
         cache_dir: str | None = None,
@@ -102,6 +105,7 @@ class SyntheticDataModule(ReaderDataModule):
             "num_cameras": num_cameras,
             "lidar_beams": lidar_beams,
             "fps": fps,
+            "image_noise": image_noise,
             "adjacent_offsets": adjacent_offsets,
         }
         config = get_preset(preset).replace(**{k: v for k, v in knobs.items() if v is not None})
