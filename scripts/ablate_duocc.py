@@ -9,9 +9,9 @@ budget and evaluated on the validation split (camera mask), printed as mean ± s
 * mIoU, static mIoU and dynamic mIoU: ``occ3d_miou``'s ``mIoU`` / ``mIoU_static`` / ``mIoU_dynamic`` over the core's
   class groups (``occplug.data.classes.OCC3D_STATIC`` / ``OCC3D_DYNAMIC``), the geometric IoU, and the IoU of car
   and pedestrian (car: the dynamic class with the most voxels);
-* the detector's mAP (C, D, D with GT boxes): :func:`occplug_duocc.detector.detection_map` (nuScenes-style, BEV
-  centre distance 0.5 / 1 / 2 / 4 m) over the validation split read in order, the stream state carried as in
-  evaluation, top 100 (query, class) pairs per frame;
+* the detector's mAP (C, D, D with GT boxes, D with the mask decoder):
+  :func:`occplug_duocc.detector.detection_map` (nuScenes-style, BEV centre distance 0.5 / 1 / 2 / 4 m) over the
+  validation split read in order, the stream state carried as in evaluation, top 100 (query, class) pairs per frame;
 * latency (ms per frame) and peak memory (MiB) of inference: the seed-0 run directories measured side by side by
   :func:`occplug.bench.run_bench` (each in its own process, interleaved; on CPU the memory is the process's peak
   RSS, so compare rows, not absolute values).

@@ -112,6 +112,10 @@ def main() -> None:
     args = parser.parse_args()
     if args.train_repeats < 0:
         parser.error(f"--train-repeats: expected an int >= 0 (0: inference only), got {args.train_repeats}")
+    if args.epochs == 0 and args.seeds != [0]:
+        parser.error("--seeds: untrained rows (--epochs 0) have no seeds to average; leave --seeds out")
+    if len(set(args.seeds)) != len(args.seeds):
+        parser.error(f"--seeds: each seed once, got {args.seeds}")
 
     from occplug.bench import BenchSettings, read_accuracy, resolve_target, run_bench
 
@@ -123,7 +127,8 @@ def main() -> None:
     for name, config, overrides in rows(args.ks, args.full):
         if args.epochs > 0:
             runs = [train(name, config, overrides, seed, args) for seed in args.seeds]
-            mious.append([read_accuracy(json.loads((run / "metrics.json").read_text()))["mIoU"] for run in runs])
+            values = [read_accuracy(json.loads((run / "metrics.json").read_text()))["mIoU"] for run in runs]
+            mious.append([v for v in values if v is not None])
             targets.append(resolve_target(str(runs[0]), settings))
         else:
             target = resolve_target(config, settings, [*common(args), *overrides])

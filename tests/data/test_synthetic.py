@@ -440,6 +440,8 @@ def test_image_noise_knob_reaches_the_world_and_changes_only_the_images(tmp_path
     assert clean.world_config.image_noise == 0.0 and noisy.world_config.image_noise == 0.2
     assert SyntheticDataModule(preset="tiny", cache_dir=str(tmp_path)).world_config.image_noise == TINY.image_noise
     assert clean.world_config.cache_key() != noisy.world_config.cache_key()
+    with pytest.raises(ValueError, match="image_noise must be >= 0, got -0.1"):
+        TINY.replace(image_noise=-0.1)
     a, b = clean.dataset("val")[0], noisy.dataset("val")[0]
     assert torch.equal(a.voxel_labels, b.voxel_labels) and torch.equal(a.points, b.points)
     # 8-bit quantised noise of std 0.2, clamped to [0, 1]: the residual's std is well above 0.1, its mean near 0

@@ -97,6 +97,8 @@ class SyntheticWorldConfig:
                      "label_subsamples"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.image_noise < 0:
+            raise ValueError(f"image_noise must be >= 0, got {self.image_noise}")
         if self.camera_mask_scale <= 0:
             raise ValueError(f"camera_mask_scale must be positive, got {self.camera_mask_scale}")
 
