@@ -1,0 +1,106 @@
+"""Accuracy by position in the scene: how much a streamed model's history is worth as the stream grows.
+
+For each run directory, the validation split is read in order (the stream state carried as in evaluation, reset at
+each scene start) and the script keeps one confusion matrix per position in the scene (frame 0 = the reset frame,
+where a streamed model has no history). It prints the run's own metric (the first of ``metrics``, with its evaluation
+mask) per position bucket, so a single-frame run and a streamed run can be compared where the stream is short and
+where it is long. ``--set`` overrides apply to every run, e.g. longer or more validation scenes, or the stream cut
+at every frame (``model.scene.max_gap_s=0.01``)::
+
+    python scripts/stream_gain_by_frame.py runs/a-seed0 runs/b-seed0 --set data.frames_per_scene=12 data.val_scenes=8
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import warnings
+from pathlib import Path
+
+import torch
+
+from occplug import runner
+from occplug.metrics.base import evaluation_mask
+from occplug.metrics.miou import confusion_matrix
+from occplug.streams import find_streams, set_stream_stage
+
+KEYS = ("mIoU", "mIoU_dynamic", "mIoU_static", "IoU")
+
+
+def parse_buckets(text: str) -> list[tuple[int, int]]:
+    """``"0,1,2-3,4-"`` -> ``[(0, 0), (1, 1), (2, 3), (4, huge)]`` (inclusive position ranges)."""
+    out = []
+    for part in text.split(","):
+        low, _, high = part.partition("-")
+        lo = int(low)
+        hi = lo if not _ else (int(high) if high else 10**9)
+        if hi < lo:
+            raise SystemExit(f"--buckets: '{part}' has its end before its start")
+        out.append((lo, hi))
+    return out
+
+
+def results_by_position(run: Path, overrides: list[str], buckets: list[tuple[int, int]]) -> list[dict[str, float]]:
+    """The run's first metric over the validation frames of each position bucket (the run's evaluation mask)."""
+    ckpt = run / "checkpoints" / "last.ckpt"
+    dm, model = runner.build_run(runner.resolve_run_config([], overrides, ckpt))
+    model.load_state_dict(runner.load_checkpoint(ckpt)["state_dict"])
+    model.eval()
+    set_stream_stage(model, "val")
+    for _, state in find_streams(model):
+        state.clear("val")
+    template = next(iter(model.val_metrics.values()))
+    metrics = [copy.deepcopy(template) for _ in buckets]
+    for m in metrics:
+        m.reset()
+    dm.prepare_data()
+    dm.setup("validate")
+    frames = [0] * len(buckets)
+    with torch.no_grad():
+        for batch in dm.val_dataloader():
+            pred = model.predict_occupancy(batch)
+            valid = evaluation_mask(batch, template.mask)
+            for b, position in enumerate(batch.frame_index.tolist()):
+                for i, (lo, hi) in enumerate(buckets):
+                    if lo <= position <= hi:
+                        keep = None if valid is None else valid[b]
+                        metrics[i].confmat += confusion_matrix(
+                            pred[b], batch.voxel_labels[b], template.num_classes, keep
+                        )
+                        frames[i] += 1
+    out = []
+    for m, n in zip(metrics, frames, strict=True):
+        with warnings.catch_warnings():  # the confusion matrices were filled directly, not through update()
+            warnings.filterwarnings("ignore", message=".*compute.*called before.*update.*")
+            res = {k: float(v) for k, v in m.compute().items() if k in KEYS} if n else {}
+        out.append({**res, "frames": n})
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", nargs="+", type=Path, help="run directories (each with checkpoints/last.ckpt)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="overrides for every run")
+    parser.add_argument(
+        "--buckets", default="0,1,2,3,4,5-", help="position ranges, e.g. '0,1-2,3-' (default: %(default)s)"
+    )
+    parser.add_argument("--json", type=Path, help="also write {run: [bucket results]} here")
+    args = parser.parse_args()
+    buckets = parse_buckets(args.buckets)
+    names = [f"{lo}" if lo == hi else (f"{lo}+" if hi >= 10**9 else f"{lo}-{hi}") for lo, hi in buckets]
+    payload = {}
+    for run in args.runs:
+        rows = results_by_position(run, args.set, buckets)
+        payload[str(run)] = [{"positions": n, **r} for n, r in zip(names, rows, strict=True)]
+        print(f"{run}:")
+        print("| frame in scene | frames | " + " | ".join(KEYS) + " |")
+        print("|--:|--:|" + "--:|" * len(KEYS))
+        for name, r in zip(names, rows, strict=True):
+            print(f"| {name} | {r['frames']} | " + " | ".join(f"{r.get(k, float('nan')):.2f}" for k in KEYS) + " |")
+    if args.json:
+        args.json.write_text(json.dumps({"overrides": args.set, "runs": payload}, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
