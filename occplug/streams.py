@@ -10,6 +10,9 @@ computed for the previous frame of that slot and reads it back at the next frame
   another scene, a frame-index step other than ``1..max_frame_step``, or a time step outside
   ``(0, max_gap_s]``; a reset puts in ``on_reset(current)`` (zeros by default; DuOcc puts in the
   current frame's features);
+* **random cuts in training** (``train_cut_prob``, off by default): a continuing slot of the ``train``
+  store is reset with that probability, so a model that leans on its history also learns to predict
+  from the current frame alone (evaluation never cuts);
 * **any nested structure** of tensors (dicts, lists, tuples) with the batch on dim 0;
 * **detached** when stored, so no gradient flows across frames;
 * **one store per stage** (``train``, ``val``, ``test``, ``predict``): the sanity check and a
@@ -113,21 +116,26 @@ class StreamState:
         max_frame_step: reset when ``frame_index`` does not advance by ``1..max_frame_step``; None
             skips the check.
         persistent: store the state in checkpoints (:class:`StreamStages`); default off.
+        train_cut_prob: probability, in ``[0, 1)``, of resetting a continuing slot in the ``train``
+            stage (drawn from torch's global generator, so seeded runs repeat); 0 never cuts.
 
     Attributes:
         stage: the store :meth:`get` and :meth:`update` use (set by :func:`set_stream_stage`).
     """
 
     def __init__(self, on_reset: Callable[[Any], Any] | None = None, max_gap_s: float | None = 2.0,
-                 max_frame_step: int | None = 1, persistent: bool = False) -> None:
+                 max_frame_step: int | None = 1, persistent: bool = False, train_cut_prob: float = 0.0) -> None:
         if max_gap_s is not None and max_gap_s <= 0:
             raise ValueError(f"StreamState max_gap_s must be positive or None, got {max_gap_s}")
         if max_frame_step is not None and max_frame_step < 1:
             raise ValueError(f"StreamState max_frame_step must be >= 1 or None, got {max_frame_step}")
+        if not 0.0 <= train_cut_prob < 1.0:
+            raise ValueError(f"StreamState train_cut_prob must be in [0, 1), got {train_cut_prob}")
         self.on_reset = on_reset or zeros_like
         self.max_gap_s = max_gap_s
         self.max_frame_step = max_frame_step
         self.persistent = bool(persistent)
+        self.train_cut_prob = float(train_cut_prob)
         self.stage = "train"
         self._stores: dict[str, dict[int, _Entry]] = {}
 
@@ -180,6 +188,9 @@ class StreamState:
             if ok and entry is not None:  # a stored shape that no longer fits (another resolution) restarts
                 ok = all(s.shape == i.shape[1:] for s, i in zip(_leaves(entry.value), init_leaves, strict=True))
             cont.append(ok)
+        if self.stage == "train" and self.train_cut_prob > 0.0:
+            cut = (torch.rand(size) < self.train_cut_prob).tolist()
+            cont = [c and not k for c, k in zip(cont, cut, strict=True)]
         cur_pose = batch.ego_to_global.to(torch.float64)
         device = cur_pose.device
         reset = torch.tensor([not c for c in cont], dtype=torch.bool, device=ref.device if ref is not None else device)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import torch
 from torch import nn
 
@@ -58,6 +59,32 @@ def test_each_slot_resets_on_start_scene_change_frame_jump_and_time_gap():
     loose = StreamState(max_gap_s=None, max_frame_step=2)
     loose.update(first, torch.arange(6.0))
     assert loose.get(nxt, torch.zeros(6)).reset.tolist() == [False, True, True, False, False, True]
+
+
+def test_training_cuts_continuing_slots_at_the_given_rate_and_evaluation_never_does():
+    n = 4000
+    first, nxt = frames("a", [0] * n), frames("a", [1] * n)
+    state = StreamState(train_cut_prob=0.25)
+    torch.manual_seed(0)
+    state.update(first, torch.arange(float(n)))
+    read = state.get(nxt, torch.full((n,), -1.0))
+    rate = read.reset.float().mean().item()
+    assert 0.22 < rate < 0.28  # binomial std 0.007
+    # a cut slot gets on_reset (zeros), a kept one its stored value; dt and motion follow the cut
+    assert torch.equal(read.value[read.reset], torch.zeros(int(read.reset.sum())))
+    assert torch.equal(read.value[~read.reset], torch.arange(float(n))[~read.reset])
+    assert (read.dt[read.reset] == 0).all() and (read.dt[~read.reset] == 0.5).all()
+    torch.manual_seed(0)
+    assert torch.equal(state.get(nxt, torch.full((n,), -1.0)).reset, read.reset)  # seeded: repeatable
+    # the val store never cuts, and a stream start stays a reset whatever is drawn
+    state.set_stage("val")
+    state.update(first, torch.arange(float(n)))
+    assert not state.get(nxt, torch.zeros(n)).reset.any()
+    state.set_stage("train")
+    assert state.get(frames("a", [0] * n), torch.zeros(n)).reset.all()
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValueError, match=r"train_cut_prob must be in \[0, 1\)"):
+            StreamState(train_cut_prob=bad)
 
 
 def test_reset_hook_decides_what_a_reset_puts_in_and_nested_structures_round_trip():

@@ -162,6 +162,8 @@ class DuOccStream(_DuOccVoxels):
         reduction: RefineNet's channel-attention reduction (code: 16).
         residual_relu: RefineNet's ReLU after the residual (code: on; Eq. 4: off).
         max_gap_s: seconds between frames above which the history restarts (DuOcc: 2.0).
+        train_cut_prob: probability of restarting a continuing history in training (not in the paper or
+            the code; 0: off): the current frame must then stand alone, as at a stream start.
         query_agg: QueryAgg's settings (:data:`~occplug_duocc.queryagg.QUERY_AGG_KEYS`: ``v2q``, ``dqa``,
             ``gt_boxes``, ``selection`` (``paper`` | ``code`` | a mapping), ``detector``, ``level_channels``, ...), or
             None (off: Tab. 4 B). Needs ``stream: true``.
@@ -193,6 +195,7 @@ class DuOccStream(_DuOccVoxels):
         reduction: Annotated[int, Positive] = 16,
         residual_relu: bool = False,
         max_gap_s: Annotated[float, Positive] = 2.0,
+        train_cut_prob: Annotated[float, Range(low=0.0, high=1.0, high_open=True)] = 0.0,
         query_agg: dict | None = None,
     ) -> None:
         super().__init__(in_channels, grid, channels, downsample, fpn_channels, fpn_blocks)
@@ -215,7 +218,7 @@ class DuOccStream(_DuOccVoxels):
                 reduction=reduction,
                 residual_relu=residual_relu,
             )
-            self.history = StreamState(on_reset=_itself, max_gap_s=max_gap_s)
+            self.history = StreamState(on_reset=_itself, max_gap_s=max_gap_s, train_cut_prob=train_cut_prob)
         self.query_agg: QueryAggregation | None = None
         if query_agg is not None:
             self.query_agg = QueryAggregation(self.out_channels, self.coarse, query_agg)

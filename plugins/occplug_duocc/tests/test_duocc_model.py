@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from occplug import runner
+from occplug.cli import main
 from occplug.streams import set_stream_stage
 
 # 20 x 20 x 8 label voxels (V_curr 10 x 10 x 4): the recipes' 60 x 60 x 8 shrunk for test speed
@@ -64,6 +65,15 @@ def test_single_frame_keeps_no_state_and_stream_agg_does():
     assert stream.scene.stateful and stream.scene.agg.fusion == "add" and stream.scene.history.max_gap_s == 2.0
     concat, _ = _model_and_dm("stream_agg", "model.scene.fusion=concat")
     assert concat.scene.agg.fusion == "concat"
+
+
+def test_training_stream_cuts_are_off_by_default_and_reach_the_history(capsys):
+    stream, _ = _model_and_dm("stream_agg")
+    cut, _ = _model_and_dm("stream_agg", "model.scene.train_cut_prob=0.5")
+    assert stream.scene.history.train_cut_prob == 0.0 and cut.scene.history.train_cut_prob == 0.5
+    assert main(["config", "validate", "-c", "duocc/stream_agg", "model.scene.train_cut_prob=1.0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "model.scene.train_cut_prob" in err and "[0, 1)" in err and "\n" not in err
 
 
 def _capture(module):
