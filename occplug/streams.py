@@ -10,9 +10,10 @@ computed for the previous frame of that slot and reads it back at the next frame
   another scene, a frame-index step other than ``1..max_frame_step``, or a time step outside
   ``(0, max_gap_s]``; a reset puts in ``on_reset(current)`` (zeros by default; DuOcc puts in the
   current frame's features);
-* **random cuts in training** (``train_cut_prob``, off by default): a continuing slot of the ``train``
-  store is reset with that probability, so a model that leans on its history also learns to predict
-  from the current frame alone (evaluation never cuts);
+* **random cuts in training** (``train_cut_prob``, off by default): in a training step (the ``train``
+  store, gradients on) a continuing slot is reset with that probability, so a model that leans on its
+  history also learns to predict from the current frame alone. Evaluation and any ``no_grad`` call
+  (prediction outside Lightning too) never cut;
 * **any nested structure** of tensors (dicts, lists, tuples) with the batch on dim 0;
 * **detached** when stored, so no gradient flows across frames;
 * **one store per stage** (``train``, ``val``, ``test``, ``predict``): the sanity check and a
@@ -116,8 +117,10 @@ class StreamState:
         max_frame_step: reset when ``frame_index`` does not advance by ``1..max_frame_step``; None
             skips the check.
         persistent: store the state in checkpoints (:class:`StreamStages`); default off.
-        train_cut_prob: probability, in ``[0, 1)``, of resetting a continuing slot in the ``train``
-            stage (drawn from torch's global generator, so seeded runs repeat); 0 never cuts.
+        train_cut_prob: probability, in ``[0, 1)``, of resetting a continuing slot in a training step
+            (``train`` stage with gradients on). Drawn from torch's global generator: a seeded run
+            repeats, and draws other random numbers after the first cut than a run without cuts.
+            0 never cuts.
 
     Attributes:
         stage: the store :meth:`get` and :meth:`update` use (set by :func:`set_stream_stage`).
@@ -188,7 +191,7 @@ class StreamState:
             if ok and entry is not None:  # a stored shape that no longer fits (another resolution) restarts
                 ok = all(s.shape == i.shape[1:] for s, i in zip(_leaves(entry.value), init_leaves, strict=True))
             cont.append(ok)
-        if self.stage == "train" and self.train_cut_prob > 0.0:
+        if self.train_cut_prob > 0.0 and self.stage == "train" and torch.is_grad_enabled():
             cut = (torch.rand(size) < self.train_cut_prob).tolist()
             cont = [c and not k for c, k in zip(cont, cut, strict=True)]
         cur_pose = batch.ego_to_global.to(torch.float64)

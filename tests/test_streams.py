@@ -76,12 +76,16 @@ def test_training_cuts_continuing_slots_at_the_given_rate_and_evaluation_never_d
     assert (read.dt[read.reset] == 0).all() and (read.dt[~read.reset] == 0.5).all()
     torch.manual_seed(0)
     assert torch.equal(state.get(nxt, torch.full((n,), -1.0)).reset, read.reset)  # seeded: repeatable
-    # the val store never cuts, and a stream start stays a reset whatever is drawn
+    # no cut without gradients (prediction outside Lightning) nor in the val store
+    with torch.no_grad():
+        assert not state.get(nxt, torch.zeros(n)).reset.any()
     state.set_stage("val")
     state.update(first, torch.arange(float(n)))
     assert not state.get(nxt, torch.zeros(n)).reset.any()
+    # a sequence start stays a reset whatever is drawn
     state.set_stage("train")
-    assert state.get(frames("a", [0] * n), torch.zeros(n)).reset.all()
+    starts = frames("a", [1] * n, starts=[True] * n)
+    assert state.get(starts, torch.zeros(n)).reset.all()
     for bad in (-0.1, 1.0):
         with pytest.raises(ValueError, match=r"train_cut_prob must be in \[0, 1\)"):
             StreamState(train_cut_prob=bad)

@@ -69,8 +69,22 @@ def test_single_frame_keeps_no_state_and_stream_agg_does():
 
 def test_training_stream_cuts_are_off_by_default_and_reach_the_history(capsys):
     stream, _ = _model_and_dm("stream_agg")
-    cut, _ = _model_and_dm("stream_agg", "model.scene.train_cut_prob=0.5")
-    assert stream.scene.history.train_cut_prob == 0.0 and cut.scene.history.train_cut_prob == 0.5
+    assert stream.scene.history.train_cut_prob == 0.0
+    torch.manual_seed(0)
+    cut, dm = _model_and_dm("stream_agg", "model.scene.train_cut_prob=0.999")
+    calls = _capture(cut.scene.agg)
+    set_stream_stage(cut, "train")
+    cut.train()
+    frames = [_batch(dm, [i]) for i in range(2)]  # one training scene, frames 0 and 1
+    assert not bool(frames[1].is_sequence_start[0])
+    cut(frames[0])
+    loss, _ = _loss(cut, frames[1])  # a training step on the continuing frame: cut, so its history is V_curr
+    (v_curr, v_hist, _, reset), out = calls[-1]
+    assert reset.tolist() == [True] and torch.equal(out.warped, v_curr) and loss.requires_grad
+    with torch.no_grad():  # no cut outside a training step
+        cut(frames[0])
+        cut(frames[1])
+    assert calls[-1][0][3].tolist() == [False]
     assert main(["config", "validate", "-c", "duocc/stream_agg", "model.scene.train_cut_prob=1.0"]) == 2
     err = capsys.readouterr().err.strip()
     assert "model.scene.train_cut_prob" in err and "[0, 1)" in err and "\n" not in err
