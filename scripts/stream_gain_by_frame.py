@@ -5,7 +5,8 @@ each scene start) and the script keeps one confusion matrix per position in the 
 where a streamed model has no history). It prints the run's own metric (the first of ``metrics``, with its evaluation
 mask) per position bucket, so a single-frame run and a streamed run can be compared where the stream is short and
 where it is long. ``--set`` overrides apply to every run, e.g. longer or more validation scenes, or the stream cut
-at every frame (``model.scene.max_gap_s=0.01``)::
+at every frame (``model.scene.max_gap_s=0.01``). The first metric must keep a confusion matrix (``occ3d_miou``); the
+whole validation split is read (``trainer.limit_val_batches`` does not apply)::
 
     python scripts/stream_gain_by_frame.py runs/a-seed0 runs/b-seed0 --set data.frames_per_scene=12 data.val_scenes=8
 """
@@ -29,21 +30,30 @@ KEYS = ("mIoU", "mIoU_dynamic", "mIoU_static", "IoU")
 
 
 def parse_buckets(text: str) -> list[tuple[int, int]]:
-    """``"0,1,2-3,4-"`` -> ``[(0, 0), (1, 1), (2, 3), (4, huge)]`` (inclusive position ranges)."""
+    """``"0,1,2-3,4-"`` -> ``[(0, 0), (1, 1), (2, 3), (4, huge)]`` (inclusive position ranges).
+
+    Raises:
+        ValueError: a part that is not ``N``, ``N-M`` or ``N-`` with ``0 <= N <= M``.
+    """
     out = []
     for part in text.split(","):
-        low, _, high = part.partition("-")
+        low, dash, high = part.strip().partition("-")
+        if not low.isdigit() or (high and not high.isdigit()):
+            raise ValueError(f"--buckets: '{part}' is not N, N-M or N- (frame positions, 0 = the reset frame)")
         lo = int(low)
-        hi = lo if not _ else (int(high) if high else 10**9)
+        hi = lo if not dash else (int(high) if high else 10**9)
         if hi < lo:
-            raise SystemExit(f"--buckets: '{part}' has its end before its start")
+            raise ValueError(f"--buckets: '{part}' has its end before its start")
         out.append((lo, hi))
     return out
 
 
-def results_by_position(run: Path, overrides: list[str], buckets: list[tuple[int, int]]) -> list[dict[str, float]]:
-    """The run's first metric over the validation frames of each position bucket (the run's evaluation mask)."""
+def confusions_by_position(run: Path, overrides: list[str], buckets: list[tuple[int, int]]):
+    """``(metric, confusion matrices, frame counts)``: the run's first validation metric (a template, its mask and
+    classes) and, per position bucket, the confusion matrix and the number of validation frames in it."""
     ckpt = run / "checkpoints" / "last.ckpt"
+    if not ckpt.is_file():
+        raise ValueError(f"{run}: no checkpoints/last.ckpt (not a finished occplug run directory)")
     dm, model = runner.build_run(runner.resolve_run_config([], overrides, ckpt))
     model.load_state_dict(runner.load_checkpoint(ckpt)["state_dict"])
     model.eval()
@@ -51,9 +61,12 @@ def results_by_position(run: Path, overrides: list[str], buckets: list[tuple[int
     for _, state in find_streams(model):
         state.clear("val")
     template = next(iter(model.val_metrics.values()))
-    metrics = [copy.deepcopy(template) for _ in buckets]
-    for m in metrics:
-        m.reset()
+    if not hasattr(template, "confmat"):
+        raise ValueError(
+            f"{run}: its first metric ({type(template).__name__}) keeps no confusion matrix; "
+            "put occ3d_miou first (--set 'metrics=[occ3d_miou]')"
+        )
+    confmats = [torch.zeros_like(template.confmat) for _ in buckets]
     dm.prepare_data()
     dm.setup("validate")
     frames = [0] * len(buckets)
@@ -65,15 +78,22 @@ def results_by_position(run: Path, overrides: list[str], buckets: list[tuple[int
                 for i, (lo, hi) in enumerate(buckets):
                     if lo <= position <= hi:
                         keep = None if valid is None else valid[b]
-                        metrics[i].confmat += confusion_matrix(
-                            pred[b], batch.voxel_labels[b], template.num_classes, keep
-                        )
+                        confmats[i] += confusion_matrix(pred[b], batch.voxel_labels[b], template.num_classes, keep)
                         frames[i] += 1
+    return template, confmats, frames
+
+
+def results_by_position(run: Path, overrides: list[str], buckets: list[tuple[int, int]]) -> list[dict[str, float]]:
+    """The run's first metric over the validation frames of each position bucket (the run's evaluation mask),
+    with ``frames``, the bucket's frame count (a bucket with no frame has only that)."""
+    template, confmats, frames = confusions_by_position(run, overrides, buckets)
     out = []
-    for m, n in zip(metrics, frames, strict=True):
-        with warnings.catch_warnings():  # the confusion matrices were filled directly, not through update()
+    for cm, n in zip(confmats, frames, strict=True):
+        metric = copy.deepcopy(template)
+        metric.confmat = cm
+        with warnings.catch_warnings():  # the confusion matrix was set directly, not through update()
             warnings.filterwarnings("ignore", message=".*compute.*called before.*update.*")
-            res = {k: float(v) for k, v in m.compute().items() if k in KEYS} if n else {}
+            res = {k: float(v) for k, v in metric.compute().items() if k in KEYS} if n else {}
         out.append({**res, "frames": n})
     return out
 
@@ -87,11 +107,20 @@ def main() -> None:
     )
     parser.add_argument("--json", type=Path, help="also write {run: [bucket results]} here")
     args = parser.parse_args()
-    buckets = parse_buckets(args.buckets)
+    try:
+        buckets = parse_buckets(args.buckets)
+        for run in args.runs:
+            if not (run / "checkpoints" / "last.ckpt").is_file():
+                raise ValueError(f"{run}: no checkpoints/last.ckpt (not a finished occplug run directory)")
+    except ValueError as exc:
+        parser.error(str(exc))
     names = [f"{lo}" if lo == hi else (f"{lo}+" if hi >= 10**9 else f"{lo}-{hi}") for lo, hi in buckets]
     payload = {}
     for run in args.runs:
-        rows = results_by_position(run, args.set, buckets)
+        try:
+            rows = results_by_position(run, args.set, buckets)
+        except (runner.RunError, ValueError) as exc:  # a config mistake (ConfigError) is a ValueError
+            parser.error(str(exc).splitlines()[0])
         payload[str(run)] = [{"positions": n, **r} for n, r in zip(names, rows, strict=True)]
         print(f"{run}:")
         print("| frame in scene | frames | " + " | ".join(KEYS) + " |")
