@@ -44,6 +44,7 @@ __all__ = [
     "Target",
     "environment",
     "interleave",
+    "mean_std",
     "read_accuracy",
     "resolve_target",
     "run_bench",
@@ -52,6 +53,17 @@ __all__ = [
 #: The accuracy columns read from a run's ``metrics.json`` (absent ones stay empty).
 ACCURACY_KEYS = ("mIoU", "IoU", "RayIoU")
 MISSING = "—"
+
+
+def mean_std(values: Sequence[float], empty: str = MISSING) -> str:
+    """``"mean ± std"`` (sample std) of seeds' values for ablation tables, NaN values left out; one value alone
+    prints as itself, none as ``empty``."""
+    kept = [float(v) for v in values if v == v]
+    if not kept:
+        return empty
+    if len(kept) == 1:
+        return f"{kept[0]:.2f}"
+    return f"{statistics.mean(kept):.2f} ± {statistics.stdev(kept):.2f}"
 
 
 class BenchError(UserError):

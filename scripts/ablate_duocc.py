@@ -40,6 +40,8 @@ import sys
 import time
 from pathlib import Path
 
+from occplug.bench import mean_std
+
 #: row -> (config stem trained, table label). ``full_gt_boxes`` evaluates ``full``'s runs.
 ROWS = {
     "single_frame": ("single_frame", "A. Base (single frame)"),
@@ -139,14 +141,6 @@ def detection_map_of(run: Path, gt_boxes: bool) -> float:
     value = 100.0 * float(result["mAP"])
     path.write_text(json.dumps({"mAP": value, "AP": result["AP"]}, indent=2) + "\n")
     return value
-
-
-def mean_std(values: list[float]) -> str:
-    values = [v for v in values if v == v]
-    if not values:
-        return "—"
-    std = statistics.stdev(values) if len(values) > 1 else float("nan")
-    return f"{statistics.mean(values):.2f} ± {std:.2f}"
 
 
 def mean(values: list[float]) -> float:

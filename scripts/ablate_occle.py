@@ -57,6 +57,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from occplug.bench import mean_std
+
 #: Row name (the config ``occle/<name>``) -> its label in the tables.
 ROWS = {
     "three_phase_10pct": "OccLE, 10 % labels (Sem. + Geo. + Proj.)",
@@ -275,14 +277,6 @@ def planned_steps(name: str, args: argparse.Namespace) -> dict[str, int]:
         batches = math.ceil(len(cut.selected(frames)) / int(data.get("batch_size", 1)))
         out[spec.name] = batches * int(spec.config["trainer"]["max_epochs"])
     return out
-
-
-def mean_std(values: list[float]) -> str:
-    values = [v for v in values if v == v]
-    if not values:
-        return "-"
-    std = statistics.stdev(values) if len(values) > 1 else float("nan")
-    return f"{statistics.mean(values):.2f} ± {std:.2f}"
 
 
 def dry_run(args: argparse.Namespace) -> None:

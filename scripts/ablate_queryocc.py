@@ -25,6 +25,8 @@ import sys
 import time
 from pathlib import Path
 
+from occplug.bench import mean_std
+
 ROWS = {
     "base": "query (pseudo points, T = {-1, 0, 1})",
     "render_only": "rendering only",
@@ -107,11 +109,6 @@ def constant_class(preset: str) -> dict[str, float]:
     for m in metrics:
         out.update({k: float(v) for k, v in m.compute().items()})
     return out
-
-
-def mean_std(values: list[float]) -> str:
-    std = statistics.stdev(values) if len(values) > 1 else float("nan")
-    return f"{statistics.mean(values):.2f} ± {std:.2f}"
 
 
 def main() -> None:

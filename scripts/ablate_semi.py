@@ -24,6 +24,8 @@ import sys
 import time
 from pathlib import Path
 
+from occplug.bench import mean_std
+
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = {"full": ROOT / "configs/semi/baseline_100pct.yaml", "semi": ROOT / "configs/semi/baseline_10pct.yaml"}
 
@@ -53,11 +55,6 @@ def run(recipe: str, seed: int, args: argparse.Namespace) -> dict:
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
     print(f"{recipe} seed {seed}: {time.monotonic() - start:.0f} s", file=sys.stderr)
     return json.loads((out / "metrics.json").read_text())
-
-
-def mean_std(values: list[float]) -> str:
-    std = statistics.stdev(values) if len(values) > 1 else float("nan")
-    return f"{statistics.mean(values):.2f} ± {std:.2f}"
 
 
 def main() -> None:

@@ -37,11 +37,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from occplug.bench import mean_std
 
 
 def rows(ks: list[int], full: bool = False) -> list[tuple[str, str, list[str]]]:
@@ -49,15 +50,6 @@ def rows(ks: list[int], full: bool = False) -> list[tuple[str, str, list[str]]]:
     out = [("stream_agg", "duocc/stream_agg", []), ("stream_agg_concat", "duocc/stream_agg_concat", [])]
     out += [(f"stacking_K{k}", "duocc/stacking", [f"model.scene.num_history={k}"]) for k in ks]
     return out + ([("full", "duocc/full", [])] if full else [])
-
-
-def mean_std(values: list[float]) -> str:
-    """``mean ± std`` (sample std) of the seeds' values; one value alone; ``—`` for none."""
-    if not values:
-        return "—"
-    if len(values) == 1:
-        return f"{values[0]:.2f}"
-    return f"{statistics.mean(values):.2f} ± {statistics.stdev(values):.2f}"
 
 
 def _num(value: float | None) -> str:

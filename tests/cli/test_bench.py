@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from occplug import runner
-from occplug.bench import BenchReport, BenchRow, interleave, read_accuracy
+from occplug.bench import BenchReport, BenchRow, interleave, mean_std, read_accuracy
 from occplug.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -202,3 +202,10 @@ def test_train_repeats_0_measures_inference_only(tmp_path):
     assert row.train_step_ms is None and row.train_memory_mib is None
     assert BenchReport.from_csv(report.to_csv()) == report
     assert report.to_markdown().splitlines()[-1].split(" | ")[4:6] == ["—", "—"]
+
+
+def test_mean_std_is_the_sample_std_over_the_finite_values():
+    assert mean_std([1.0, 2.0, 3.0]) == "2.00 ± 1.00"
+    assert mean_std([1.0, float("nan"), 3.0]) == "2.00 ± 1.41"  # NaN left out
+    assert mean_std([2.5]) == "2.50" and mean_std([2.5, float("nan")]) == "2.50"
+    assert mean_std([]) == "—" and mean_std([float("nan")], empty="-") == "-"
