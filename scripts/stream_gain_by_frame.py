@@ -27,10 +27,19 @@ from occplug.metrics.miou import confusion_matrix
 from occplug.streams import find_streams, set_stream_stage
 
 KEYS = ("mIoU", "mIoU_dynamic", "mIoU_static", "IoU")
+OPEN_END = 10**9  # the end of a bucket written "N-"
+
+
+def last_checkpoint(run: Path) -> Path:
+    """``run``'s ``checkpoints/last.ckpt``; ValueError naming the run where there is none."""
+    ckpt = run / "checkpoints" / "last.ckpt"
+    if not ckpt.is_file():
+        raise ValueError(f"{run}: no checkpoints/last.ckpt (not a finished occplug run directory)")
+    return ckpt
 
 
 def parse_buckets(text: str) -> list[tuple[int, int]]:
-    """``"0,1,2-3,4-"`` -> ``[(0, 0), (1, 1), (2, 3), (4, huge)]`` (inclusive position ranges).
+    """``"0,1,2-3,4-"`` -> ``[(0, 0), (1, 1), (2, 3), (4, OPEN_END)]`` (inclusive position ranges).
 
     Raises:
         ValueError: a part that is not ``N``, ``N-M`` or ``N-`` with ``0 <= N <= M``.
@@ -41,7 +50,7 @@ def parse_buckets(text: str) -> list[tuple[int, int]]:
         if not low.isdigit() or (high and not high.isdigit()):
             raise ValueError(f"--buckets: '{part}' is not N, N-M or N- (frame positions, 0 = the reset frame)")
         lo = int(low)
-        hi = lo if not dash else (int(high) if high else 10**9)
+        hi = lo if not dash else (int(high) if high else OPEN_END)
         if hi < lo:
             raise ValueError(f"--buckets: '{part}' has its end before its start")
         out.append((lo, hi))
@@ -51,9 +60,7 @@ def parse_buckets(text: str) -> list[tuple[int, int]]:
 def confusions_by_position(run: Path, overrides: list[str], buckets: list[tuple[int, int]]):
     """``(metric, confusion matrices, frame counts)``: the run's first validation metric (a template, its mask and
     classes) and, per position bucket, the confusion matrix and the number of validation frames in it."""
-    ckpt = run / "checkpoints" / "last.ckpt"
-    if not ckpt.is_file():
-        raise ValueError(f"{run}: no checkpoints/last.ckpt (not a finished occplug run directory)")
+    ckpt = last_checkpoint(run)
     dm, model = runner.build_run(runner.resolve_run_config([], overrides, ckpt))
     model.load_state_dict(runner.load_checkpoint(ckpt)["state_dict"])
     model.eval()
@@ -109,12 +116,11 @@ def main() -> None:
     args = parser.parse_args()
     try:
         buckets = parse_buckets(args.buckets)
-        for run in args.runs:
-            if not (run / "checkpoints" / "last.ckpt").is_file():
-                raise ValueError(f"{run}: no checkpoints/last.ckpt (not a finished occplug run directory)")
+        for run in args.runs:  # every run checked before the first is read
+            last_checkpoint(run)
     except ValueError as exc:
         parser.error(str(exc))
-    names = [f"{lo}" if lo == hi else (f"{lo}+" if hi >= 10**9 else f"{lo}-{hi}") for lo, hi in buckets]
+    names = [f"{lo}" if lo == hi else (f"{lo}+" if hi >= OPEN_END else f"{lo}-{hi}") for lo, hi in buckets]
     payload = {}
     for run in args.runs:
         try:
