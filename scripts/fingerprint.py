@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.check is not None:
         reference = json.loads(args.check.read_text())
         same = [json.dumps(reference.get(n), sort_keys=True) == json.dumps(result[n], sort_keys=True) for n in names]
-        differ = [n for n, equal in zip(names, same) if not equal]  # compared as JSON text: NaN equals NaN
+        differ = [n for n, equal in zip(names, same, strict=True) if not equal]  # compared as JSON text: NaN equals NaN
         for n in differ:
             print(f"DIFFERS {n}:\n  before {json.dumps(reference.get(n))}\n  now    {json.dumps(result[n])}")
         print("identical" if not differ else f"{len(differ)} of {len(names)} differ")

@@ -19,8 +19,7 @@ from torch import Tensor, nn
 from occplug.constraints import NonNegative, Positive
 from occplug.geometry import effective_intrinsics
 from occplug.interfaces.depth_net import DepthAndContext, DepthNet
-
-from .layers import BasicBlock2d, ConvNormAct2d, PixelNet
+from occplug.nn import BasicBlock2d, ConvNormAct2d, PixelNet
 
 __all__ = ["CAMERA_FEATURES", "CameraAwareDepthNet", "DepthAndContext", "DepthNet", "PlainDepthNet", "camera_vector"]
 
@@ -97,7 +96,7 @@ class CameraAwareDepthNet(DepthNet):
         hidden: channels of the shared 3x3 conv and of both branches (> 0).
         camera_hidden: hidden width of the camera MLPs.
         depth_blocks: residual blocks on the depth branch.
-        norm: ``batch`` or ``group`` (see :func:`~occplug.components.layers.norm_layer`).
+        norm: ``batch`` or ``group`` (see :func:`~occplug.nn.norm_layer`).
     """
 
     def __init__(

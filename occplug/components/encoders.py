@@ -12,8 +12,7 @@ from torch import Tensor, nn
 from occplug.constraints import Positive
 from occplug.errors import UserError
 from occplug.interfaces import ImageEncoder
-
-from .layers import BasicBlock2d, ConvNormAct2d
+from occplug.nn import BasicBlock2d, ConvNormAct2d
 
 __all__ = ["SmallCNN", "TimmEncoder", "load_state_dict_file"]
 
@@ -47,7 +46,7 @@ class SmallCNN(ImageEncoder):
     """A small ResNet-style CNN in plain PyTorch, cheap enough for CPU training.
 
     Layout: a stride-2 3x3 stem (``width`` channels), then ``log2(stride) - 1`` stages, each a
-    stride-2 :class:`~occplug.components.layers.BasicBlock2d` followed by ``num_blocks - 1``
+    stride-2 :class:`~occplug.nn.BasicBlock2d` followed by ``num_blocks - 1``
     stride-1 blocks (stage ``i`` has ``width * 2**i`` channels), then a 1x1 conv to
     ``out_channels``. Feature cell ``(r, c)`` covers input pixels ``[s*r, s*r + s) x [s*c, s*c + s)``
     (``s`` = ``stride``); its centre is pixel ``u = s*c + (s-1)/2, v = s*r + (s-1)/2``.
@@ -60,7 +59,7 @@ class SmallCNN(ImageEncoder):
         num_blocks: residual blocks per stage (>= 1).
         norm: ``"batch"`` (BatchNorm) or ``"group"`` (GroupNorm, batch-size independent).
         levels: feature levels to output (>= 1). With more than one, each further level is a
-            stride-2 :class:`~occplug.components.layers.BasicBlock2d` on the previous stage with
+            stride-2 :class:`~occplug.nn.BasicBlock2d` on the previous stage with
             its own 1x1 neck to ``out_channels``, so level ``i`` has stride ``stride * 2**i``;
             the first (finest) level is the primary one the view transform reads.
 

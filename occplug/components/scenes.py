@@ -10,8 +10,7 @@ from torch import nn
 from occplug.constraints import NonNegative, Positive
 from occplug.data.frame import Batch
 from occplug.interfaces import DenseVoxelScene, Lifted, SceneRepresentation
-
-from .layers import BasicBlock3d
+from occplug.nn import BasicBlock3d
 
 __all__ = ["DenseVoxelScene", "DenseVoxels"]
 
@@ -22,7 +21,7 @@ class DenseVoxels(SceneRepresentation):
     Args:
         in_channels: ``C_in`` of the lifted volume (the view transform's ``out_channels``).
         out_channels: ``C`` of the scene features.
-        num_blocks: number of 3D :class:`~occplug.components.layers.BasicBlock3d` (>= 0).
+        num_blocks: number of 3D :class:`~occplug.nn.BasicBlock3d` (>= 0).
 
     Forward:
         a :class:`Lifted` with a 3D ``volume`` ``(B, C_in, X, Y, Z)`` -> :class:`DenseVoxelScene`

@@ -34,6 +34,7 @@ from occplug.constraints import Length, NonNegative, Positive
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, project_to_image
 from occplug.interfaces import Lifted, ViewTransform
+from occplug.nn import PixelNet
 from occplug.ops.splat import (
     FrustumSplatter,
     SplatPlan,
@@ -44,7 +45,6 @@ from occplug.ops.splat import (
 )
 
 from .depth_nets import DepthNet
-from .layers import PixelNet
 
 __all__ = [
     "BackwardProjection",

@@ -15,8 +15,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from occplug.components.layers import BasicBlock3d
 from occplug.constraints import Length, Positive
+from occplug.nn import BasicBlock3d
 
 __all__ = ["VoxelFPN3D"]
 

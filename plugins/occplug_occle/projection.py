@@ -19,8 +19,8 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
-from occplug.components.layers import PixelNet
 from occplug.geometry import GridSpec, project_to_image
+from occplug.nn import PixelNet
 from occplug.ops import splat
 
 __all__ = ["ProjectionHead", "ScatterProjection", "feature_map_intrinsics", "scatter_project"]
@@ -183,7 +183,7 @@ class ScatterProjection(nn.Module):
 class ProjectionHead(PixelNet):
     """The 2D header of §3.4: projected feature map ``F_2d`` -> projected segmentation logits ``y``.
 
-    ``3x3 conv -> BatchNorm -> ReLU -> 1x1 conv`` (the core's :class:`~occplug.components.layers.PixelNet`);
+    ``3x3 conv -> BatchNorm -> ReLU -> 1x1 conv`` (the core's :class:`~occplug.nn.PixelNet`);
     the norm also absorbs the scale of the accumulated features, which grows with the number of voxels a ray
     crosses. With ``hidden_channels == 0`` it is a single 1x1 convolution.
 

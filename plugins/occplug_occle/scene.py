@@ -29,11 +29,11 @@ from typing import Annotated, Any, Literal
 import torch
 from torch import Tensor, nn
 
-from occplug.components.layers import BasicBlock3d
 from occplug.constraints import Length, NonNegative, Positive
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces import DenseVoxelScene, Lifted, ModelOutputs, SceneRepresentation
+from occplug.nn import BasicBlock3d
 
 from .geometry_branch import Conv3dDeformableBaseline, CrossPlaneFusion
 from .mamba import DualMambaUNet

@@ -2,7 +2,7 @@
 
 The paper uses a UNet [Ronneberger et al.] for images and a sparse UNet3D (SECOND) on voxelised LiDAR; here
 both are dense and small enough for CPU tests. Each level is a core ResNet basic block
-(:class:`~occplug.components.layers.BasicBlock2d` / ``BasicBlock3d``); downsampling is a 2x max-pool (as the
+(:class:`~occplug.nn.BasicBlock2d` / ``BasicBlock3d``); downsampling is a 2x max-pool (as the
 original UNet) and upsampling a nearest resize to the skip's size followed by a block on the concatenation.
 
 Downsampling is anisotropic: at every level an axis is halved only while it keeps at least ``min_size`` cells
@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from occplug.components.layers import BasicBlock2d, BasicBlock3d
+from occplug.nn import BasicBlock2d, BasicBlock3d
 
 __all__ = ["UNet2d", "UNet3d"]
 

@@ -12,11 +12,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from occplug.components.layers import BasicBlock2d, ConvNormAct2d
 from occplug.constraints import NonNegative, Positive
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces import BevScene, Lifted, SceneRepresentation
+from occplug.nn import BasicBlock2d, ConvNormAct2d
 
 __all__ = ["DeformableAttention2d", "DynamicConv2d", "QueryOccBev"]
 

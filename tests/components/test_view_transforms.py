@@ -262,7 +262,7 @@ def test_both_view_transforms_take_the_same_arguments_and_output_the_same_shape(
 # ----------------------------------------------------------------------------- depth nets (kind depth_net)
 def test_plain_depth_net_gives_the_numbers_of_the_former_built_in_head() -> None:
     """Same seed -> the same weights as the PixelNet LSS used to build, and the same volume as its formula."""
-    from occplug.components.layers import PixelNet
+    from occplug.nn import PixelNet
 
     batch = make_batch(b=2, n=2)
     torch.manual_seed(7)
