@@ -42,12 +42,15 @@ __all__ = [
     "BenchRow",
     "BenchSettings",
     "Target",
+    "code_commit",
     "environment",
     "interleave",
     "mean_std",
     "read_accuracy",
     "resolve_target",
     "run_bench",
+    "write_seed_result",
+    "write_table_seeds",
 ]
 
 #: The accuracy columns read from a run's ``metrics.json`` (absent ones stay empty).
@@ -64,6 +67,66 @@ def mean_std(values: Sequence[float], empty: str = MISSING) -> str:
     if len(kept) == 1:
         return f"{kept[0]:.2f}"
     return f"{statistics.mean(kept):.2f} ± {statistics.stdev(kept):.2f}"
+
+
+def code_commit(path: Path | None = None) -> str | None:
+    """The git commit of the code at ``path`` (this package by default), with ``-dirty`` when tracked files have
+    uncommitted changes; None outside a git checkout."""
+    cwd = Path(path) if path is not None else Path(__file__).resolve().parent
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True, timeout=30)
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    if commit is None:
+        return None
+    return commit + ("-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
+def _program() -> str:
+    """How this process was started: ``python -m <module>`` for a module run, else the script's file name."""
+    spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+    return f"python -m {spec.name}" if spec is not None and spec.name else Path(sys.argv[0]).name
+
+
+def write_seed_result(
+    folder: Path | str, row: str, seed: int, values: dict[str, float], settings: dict[str, Any]
+) -> Path:
+    """Write one ablation row's numbers for one seed to ``<folder>/<row>-seed<seed>.json`` and return the path.
+
+    The file is small, made to be committed beside a plugin's RESULTS.md, so that a table's mean ± std can be
+    checked against the seeds it came from. It records the values, the settings the row ran with (budget, world,
+    overrides), the command line and the code's commit (:func:`code_commit`).
+    """
+    path = Path(folder) / f"{row}-seed{seed}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    record = {
+        "row": row,
+        "seed": seed,
+        "values": {k: None if v != v else float(v) for k, v in values.items()},  # NaN (no such class) as null
+        "settings": settings,
+        "command": [_program(), *sys.argv[1:]],
+        "commit": code_commit(),
+    }
+    path.write_text(json.dumps(record, indent=2) + "\n")
+    return path
+
+
+def write_table_seeds(
+    folder: Path | str, table: dict[str, dict[str, list[float]]], seeds: Sequence[int], settings: dict[str, Any]
+) -> list[Path]:
+    """:func:`write_seed_result` for every row and seed of an ablation table (``row -> column -> value per seed``,
+    in the order of ``seeds``); returns the files written."""
+    paths = []
+    for row, columns in table.items():
+        for i, seed in enumerate(seeds):
+            values = {column: per_seed[i] for column, per_seed in columns.items() if i < len(per_seed)}
+            paths.append(write_seed_result(folder, row, seed, values, settings))
+    return paths
 
 
 class BenchError(UserError):

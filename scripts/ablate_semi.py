@@ -32,7 +32,7 @@ RECIPES = {"full": ROOT / "configs/semi/baseline_100pct.yaml", "semi": ROOT / "c
 
 def phase_epochs(recipe: Path) -> dict[str, int]:
     """``{phase: trainer.max_epochs}`` of a recipe (the run's own epochs where a phase sets none)."""
-    from occplug.config.phases import phase_specs
+    from occplug.config import phase_specs
     from occplug.runner import load_config
 
     cfg = load_config([str(recipe)])

@@ -114,12 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tmp", default=None, help="folder for the written trees (default: a temporary one)")
     args = p.parse_args(argv)
 
-    from occplug.data.nuscenes.index import build_index
-    from occplug.data.nuscenes.reader import Occ3DNuScenesDataModule
-    from occplug.data.semantickitti.reader import SemanticKITTIDataModule
-    from occplug.data.synthetic import SyntheticDataModule
-    from occplug.data.synthetic.export_occ3d import write_occ3d_nuscenes
-    from occplug.data.synthetic.export_semantickitti import lidar_grid, write_semantickitti
+    from occplug.data import Occ3DNuScenesDataModule, SemanticKITTIDataModule, build_index
+    from occplug.data.synthetic import SyntheticDataModule, lidar_grid, write_occ3d_nuscenes, write_semantickitti
 
     logging.getLogger("lightning.pytorch").setLevel(logging.ERROR)
     warnings.filterwarnings("ignore")

@@ -21,16 +21,10 @@ import time
 
 import torch
 
-from occplug.data.frame import Batch
-from occplug.data.nuscenes.format import OCC3D_GRID
-from occplug.data.synthetic.config import preset
-from occplug.data.synthetic.labels import voxel_labels
-from occplug.data.synthetic.render import LIDAR_TO_EGO
-from occplug.data.synthetic.world import build_scene
-from occplug.geometry import invert_pose
-from occplug.geometry.raycast import first_hits
-from occplug.metrics import RayIoU
-from occplug.metrics.rayiou import cast_query_rays, query_ray_directions, select_origins
+from occplug.data import OCC3D_GRID, Batch
+from occplug.data.synthetic import LIDAR_TO_EGO, build_scene, preset, voxel_labels
+from occplug.geometry import first_hits, invert_pose
+from occplug.metrics import RayIoU, cast_query_rays, query_ray_directions, select_origins
 
 FREE = 17
 

@@ -38,9 +38,8 @@ from pathlib import Path
 
 import torch
 
-from occplug.components import BackwardProjection
-from occplug.components.view_transforms import depth_bin_centers
-from occplug.data.synthetic.render import camera_rig
+from occplug.components import BackwardProjection, depth_bin_centers
+from occplug.data.synthetic import camera_rig
 from occplug.geometry import GridSpec
 from occplug.ops import FrustumSplatter, splat, splat_outer, splat_points
 

@@ -21,11 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from occplug.data.classes import OCC3D_CLASSES, OCC3D_FREE
+from occplug.data import OCC3D_CLASSES, OCC3D_FREE
 from occplug.geometry import GridSpec
-from occplug.viz.cameras import occupancy_in_cameras
-from occplug.viz.render3d import default_view, render_voxels
-from occplug.viz.style import Palette
+from occplug.viz import Palette, default_view, occupancy_in_cameras, render_voxels
 
 GRID = GridSpec((-40.0, -40.0, -1.0, 40.0, 40.0, 5.4), 0.4)
 C = {name: i for i, name in enumerate(OCC3D_CLASSES)}
@@ -111,7 +109,7 @@ def main() -> None:
     stats = f"(median of {args.repeat}; best {best:.2f} s; cpu {cpu:.2f} s)"
     print(f"3D view {width}x{height}: {med:.2f} s per view {stats}")
     # six nuScenes-like cameras at the Occ3D preset's image size, as the sample panel casts them
-    from occplug.data.synthetic.render import camera_rig
+    from occplug.data.synthetic import camera_rig
 
     _, k, cam_to_ego = camera_rig(6, (256, 704))
     med, best, cpu = timed(lambda: occupancy_in_cameras(labels, GRID, palette, k, cam_to_ego, (256, 704)), args.repeat)

@@ -13,7 +13,7 @@ import argparse
 
 import torch
 
-from occplug.data.frame import collate_frames
+from occplug.data import collate_frames
 from occplug.data.synthetic import SyntheticDataModule
 from occplug.metrics import Occ3DMIoU
 

@@ -1,17 +1,13 @@
-"""The detector's k-means anchors (the public code's anchor generator) and scripts/duocc_anchors.py."""
-
-import importlib.util
-from pathlib import Path
+"""The detector's k-means anchors (the public code's anchor generator) and occplug_duocc.fit_anchors."""
 
 import pytest
 import torch
 import yaml
 
 from occplug import runner
+from occplug_duocc import fit_anchors
 from occplug_duocc.anchors import kmeans, kmeans_anchors
 from occplug_duocc.detector import SparseDetector
-
-ROOT = Path(__file__).resolve().parents[3]
 
 
 def test_kmeans_recovers_separated_clusters_deterministically():
@@ -56,12 +52,9 @@ def test_detector_starts_at_the_given_centres_and_names_a_count_mismatch():
         SparseDetector(num_classes=3, channels=32, num_queries=8, num_temporal=2, anchor_centres=centres)
 
 
-def test_script_writes_an_overlay_the_full_model_starts_from(tmp_path, capsys):
-    spec = importlib.util.spec_from_file_location("duocc_anchors", ROOT / "scripts" / "duocc_anchors.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+def test_fit_anchors_writes_an_overlay_the_full_model_starts_from(tmp_path, capsys):
     out = tmp_path / "anchors.yaml"
-    assert script.main(["-c", "duocc/full", "data.preset=tiny", "--queries", "30", "--out", str(out)]) == 0
+    assert fit_anchors.main(["-c", "duocc/full", "data.preset=tiny", "--queries", "30", "--out", str(out)]) == 0
     detector = yaml.safe_load(out.read_text())["model"]["scene"]["query_agg"]["detector"]
     assert detector["num_queries"] == 30 and len(detector["anchor_centres"]) == 30
     cfg = runner.load_config(["duocc/full", str(out)], ["data.preset=tiny"])
@@ -74,5 +67,5 @@ def test_script_writes_an_overlay_the_full_model_starts_from(tmp_path, capsys):
     assert bool(((anchors[:, 2] > 0.0) & (anchors[:, 2] < 3.0)).all())
     # a user mistake is one line and exit code 2, nothing written
     bad = tmp_path / "bad.yaml"
-    assert script.main(["-c", "duocc/stream_agg", "data.preset=tiny", "--out", str(bad)]) == 2
+    assert fit_anchors.main(["-c", "duocc/stream_agg", "data.preset=tiny", "--out", str(bad)]) == 2
     assert "has no DuOcc detector" in capsys.readouterr().err and not bad.exists()

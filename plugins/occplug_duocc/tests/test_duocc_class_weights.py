@@ -1,17 +1,13 @@
-"""The public code's occupancy CE class weights (5 / ln f, free halved) and scripts/duocc_class_weights.py."""
-
-import importlib.util
-from pathlib import Path
+"""The public code's occupancy CE class weights (5 / ln f, free halved) and occplug_duocc.fit_class_weights."""
 
 import pytest
 import torch
 import yaml
 
 from occplug import runner
-from occplug.data.stats import class_counts, inverse_log_weights
+from occplug.data import class_counts, inverse_log_weights
+from occplug_duocc import fit_class_weights
 from occplug_duocc.class_weights import duocc_class_weights
-
-ROOT = Path(__file__).resolve().parents[3]
 
 # fmt: off
 #: Occ3D-nuScenes voxels per class (others .. vegetation, free): the ``nusc_class_frequencies`` of the
@@ -46,12 +42,9 @@ def test_inverse_log_weights_refuses_normalised_frequencies():
         inverse_log_weights([0.7, 0.3])
 
 
-def test_script_writes_the_weights_of_the_training_split(tmp_path, capsys):
-    spec = importlib.util.spec_from_file_location("duocc_class_weights", ROOT / "scripts" / "duocc_class_weights.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+def test_fit_class_weights_writes_the_weights_of_the_training_split(tmp_path, capsys):
     out = tmp_path / "weights.yaml"
-    assert script.main(["-c", "duocc/stream_agg", "data.preset=tiny", "--out", str(out)]) == 0
+    assert fit_class_weights.main(["-c", "duocc/stream_agg", "data.preset=tiny", "--out", str(out)]) == 0
     written = yaml.safe_load(out.read_text())["model"]["supervision"]["occupancy"]["class_weights"]
     cfg = runner.load_config(["duocc/stream_agg", str(out)], ["data.preset=tiny"])
     dm = runner.build_datamodule(cfg)
@@ -61,5 +54,8 @@ def test_script_writes_the_weights_of_the_training_split(tmp_path, capsys):
     assert cfg["model"]["supervision"]["occupancy"]["class_weights"] == written
     # a user mistake is one line and exit code 2, nothing written
     bad = tmp_path / "bad.yaml"
-    assert script.main(["-c", "duocc/stream_agg", "data.preset=tiny", "--source", "depth", "--out", str(bad)]) == 2
+    assert (
+        fit_class_weights.main(["-c", "duocc/stream_agg", "data.preset=tiny", "--source", "depth", "--out", str(bad)])
+        == 2
+    )
     assert "expected a voxel_ce source" in capsys.readouterr().err and not bad.exists()

@@ -1,4 +1,4 @@
-"""The streamed detector mAP that ablate_duocc.py and duocc_detector_overfit.py report, on the tiny world."""
+"""The streamed detector mAP that occplug_duocc.ablate and occplug_duocc.detector_overfit report, on the tiny world."""
 
 from types import SimpleNamespace
 

@@ -6,7 +6,7 @@ current ego frame, as the query source does) are voxelised on the evaluation gri
 share of points inside the grid and inside the current frame's camera mask, and how many occupied camera-visible
 voxels (what Sem./Occ. IoU and RayIoU score) the adjacent frames reach that the current frame's points miss.
 
-    python scripts/queryocc_window_coverage.py [--batches 6]
+    python -m occplug_queryocc.window_coverage [--batches 6]
 """
 
 from __future__ import annotations
@@ -16,11 +16,16 @@ import argparse
 import torch
 
 from occplug.runner import build_datamodule, load_config
-from occplug_queryocc.query_supervision import supervision_points
+
+from .supervision import supervision_points
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m occplug_queryocc.window_coverage",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--batches", type=int, default=6)
     args = parser.parse_args()
     dm = build_datamodule(load_config(["queryocc/base"], []))

@@ -5,14 +5,15 @@ the same budget, evaluated on the validation split's voxel labels, and printed a
 (mean ± std over the seeds): Sem. / Dyn. / Occ. RayIoU and Sem. / Occ. IoU (camera mask), plus the
 semantic scores without ``others`` (a class the pseudo taxonomy cannot express)::
 
-    python scripts/ablate_queryocc.py                              # 3 seeds, every row, default world
-    python scripts/ablate_queryocc.py --rows base render_only      # the supervision rows only
-    python scripts/ablate_queryocc.py --seeds 0 --preset tiny --epochs 1   # a smoke run
+    python -m occplug_queryocc.ablate                              # 3 seeds, every row, default world
+    python -m occplug_queryocc.ablate --rows base render_only      # the supervision rows only
+    python -m occplug_queryocc.ablate --seeds 0 --preset tiny --epochs 1   # a smoke run
 
 The constant-class row predicts every voxel below 1 m as the most frequent occupied class the training
 labels have there (the road) and free above (a floor any trained model must clear). Pass/fail is printed only
 for the paper's large effects: query >> render-only, and both well above the constant-class row.
-A finished run directory is reused, so an interrupted ablation continues where it stopped.
+Results go to ``--out`` (default ``runs/queryocc_ablate``): one run directory per row and seed, and
+``table.json``. A finished run directory is reused, so an interrupted ablation continues where it stopped.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import sys
 import time
 from pathlib import Path
 
-from occplug.bench import mean_std
+from occplug.bench import mean_std, write_table_seeds
 
 ROWS = {
     "base": "query (pseudo points, T = {-1, 0, 1})",
@@ -112,13 +113,20 @@ def constant_class(preset: str) -> dict[str, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m occplug_queryocc.ablate",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
     parser.add_argument("--epochs", type=int, default=4, help="trainer.max_epochs of every run (the CPU budget)")
     parser.add_argument("--preset", default="default", help="synthetic world preset (default: default)")
     parser.add_argument("--set", nargs="*", default=[], help="extra key=value overrides for every run")
-    parser.add_argument("--out", default="runs/ablate_queryocc")
+    parser.add_argument("--out", default="runs/queryocc_ablate")
+    parser.add_argument(
+        "--results", help="also write each row's numbers per seed as small JSONs here (commit them beside RESULTS.md)"
+    )
     args = parser.parse_args()
     start = time.monotonic()
     rows: dict[str, dict[str, list[float]]] = {}
@@ -154,6 +162,11 @@ def main() -> None:
     (Path(args.out) / "table.json").write_text(
         json.dumps({"args": vars(args), "rows": rows, "constant_class": floor}, indent=2) + "\n"
     )
+    if args.results:
+        by_name = {name: rows[ROWS[name]] for name in args.rows}
+        write_table_seeds(
+            args.results, by_name, args.seeds, {"epochs": args.epochs, "preset": args.preset, "set": args.set}
+        )
 
 
 if __name__ == "__main__":

@@ -7,10 +7,10 @@ code; it uses 42 m; default: the centre inside the config's grid in x and y), an
 ``anchor_centres`` (k-means of the centres, k = the detector's ``num_queries`` or ``--queries``) and
 ``anchor_size`` (the mean box size)::
 
-    python scripts/duocc_anchors.py -c duocc/full --out anchors.yaml
+    python -m occplug_duocc.fit_anchors -c duocc/full --out anchors.yaml
     occplug fit -c duocc/full -c anchors.yaml
 
-``duocc/full`` ships the overlay this script wrote for the synthetic ``default`` world
+``duocc/full`` ships the overlay this module wrote for the synthetic ``default`` world
 (``duocc/anchors/synthetic``); for real data, run it on your recipe (e.g. ``-c duocc/occ3d_nuscenes``, 900
 queries). It reads whole frames (images too): every frame of a synthetic world is rendered once (then cached), and
 on real data this takes as long as one pass over the training split. ``duocc/full`` with another world or grid
@@ -52,7 +52,11 @@ def training_boxes(cfg: dict, classes: list[int], max_distance: float | None) ->
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m occplug_duocc.fit_anchors",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("-c", "--config", action="append", required=True, help="config(s), composed in order")
     parser.add_argument("overrides", nargs="*", help="key=value overrides")
     parser.add_argument("--queries", type=int, default=None, help="anchors to make (default: the detector's)")
@@ -60,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="k-means++ seed")
     parser.add_argument("--out", type=Path, required=True, help="the config overlay to write (YAML)")
     args = parser.parse_args(argv)
-    from occplug_duocc.anchors import kmeans_anchors
+    from .anchors import kmeans_anchors
 
     try:
         cfg = runner.load_config(args.config, args.overrides)
@@ -79,8 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     centres, size = kmeans_anchors(boxes, k, seed=args.seed)
     where = f"within {args.max_distance:g} m" if args.max_distance is not None else "inside the grid"
     header = (
-        f"# DuOcc detector anchors (scripts/duocc_anchors.py): k-means (k={k}, seed {args.seed}) of {boxes.shape[0]}\n"
-        f"# ego-frame centres of the training boxes {where}, classes {list(agg['detection_classes'])};\n"
+        f"# DuOcc detector anchors (python -m occplug_duocc.fit_anchors): k-means (k={k}, seed {args.seed}) of\n"
+        f"# {boxes.shape[0]} ego-frame centres of the training boxes {where}, classes {list(agg['detection_classes'])};\n"
         f"# size = the mean box size. Made from: -c {' -c '.join(args.config)} {' '.join(args.overrides)}\n"
     )
     body = {

@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """Benchmark OccLE's building blocks (``occplug_occle``), one section per function.
 
 Sections:
@@ -26,7 +25,7 @@ Sections:
 
 Another section is one more ``bench_<name>(args)`` function and one entry in ``SECTIONS``.
 
-Usage: ``python scripts/bench_occle.py [--section scan|geometry|all] [--length 4096 --dim 64 --state 16 --batch 2]
+Usage: ``python -m occplug_occle.bench [--section scan|geometry|all] [--length 4096 --dim 64 --state 16 --batch 2]
 [--grid 32 32 8 --channels 32 --grid-batch 1] [--repeats 3] [--device cpu|cuda] [--dtype float32|float64]
 [--chunk-size 64] [--within steps|segsum]``. Set ``OMP_NUM_THREADS`` for a fixed CPU thread count.
 """
@@ -41,8 +40,8 @@ from collections.abc import Callable
 import torch
 import torch.nn.functional as F
 
-from occplug_occle.geometry_branch import Conv3dDeformableBaseline, CrossPlaneGeometryBranch
-from occplug_occle.selective_scan import _mamba_ssm_kernel, _scan_mamba_ssm, selective_scan_chunked, selective_scan_ref
+from .geometry_branch import Conv3dDeformableBaseline, CrossPlaneGeometryBranch
+from .selective_scan import _mamba_ssm_kernel, _scan_mamba_ssm, selective_scan_chunked, selective_scan_ref
 
 
 def _time(fn: Callable[[], torch.Tensor], repeats: int, device: torch.device) -> tuple[list[float], torch.Tensor]:
@@ -154,7 +153,7 @@ SECTIONS: dict[str, Callable[[argparse.Namespace], None]] = {"scan": bench_scan,
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m occplug_occle.bench", description=__doc__.split("\n\n")[0])
     parser.add_argument("--section", choices=[*SECTIONS, "all"], default="all")
     parser.add_argument("--length", type=int, default=4096, help="sequence length L")
     parser.add_argument("--dim", type=int, default=64, help="channels D")

@@ -21,13 +21,14 @@ budget and evaluated on the validation split (camera mask), printed as mean ± s
 The expected direction (paper: B > A; D > B with the gain mostly on dynamic classes) is printed as a check, not
 tuned for::
 
-    python scripts/ablate_duocc.py                                   # 3 seeds, Tab. 4's rows, default world
-    python scripts/ablate_duocc.py --rows single_frame stream_warp_only stream_refine stream_refine_forecast stream_agg
-    python scripts/ablate_duocc.py --rows stream_agg full --seeds 0 1 2
-    python scripts/ablate_duocc.py --seeds 0 --preset tiny --epochs 1 --set trainer.max_steps=4   # a smoke run
+    python -m occplug_duocc.ablate                                   # 3 seeds, Tab. 4's rows, default world
+    python -m occplug_duocc.ablate --rows single_frame stream_warp_only stream_refine stream_refine_forecast stream_agg
+    python -m occplug_duocc.ablate --rows stream_agg full --seeds 0 1 2
+    python -m occplug_duocc.ablate --seeds 0 --preset tiny --epochs 1 --set trainer.max_steps=4   # a smoke run
 
+Results go to ``--out`` (default ``runs/duocc_ablate``): one run directory per row and seed, and ``table.json``.
 A finished run directory (its ``metrics.json``) is reused, so an interrupted ablation continues where it stopped;
-one whose saved config differs from what the recipe and ``--set`` compose now stops the script (a fresh ``--out``).
+one whose saved config differs from what the recipe and ``--set`` compose now stops the ablation (a fresh ``--out``).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ import sys
 import time
 from pathlib import Path
 
-from occplug.bench import mean_std
+from occplug.bench import mean_std, write_table_seeds
 
 #: row -> (config stem trained, table label). ``full_gt_boxes`` evaluates ``full``'s runs.
 ROWS = {
@@ -129,7 +130,8 @@ def detection_map_of(run: Path, gt_boxes: bool) -> float:
     import yaml
 
     from occplug import runner
-    from occplug_duocc.detection_eval import stream_detection_map
+
+    from .detection_eval import stream_detection_map
 
     saved = yaml.safe_load((run / "config.yaml").read_text())
     cfg = runner.load_config([], [GT_OVERRIDE] if gt_boxes else [], saved=saved)
@@ -149,7 +151,9 @@ def mean(values: list[float]) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m occplug_duocc.ablate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--rows", nargs="+", default=DEFAULT_ROWS, choices=list(ROWS))
     parser.add_argument("--epochs", type=int, default=8, help="trainer.max_epochs of every run (the CPU budget)")
@@ -158,7 +162,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="latency / training rounds of the benchmark")
     parser.add_argument("--device", default="cpu", help="benchmark device: cpu | cuda | auto")
     parser.add_argument("--no-bench", action="store_true", help="skip latency and memory")
-    parser.add_argument("--out", default="runs/ablate_duocc")
+    parser.add_argument("--out", default="runs/duocc_ablate")
+    parser.add_argument(
+        "--results", help="also write each row's numbers per seed as small JSONs here (commit them beside RESULTS.md)"
+    )
     args = parser.parse_args()
     start = time.monotonic()
     table: dict[str, dict[str, list[float]]] = {}
@@ -230,6 +237,10 @@ def main() -> None:
     (Path(args.out) / "table.json").write_text(
         json.dumps({"args": vars(args), "rows": table, "bench": bench}, indent=2) + "\n"
     )
+    if args.results:
+        write_table_seeds(
+            args.results, table, args.seeds, {"epochs": args.epochs, "preset": args.preset, "set": args.set}
+        )
 
 
 if __name__ == "__main__":

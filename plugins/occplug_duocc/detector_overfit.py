@@ -8,9 +8,9 @@ both come from ``detection_targets``, so an error shared by both could still be 
 unseen validation frames is what shows the boxes line up with the images). One that fits its frames but not the
 validation split is limited by data and budget::
 
-    python scripts/duocc_detector_overfit.py                       # the first 12 training batches, 40 passes
-    python scripts/duocc_detector_overfit.py --batches 4 --passes 60 --set data.num_cameras=1
-    python scripts/duocc_detector_overfit.py --run runs/ablate_duocc/full-seed0 --batches 48
+    python -m occplug_duocc.detector_overfit                       # the first 12 training batches, 40 passes
+    python -m occplug_duocc.detector_overfit --batches 4 --passes 60 --set data.num_cameras=1
+    python -m occplug_duocc.detector_overfit --run runs/duocc_ablate/full-seed0 --batches 48
 
 ``--run`` evaluates a trained run's last checkpoint on the first training and validation batches, training
 nothing: a detector that scores far higher on its training frames than on the validation split has memorised
@@ -34,7 +34,8 @@ from occplug import runner
 from occplug.data import OCC3D_CLASSES
 from occplug.streams import find_streams, set_stream_stage
 from occplug.training import build_optimizer
-from occplug_duocc.detection_eval import stream_detection_map
+
+from .detection_eval import stream_detection_map
 
 
 def detector_map(model, batches: list, stage: str) -> dict:
@@ -51,7 +52,11 @@ def per_class(result: dict) -> dict[str, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m occplug_duocc.detector_overfit",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("-c", "--config", default="duocc/det_only")
     parser.add_argument("--batches", type=int, default=12, help="training batches to fit (the first, in order)")
     parser.add_argument("--passes", type=int, default=40, help="passes over those batches")

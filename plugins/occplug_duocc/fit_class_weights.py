@@ -4,10 +4,10 @@ Counts the voxel labels of a config's training split (``occplug data stats``'s c
 ``nusc_class_frequencies``; ``--mask camera`` counts camera-visible ones only) and writes a config overlay that
 sets ``model.supervision.<source>.class_weights`` (``occupancy``: the recipes' ``voxel_ce``)::
 
-    python scripts/duocc_class_weights.py -c duocc/stream_agg --out weights.yaml
+    python -m occplug_duocc.fit_class_weights -c duocc/stream_agg --out weights.yaml
     occplug fit -c duocc/stream_agg -c weights.yaml
 
-The synthetic recipes ship the overlay this script wrote for the ``default`` world
+The synthetic recipes ship the overlay this module wrote for the ``default`` world
 (``duocc/class_weights/synthetic``); ``duocc/occ3d_nuscenes`` carries the code's own nuScenes values. A class
 absent from the split gets the largest weight of the others (:func:`occplug_duocc.class_weights.duocc_class_weights`).
 """
@@ -25,15 +25,20 @@ from occplug.config import ConfigError
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m occplug_duocc.fit_class_weights",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("-c", "--config", action="append", required=True, help="config(s), composed in order")
     parser.add_argument("overrides", nargs="*", help="key=value overrides")
     parser.add_argument("--mask", default="none", choices=["none", "camera"], help="voxels counted (default: every)")
     parser.add_argument("--source", default="occupancy", help="the supervision source to weight (default: occupancy)")
     parser.add_argument("--out", type=Path, required=True, help="the config overlay to write (YAML)")
     args = parser.parse_args(argv)
-    from occplug.data.stats import class_counts
-    from occplug_duocc.class_weights import duocc_class_weights
+    from occplug.data import class_counts
+
+    from .class_weights import duocc_class_weights
 
     try:
         cfg = runner.load_config(args.config, args.overrides)
@@ -52,8 +57,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     header = (
-        f"# DuOcc occupancy CE class weights (scripts/duocc_class_weights.py): 5 / ln(f) per class, free halved, the\n"
-        f"# public code's rule; f = voxels per class ({args.mask} mask) over {counts.frames} training frames:\n"
+        f"# DuOcc occupancy CE class weights (python -m occplug_duocc.fit_class_weights): 5 / ln(f) per class, free\n"
+        f"# halved, the public code's rule; f = voxels per class ({args.mask} mask) over {counts.frames} training frames:\n"
         f"# {[int(c) for c in counts.counts]}\n"
         f"# Made from: {' '.join(['-c ' + c for c in args.config] + list(args.overrides))}\n"
     )

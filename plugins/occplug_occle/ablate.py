@@ -4,10 +4,10 @@ Each row is one shipped config (``occle/<row>``) trained per seed in its own ``o
 budget and evaluated on the validation split (camera mask): mIoU and IoU of the final phase, plus mIoU of the
 semantic branch's ``S`` (Phase I) for Tab. 3 and IoU of the geometric branch's ``G`` for Tab. 4(a)::
 
-    python scripts/ablate_occle.py                                  # 3 seeds, every row, default world
-    python scripts/ablate_occle.py --rows three_phase_10pct baseline_10pct full_100pct   # the pass/fail rows
-    python scripts/ablate_occle.py --dry-run                        # the planned runs and optimizer steps
-    python scripts/ablate_occle.py --seeds 0 --preset tiny --epochs 0.02 --rows three_phase_10pct baseline_10pct
+    python -m occplug_occle.ablate                                  # 3 seeds, every row, default world
+    python -m occplug_occle.ablate --rows three_phase_10pct baseline_10pct full_100pct   # the pass/fail rows
+    python -m occplug_occle.ablate --dry-run                        # the planned runs and optimizer steps
+    python -m occplug_occle.ablate --seeds 0 --preset tiny --epochs 0.02 --rows three_phase_10pct baseline_10pct
 
 Pass/fail (printed when the rows ran): OccLE at 10 % labels (``three_phase_10pct``) beats the stated baseline at
 10 % (``baseline_10pct``: Tab. 4(b)'s "Baseline", OccLE with its semantic branch, geometric branch and projection
@@ -38,7 +38,7 @@ of the row that finished already answers for it. ``--until semantic --rows three
 Tab. 3 (mIoU of ``S``) at Phase I's cost; the pipeline's columns are then left empty.
 
 ``--val-scenes N`` evaluates on N validation scenes (the ``default`` world holds 4 x 6 frames; more lowers the
-spread between seeds). Results go to ``--out`` (default ``runs/ablate_occle``): one run directory per row and
+spread between seeds). Results go to ``--out`` (default ``runs/occle_ablate``): one run directory per row and
 seed, and ``table.json`` (``table-until-<phase>.json`` with ``--until``). A finished run directory is reused,
 so an interrupted ablation continues where it stopped.
 """
@@ -57,7 +57,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from occplug.bench import mean_std
+from occplug.bench import mean_std, write_table_seeds
 
 #: Row name (the config ``occle/<name>``) -> its label in the tables.
 ROWS = {
@@ -125,7 +125,7 @@ _EPOCHS: dict[str, dict[str, int]] = {}
 def base_epochs(name: str) -> dict[str, int]:
     """``{phase: trainer.max_epochs}`` of the shipped config."""
     if name not in _EPOCHS:
-        from occplug.config.phases import phase_specs
+        from occplug.config import phase_specs
         from occplug.runner import load_config
 
         cfg = load_config([f"occle/{name}"])
@@ -155,7 +155,7 @@ def run_folder(name: str, seed: int, args: argparse.Namespace) -> Path:
 
 def specs(name: str, seed: int, args: argparse.Namespace) -> tuple[dict[str, Any], list[Any]]:
     """The resolved run config of a row and its phases."""
-    from occplug.config.phases import phase_specs
+    from occplug.config import phase_specs
     from occplug.runner import load_config
 
     cfg = load_config([f"occle/{name}"], overrides(name, seed, args))
@@ -264,8 +264,8 @@ def run(name: str, seed: int, args: argparse.Namespace) -> dict:
 
 def planned_steps(name: str, args: argparse.Namespace) -> dict[str, int]:
     """``{phase: optimizer steps}`` of a row on the synthetic world (before any reuse)."""
-    from occplug.data.label_fraction import LabelCut
-    from occplug.data.synthetic.config import preset
+    from occplug.data import LabelCut
+    from occplug.data.synthetic import preset
 
     cfg, phases = specs(name, args.seeds[0], args)
     world = preset(args.preset)
@@ -293,14 +293,19 @@ def dry_run(args: argparse.Namespace) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m occplug_occle.ablate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
     parser.add_argument("--epochs", type=float, default=1.0, help="scale every phase's max_epochs (the CPU budget)")
     parser.add_argument("--preset", default="default", help="synthetic world preset (default: default)")
     parser.add_argument("--val-scenes", type=int, default=None, help="validation scenes (default: the preset's)")
     parser.add_argument("--set", nargs="*", default=[], help="extra key=value overrides for every run")
-    parser.add_argument("--out", default="runs/ablate_occle")
+    parser.add_argument("--out", default="runs/occle_ablate")
+    parser.add_argument(
+        "--results", help="also write each row's numbers per seed as small JSONs here (commit them beside RESULTS.md)"
+    )
     parser.add_argument("--until", help="train each row's phases up to and including this one (e.g. semantic: Tab. 3)")
     parser.add_argument("--dry-run", action="store_true", help="print the planned optimizer steps and stop")
     args = parser.parse_args()
@@ -403,6 +408,9 @@ def main() -> None:
     rows = {n: {k: [v if v == v else None for v in vs] for k, vs in cols.items()} for n, cols in table.items()}
     file = "table.json" if args.until is None else f"table-until-{args.until}.json"  # beside the whole runs' table
     (Path(args.out) / file).write_text(json.dumps({"args": vars(args), "rows": rows}, indent=2) + "\n")
+    if args.results:
+        settings = {"epochs_scale": args.epochs, "preset": args.preset, "val_scenes": args.val_scenes, "set": args.set}
+        write_table_seeds(args.results, table, args.seeds, {**settings, "until": args.until})
 
 
 if __name__ == "__main__":

@@ -1,12 +1,12 @@
 """How V_fin's magnitude evolves along a stream: DuOcc's StreamAgg diagnostics on a trained run.
 
 For each run directory, the validation split is read in order (the stream state carried as in evaluation) and the
-script prints, per position in the scene (frame 0 = the reset frame), the mean L2 norm of ``V_curr`` (this frame's
+module prints, per position in the scene (frame 0 = the reset frame), the mean L2 norm of ``V_curr`` (this frame's
 lifted volume) and of ``V_S.A`` (after the stream fusion, what the next frame's history is in B). With the paper's
 Eq. 5 (``V_S.A = RefineNet(warp(V_fin)) + V_curr``, RefineNet residual) the fused volume is a running sum over the
 stream; with the public code's concat + GroupNorm fusion it stays bounded::
 
-    python scripts/duocc_history_norm.py runs/ablate_duocc/stream_agg-seed0 runs/ablate_duocc/stream_agg_concat-seed0
+    python -m occplug_duocc.history_norm runs/duocc_ablate/stream_agg-seed0 runs/duocc_ablate/stream_agg_concat-seed0
 """
 
 from __future__ import annotations
@@ -61,7 +61,11 @@ def norms_along_stream(run: Path, max_batches: int) -> dict[int, tuple[float, fl
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m occplug_duocc.history_norm",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("runs", nargs="+", type=Path, help="run directories of duocc_stream models")
     parser.add_argument("--batches", type=int, default=12, help="validation batches read (in order)")
     args = parser.parse_args()

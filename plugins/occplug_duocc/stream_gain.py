@@ -1,14 +1,14 @@
 """Accuracy by position in the scene: how much a streamed model's history is worth as the stream grows.
 
 For each run directory, the validation split is read in order (the stream state carried as in evaluation, reset at
-each scene start) and the script keeps one confusion matrix per position in the scene (frame 0 = the reset frame,
+each scene start) and the module keeps one confusion matrix per position in the scene (frame 0 = the reset frame,
 where a streamed model has no history). It prints the run's own metric (the first of ``metrics``, with its evaluation
 mask) per position bucket, so a single-frame run and a streamed run can be compared where the stream is short and
 where it is long. ``--set`` overrides apply to every run, e.g. longer or more validation scenes, or the stream cut
 at every frame (``model.scene.max_gap_s=0.01``). The first metric must keep a confusion matrix (``occ3d_miou``); the
 whole validation split is read (``trainer.limit_val_batches`` does not apply)::
 
-    python scripts/stream_gain_by_frame.py runs/a-seed0 runs/b-seed0 --set data.frames_per_scene=12 data.val_scenes=8
+    python -m occplug_duocc.stream_gain runs/a-seed0 runs/b-seed0 --set data.frames_per_scene=12 data.val_scenes=8
 """
 
 from __future__ import annotations
@@ -22,8 +22,7 @@ from pathlib import Path
 import torch
 
 from occplug import runner
-from occplug.metrics.base import evaluation_mask
-from occplug.metrics.miou import confusion_matrix
+from occplug.metrics import confusion_matrix, evaluation_mask
 from occplug.streams import find_streams, set_stream_stage
 
 KEYS = ("mIoU", "mIoU_dynamic", "mIoU_static", "IoU")
@@ -106,7 +105,11 @@ def results_by_position(run: Path, overrides: list[str], buckets: list[tuple[int
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m occplug_duocc.stream_gain",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("runs", nargs="+", type=Path, help="run directories (each with checkpoints/last.ckpt)")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="overrides for every run")
     parser.add_argument(

@@ -19,12 +19,12 @@ three equal-memory planes are trained with ``occplug fit -c queryocc/base`` and 
 labels, pseudo points, ``--epochs`` epochs), each in its own process; any finished run directory of a (range,
 plane) in ``--out`` is scored (mean over its seeds).
 
-    python scripts/bench_queryocc.py                                    # R = 50..200 m; accuracy at 50 and 200
-    python scripts/bench_queryocc.py --ranges 50 --train-ranges 50 --epochs 1   # a smoke run
-    python scripts/bench_queryocc.py --train-ranges                     # time and memory only
+    python -m occplug_queryocc.bench                                    # R = 50..200 m; accuracy at 50 and 200
+    python -m occplug_queryocc.bench --ranges 50 --train-ranges 50 --epochs 1   # a smoke run
+    python -m occplug_queryocc.bench --train-ranges                     # time and memory only
 
 The ``long_range`` world is generated once (about 25 s per frame per core; 44 frames) into the world cache.
-A finished run directory is reused.
+Results go to ``--out`` (default ``runs/queryocc_bench``); a finished run directory is reused.
 """
 
 from __future__ import annotations
@@ -100,7 +100,11 @@ def train(variant: str, r: float, seed: int, args: argparse.Namespace) -> Path:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m occplug_queryocc.bench",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument(
         "--ranges", type=float, nargs="+", default=[50.0, 100.0, 150.0, 200.0], help="supervised ranges R (m)"
     )
@@ -115,7 +119,7 @@ def main() -> None:
     parser.add_argument("--epochs", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=3, help="latency and training rounds per model")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--out", default="runs/bench_queryocc")
+    parser.add_argument("--out", default="runs/queryocc_bench")
     args = parser.parse_args()
 
     from occplug.bench import BenchSettings, resolve_target, run_bench
