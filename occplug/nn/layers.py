@@ -6,7 +6,7 @@ import math
 
 from torch import Tensor, nn
 
-__all__ = ["BasicBlock2d", "BasicBlock3d", "ConvNormAct2d", "PixelNet", "norm_layer"]
+__all__ = ["BasicBlock2d", "BasicBlock3d", "ConvNormAct2d", "ConvNormAct3d", "PixelNet", "norm_layer"]
 
 
 def norm_layer(kind: str, channels: int, dims: int = 2) -> nn.Module:
@@ -25,17 +25,55 @@ def norm_layer(kind: str, channels: int, dims: int = 2) -> nn.Module:
     raise ValueError(f"norm must be 'batch' or 'group', got {kind!r}")
 
 
-class ConvNormAct2d(nn.Sequential):
-    """``Conv2d (no bias) -> norm -> ReLU``; ``kernel`` odd, "same" padding, optional stride."""
+class _ConvNormAct(nn.Sequential):
+    """``conv (no bias) -> norm -> activation`` in 2D or 3D; its parameters are ``0.*`` (conv) and ``1.*`` (norm)."""
 
     def __init__(
-        self, in_channels: int, out_channels: int, kernel: int = 3, stride: int = 1, norm: str = "batch"
+        self, in_channels: int, out_channels: int, kernel: int, stride: int, norm: str, act: str, dims: int
     ) -> None:
+        if act not in ("relu", "silu"):
+            raise ValueError(f"act must be 'relu' or 'silu', got {act!r}")
+        conv = nn.Conv2d if dims == 2 else nn.Conv3d
         super().__init__(
-            nn.Conv2d(in_channels, out_channels, kernel, stride=stride, padding=kernel // 2, bias=False),
-            norm_layer(norm, out_channels, 2),
-            nn.ReLU(inplace=True),
+            conv(in_channels, out_channels, kernel, stride=stride, padding=kernel // 2, bias=False),
+            norm_layer(norm, out_channels, dims),
+            nn.ReLU(inplace=True) if act == "relu" else nn.SiLU(),
         )
+
+
+class ConvNormAct2d(_ConvNormAct):
+    """``Conv2d (no bias) -> norm -> ReLU`` (or SiLU) on ``(B, C, H, W)``; ``kernel`` odd, "same" padding, optional stride.
+
+    Args:
+        in_channels, out_channels: channels; kernel: odd kernel size; stride: of the convolution;
+        norm: ``"batch"`` or ``"group"`` (:func:`norm_layer`); act: ``"relu"`` or ``"silu"``.
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel: int = 3,
+        stride: int = 1,
+        norm: str = "batch",
+        act: str = "relu",
+    ) -> None:
+        super().__init__(in_channels, out_channels, kernel, stride, norm, act, dims=2)
+
+
+class ConvNormAct3d(_ConvNormAct):
+    """``Conv3d (no bias) -> norm -> ReLU`` (or SiLU) on ``(B, C, X, Y, Z)``; arguments as :class:`ConvNormAct2d`."""
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel: int = 3,
+        stride: int = 1,
+        norm: str = "batch",
+        act: str = "relu",
+    ) -> None:
+        super().__init__(in_channels, out_channels, kernel, stride, norm, act, dims=3)
 
 
 class _BasicBlock(nn.Module):

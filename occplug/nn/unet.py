@@ -1,25 +1,35 @@
-"""Small dense UNets for OccLE's semantic branch (§3.2): ``G_s2d`` on images and a 3D UNet on voxel grids.
+"""Small dense UNets on 2D maps ``(B, C, H, W)`` and 3D grids ``(B, C, X, Y, Z)``, with a 1x1 per-cell header.
 
-The paper uses a UNet [Ronneberger et al.] for images and a sparse UNet3D (SECOND) on voxelised LiDAR; here
-both are dense and small enough for CPU tests. Each level is a core ResNet basic block
-(:class:`~occplug.nn.BasicBlock2d` / ``BasicBlock3d``); downsampling is a 2x max-pool (as the
-original UNet) and upsampling a nearest resize to the skip's size followed by a block on the concatenation.
+Each level is a ResNet basic block (:class:`~occplug.nn.BasicBlock2d` / ``BasicBlock3d``); downsampling is a 2x
+max-pool (as the original UNet, Ronneberger et al.) and upsampling a nearest resize to the skip's size followed by a
+block on the concatenation. Small enough for CPU tests.
 
-Downsampling is anisotropic: at every level an axis is halved only while it keeps at least ``min_size`` cells
-(length ``>= 2 * min_size``), otherwise it keeps stride 1. So a flat driving grid such as ``(64, 64, 8)``
-shrinks in x and y for longer than in z, and odd lengths are fine (pooling rounds up, upsampling restores the
-skip's exact size).
+Downsampling is anisotropic (:func:`halving_stride`): at every level an axis is halved only while it keeps at least
+``min_size`` cells (length ``>= 2 * min_size``), otherwise it keeps stride 1. So a flat driving grid such as
+``(64, 64, 8)`` shrinks in x and y for longer than in z, and odd lengths are fine (pooling rounds up, upsampling
+restores the skip's exact size).
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from occplug.nn import BasicBlock2d, BasicBlock3d
+from .layers import BasicBlock2d, BasicBlock3d
 
-__all__ = ["UNet2d", "UNet3d"]
+__all__ = ["UNet2d", "UNet3d", "halving_stride"]
+
+
+def halving_stride(size: Sequence[int], min_size: int) -> tuple[int, ...]:
+    """Per axis of a grid of ``size`` cells: 2 while the axis is at least ``2 * min_size`` long, else 1.
+
+    The stride (or pooling kernel) of an anisotropic downsampling that halves an axis only while it keeps
+    ``min_size`` cells, so a short axis (a driving grid's z) stops shrinking before the long ones.
+    """
+    return tuple(2 if s >= 2 * min_size else 1 for s in size)
 
 
 class _UNet(nn.Module):
@@ -50,7 +60,7 @@ class _UNet(nn.Module):
         self.head = conv(widths[0], num_classes, 1)
 
     def _pool(self, x: Tensor) -> Tensor:
-        kernel = tuple(2 if s >= 2 * self.min_size else 1 for s in x.shape[2:])
+        kernel = halving_stride(x.shape[2:], self.min_size)
         if all(k == 1 for k in kernel):
             return x
         pool = F.max_pool2d if self.dims == 2 else F.max_pool3d
@@ -76,19 +86,18 @@ class _UNet(nn.Module):
 
 
 class UNet2d(_UNet):
-    """Image UNet ``G_s2d`` with a 1x1 segmentation header: images -> per-pixel logits ``s`` (OccLE §3.2).
+    """2D UNet with a 1x1 segmentation header: images or feature maps -> per-pixel logits.
 
     Args:
         in_channels: input channels (3 for RGB).
-        num_classes: ``K`` classes of the aligned pseudo labels.
+        num_classes: ``K`` output channels (classes).
         base_channels: width of the first level; level ``i`` has ``base_channels * 2**i``.
         depth: number of 2x downsamplings (0: no downsampling).
         min_size: an axis is halved only while it keeps at least this many cells.
-        norm: ``"group"`` (default: independent of the batch size; the paper trains with batch size 1) or
-            ``"batch"``.
+        norm: ``"group"`` (default: independent of the batch size, so safe for batches of one) or ``"batch"``.
 
     Forward: ``(B, in_channels, H, W)`` -> ``(B, num_classes, H, W)`` logits, any ``H``, ``W``.
-    :meth:`features` gives the ``(B, base_channels, H, W)`` feature map ``F_I^s`` under the header.
+    :meth:`features` gives the ``(B, base_channels, H, W)`` feature map under the header.
     """
 
     def __init__(
@@ -104,7 +113,7 @@ class UNet2d(_UNet):
 
 
 class UNet3d(_UNet):
-    """Dense 3D UNet with a 1x1x1 header: voxel features -> per-voxel logits (OccLE §3.2's ``G_s3d``, dense).
+    """Dense 3D UNet with a 1x1x1 header: voxel features -> per-voxel logits.
 
     Args:
         in_channels: ``C`` of the input grid.

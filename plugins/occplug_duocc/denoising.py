@@ -46,7 +46,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .matching import SPARSE4D_REG_WEIGHTS, encode_boxes, linear_assignment
+from occplug.nn import linear_assignment
+
+from .matching import SPARSE4D_REG_WEIGHTS, encode_boxes
 
 __all__ = ["DN_NOISE_SCALE", "DenoisingQueries", "denoising_loss", "make_denoising_queries"]
 

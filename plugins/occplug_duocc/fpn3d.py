@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from occplug.constraints import Length, Positive
-from occplug.nn import BasicBlock3d
+from occplug.nn import BasicBlock3d, ConvNormAct3d
 
 __all__ = ["VoxelFPN3D"]
 
@@ -55,11 +55,7 @@ class VoxelFPN3D(nn.Module):
             stages.append(nn.Sequential(*blocks))
             c_in = int(c)
         self.stages = nn.ModuleList(stages)
-        self.compress = nn.Sequential(
-            nn.Conv3d(sum(int(c) for c in stage_channels), out_channels, 1, bias=False),
-            nn.BatchNorm3d(out_channels),
-            nn.ReLU(inplace=True),
-        )
+        self.compress = ConvNormAct3d(sum(int(c) for c in stage_channels), out_channels, 1)
         self.out_channels = int(out_channels)
 
     def forward(self, volume: Tensor, size: tuple[int, int, int]) -> Tensor:

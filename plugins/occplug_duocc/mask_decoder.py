@@ -19,7 +19,7 @@ What it does (``duocc-code-notes.md`` §4 "Auxiliary mask decoder"; the paper gi
 * Masks: ``mask_embed(q) . voxel_embed(V_fin)`` per voxel, with a 3-layer MLP ``mask_embed`` and
   ``voxel_embed = Linear -> Softplus -> Linear``; each group has its own class head (its classes + no-object).
 * Losses per group and layer, on the labelled, camera-visible voxels (the core's ``mask_camera``): Hungarian
-  matching (:func:`~occplug_duocc.matching.linear_assignment`) with the costs ``1 x (-p_class) + 20 x focal + 1
+  matching (:func:`occplug.nn.linear_assignment`) with the costs ``1 x (-p_class) + 20 x focal + 1
   x dice``, then CE over every query (no-object weight 0.1), sigmoid focal (alpha 0.25, gamma 2) on the matched
   masks x 20 and dice (eps 1) x 1. Every group is matched independently against the same ground truth
   (group-wise one-to-many); group 0 weighs 1, the others ``coarse_group_weight`` (code: ``1 / (G - 1)``, 1/5 at
@@ -57,12 +57,18 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from occplug.constraints import Length, NonNegative, Positive, Range, UnitInterval
-from occplug.data.frame import Batch
+from occplug.data import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces import ModelOutputs
+from occplug.nn import (
+    dice_loss,
+    linear_assignment,
+    pairwise_dice_loss,
+    pairwise_sigmoid_focal_loss,
+    sigmoid_focal_loss,
+)
 
-from .detector import VoxelToQuery, sigmoid_focal
-from .matching import linear_assignment
+from .detector import VoxelToQuery
 from .scene import StreamVoxelScene, coarse_grid
 from .supervision import _AuxLoss
 
@@ -72,9 +78,6 @@ __all__ = [
     "MaskDecoder",
     "MaskDecoderOutput",
     "group_lookup",
-    "mask_dice_cost",
-    "mask_dice_loss",
-    "mask_focal_cost",
     "match_masks",
 ]
 
@@ -125,45 +128,7 @@ def group_lookup(num_classes: int, free_label: int, split: Sequence[Sequence[int
     return table
 
 
-# ---------------------------------------------------------------------------------------------- costs and losses
-
-
-def mask_focal_cost(logits: Tensor, targets: Tensor, alpha: float = 0.25, gamma: float = 2.0) -> Tensor:
-    """Sigmoid focal loss of every predicted mask against every target mask, averaged over the voxels.
-
-    Args:
-        logits: ``(Q, V)`` mask logits of ``Q`` queries at ``V`` voxels.
-        targets: ``(M, V)`` binary target masks (float).
-        alpha, gamma: focal weights (code: 0.25, 2).
-
-    Returns:
-        ``(Q, M)``; entry ``[q, m]`` equals ``sigmoid_focal(logits[q], targets[m]) / V`` (the loss of the pair).
-    """
-    p = logits.sigmoid()
-    pos = alpha * (1 - p).pow(gamma) * F.softplus(-logits)  # -log p, stably
-    neg = (1 - alpha) * p.pow(gamma) * F.softplus(logits)  # -log(1 - p)
-    return (pos @ targets.T + neg @ (1 - targets).T) / max(logits.shape[-1], 1)
-
-
-def mask_dice_cost(logits: Tensor, targets: Tensor, eps: float = 1.0) -> Tensor:
-    """Dice loss ``1 - (2 sum p t + eps) / (sum p + sum t + eps)`` of every predicted mask against every target.
-
-    Args:
-        logits: ``(Q, V)`` mask logits (``p = sigmoid``).
-        targets: ``(M, V)`` binary target masks.
-        eps: smoothing (code: 1).
-
-    Returns:
-        ``(Q, M)``.
-    """
-    p = logits.sigmoid()
-    return 1 - (2 * p @ targets.T + eps) / (p.sum(-1)[:, None] + targets.sum(-1)[None] + eps)
-
-
-def mask_dice_loss(logits: Tensor, targets: Tensor, eps: float = 1.0) -> Tensor:
-    """The dice loss of paired masks (the diagonal of :func:`mask_dice_cost`): ``(N, V)`` and ``(N, V)`` -> ``(N,)``."""
-    p = logits.sigmoid()
-    return 1 - (2 * (p * targets).sum(-1) + eps) / (p.sum(-1) + targets.sum(-1) + eps)
+# ---------------------------------------------------------------------------------------------- matching
 
 
 @torch.no_grad()
@@ -192,8 +157,8 @@ def match_masks(
     """
     cost = (
         -cls_weight * cls_logits.float().softmax(-1)[:, gt_labels]
-        + focal_weight * mask_focal_cost(mask_logits.float(), gt_masks.float())
-        + dice_weight * mask_dice_cost(mask_logits.float(), gt_masks.float(), dice_eps)
+        + focal_weight * pairwise_sigmoid_focal_loss(mask_logits.float(), gt_masks.float())
+        + dice_weight * pairwise_dice_loss(mask_logits.float(), gt_masks.float(), dice_eps)
     )
     return linear_assignment(cost)
 
@@ -339,7 +304,7 @@ class DuOccMask(_AuxLoss):
     never runs at inference.
 
     Args:
-        grid: the label (evaluation) grid, ego frame (configs: ``${grid}``).
+        grid: the label (evaluation) grid, ego frame (the run's, given by the model).
         in_channels: ``C`` of ``V_fin`` (configs: ``${model.scene.channels}``).
         downsample: the scene's ``downsample`` (``V_fin`` lies on ``grid`` at that factor of its voxel size).
         num_queries: ``Q`` per group (code: 100).
@@ -506,8 +471,8 @@ class DuOccMask(_AuxLoss):
                 self.dice_eps,
             )  # fmt: skip
             target[i, qi] = gt_labels[gi]
-            focal = focal + sigmoid_focal(pred[qi], gt_masks[gi], 0.25, 2.0) / pred.shape[1]
-            dice = dice + mask_dice_loss(pred[qi], gt_masks[gi], self.dice_eps).sum()
+            focal = focal + sigmoid_focal_loss(pred[qi], gt_masks[gi], 0.25, 2.0) / pred.shape[1]
+            dice = dice + dice_loss(pred[qi], gt_masks[gi], self.dice_eps).sum()
             matched += int(qi.numel())
         if not seen:
             zero = (cls_logits.sum() + masks.sum()) * 0.0  # keeps the graph: every parameter gets a (zero) gradient

@@ -13,8 +13,8 @@ regression weights ``r = [2, 2, 2, 0.5, 0.5, 0.5, 0, 0, 0, 0]`` on Sparse4D's bo
 (:func:`encode_boxes`); ``w_g`` is 1 except for the classes given in ``class_reg_weights`` (DuOcc: the
 traffic cone's ``[2, 2, 2, 1, 1, 1, 0, 0, 1, 1]``) and 0 where a target is NaN.
 
-scipy's ``linear_sum_assignment`` solves the assignment; scipy is imported only when a match runs
-(install ``occplug[duocc]``).
+The core's :func:`occplug.nn.linear_assignment` (scipy's ``linear_sum_assignment``) solves the assignment; scipy
+is imported only when a match runs (install ``occplug[duocc]``).
 """
 
 from __future__ import annotations
@@ -24,7 +24,9 @@ from collections.abc import Mapping, Sequence
 import torch
 from torch import Tensor
 
-__all__ = ["SPARSE4D_REG_WEIGHTS", "encode_boxes", "hungarian_match", "linear_assignment", "matching_cost"]
+from occplug.nn import linear_assignment
+
+__all__ = ["SPARSE4D_REG_WEIGHTS", "encode_boxes", "hungarian_match", "matching_cost"]
 
 #: Sparse4D v3 / DuOcc regression weights of the matching cost on ``encode_boxes`` of a 9-column box.
 SPARSE4D_REG_WEIGHTS = (2.0, 2.0, 2.0, 0.5, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0)
@@ -92,32 +94,6 @@ def matching_cost(
     target = torch.nan_to_num(gt_boxes.to(box_pred.dtype), nan=0.0)
     box_cost = ((box_pred[:, None] - target[None]).abs() * weights[None]).sum(-1) * box_weight
     return cls_cost + box_cost.to(cls_cost.dtype)
-
-
-def linear_assignment(cost: Tensor) -> tuple[Tensor, Tensor]:
-    """Minimum-cost one-to-one assignment of a ``(Q, G)`` cost matrix (scipy's Hungarian solver).
-
-    NaN and ``-inf`` costs count as ``1e8`` (as Sparse4D does); any shape, also empty.
-
-    Returns:
-        ``(pred_idx, gt_idx)``, each ``(min(Q, G),)`` int64 on ``cost``'s device, ``pred_idx`` ascending.
-    """
-    try:
-        from scipy.optimize import linear_sum_assignment
-    except ImportError as err:  # scipy is an optional dependency of the duocc plugin
-        raise ImportError(
-            "DuOcc's Hungarian matching needs scipy, which is not installed: pip install 'occplug[duocc]'"
-        ) from err
-    if cost.numel() == 0:
-        empty = torch.zeros(0, dtype=torch.int64, device=cost.device)
-        return empty, empty.clone()
-    c = cost.detach().to(device="cpu", dtype=torch.float64)
-    c = torch.where(c.isnan() | c.isneginf(), torch.full_like(c, 1e8), c)
-    rows, cols = linear_sum_assignment(c.numpy())
-    return (
-        torch.as_tensor(rows, dtype=torch.int64, device=cost.device),
-        torch.as_tensor(cols, dtype=torch.int64, device=cost.device),
-    )
 
 
 @torch.no_grad()

@@ -34,6 +34,7 @@ from torch import Tensor, nn
 
 from occplug.constraints import Positive
 from occplug.geometry import GridSpec, warp_volume
+from occplug.nn import ChannelAttention, SpatialAttention3d, cbam
 
 __all__ = [
     "CBAMAttention",
@@ -65,7 +66,7 @@ class CBAMAttention:
 
 
 class RefineNet(nn.Module):
-    """Bottleneck ``C -> C/4 -> C`` with a 3D CBAM and a residual (DuOcc Eqs. 3-4, Fig. 3).
+    """Bottleneck ``C -> C/4 -> C`` with a 3D CBAM (the core's :func:`~occplug.nn.cbam`) and a residual (Eqs. 3-4).
 
     ``V_out = Bottleneck(V_warp)``;
     ``M_c = sigma(MLP(Avg_s(V_out)) + MLP(Max_s(V_out)))`` (one MLP shared by both descriptors);
@@ -106,24 +107,16 @@ class RefineNet(nn.Module):
             nn.Conv3d(mid, channels, 1, bias=False),
             nn.BatchNorm3d(channels),
         )
-        hidden = max(1, channels // reduction)
-        self.channel_mlp = nn.Sequential(
-            nn.Conv3d(channels, hidden, 1, bias=False),
-            nn.ReLU(inplace=True),
-            nn.Conv3d(hidden, channels, 1, bias=False),
-        )
-        self.spatial_conv = nn.Conv3d(2, 1, spatial_kernel, padding=spatial_kernel // 2, bias=False)
+        # the core's CBAM parts, held here by name (not as a CBAM submodule) so the state-dict keys stay
+        # ``channel_mlp.*`` / ``spatial_conv.weight``
+        self.channel_mlp = ChannelAttention(channels, reduction, dims=3)
+        self.spatial_conv = SpatialAttention3d(spatial_kernel)
         self.residual_relu = bool(residual_relu)
 
     def forward(self, warped: Tensor) -> tuple[Tensor, CBAMAttention]:
         """Refine ``warped`` ``(B, C, X, Y, Z)``; returns the refined volume and the attention maps."""
         out = self.bottleneck(warped)
-        avg = out.mean(dim=(2, 3, 4), keepdim=True)
-        mx = out.amax(dim=(2, 3, 4), keepdim=True)
-        channel = torch.sigmoid(self.channel_mlp(avg) + self.channel_mlp(mx))  # (B, C, 1, 1, 1)
-        attended = channel * out
-        pooled = torch.cat([attended.mean(dim=1, keepdim=True), attended.amax(dim=1, keepdim=True)], dim=1)
-        spatial_logits = self.spatial_conv(pooled)  # (B, 1, X, Y, Z)
+        attended, channel, spatial_logits = cbam(out, self.channel_mlp, self.spatial_conv)  # M_c * V_out, M_c, M_s
         refined = torch.sigmoid(spatial_logits) * attended + warped
         if self.residual_relu:
             refined = F.relu(refined)

@@ -1,7 +1,17 @@
-"""occplug-occle: OccLE (label-efficient occupancy with decoupled semantic and geometric branches) as occplug
-components.
+"""occplug-occle: OccLE (label-efficient occupancy with decoupled semantic and geometric branches, Fang et al.) as
+occplug components.
 
 Loaded through the ``occplug`` entry point ``occle = occplug_occle.plugin``, exactly as a third-party plugin; it
-imports only occplug's public API. The components are in ``plugin.py``; the tested building blocks in
-``geometry_branch``, ``mamba``, ``selective_scan``, ``serialization``, ``projection``, ``unets`` and ``losses``.
+imports only occplug's public API (``occplug.PUBLIC_MODULES``). The same layout in every method plugin:
+
+* ``plugin.py``: the hooks; the registry names (``occle_*``) and the classes they build;
+* components by kind: ``point_encoder.py`` (``occle_lidar_voxels``), ``scene.py`` (``occle_scene``: the
+  semantic and geometric branches and their fusion), ``heads.py`` (``occle_*_head``), ``supervision.py``
+  (``occle_semantic``, ``occle_geometry``, ``occle_fusion``);
+* building blocks: ``geometry_branch`` (the cross-plane branch), ``mamba`` and ``selective_scan`` (Dual Mamba),
+  ``serialization`` (Hilbert order), ``projection``, ``losses`` (its UNets and deformable attention are the
+  core's, :mod:`occplug.nn`);
+* scripts, run as ``python -m occplug_occle.<name>``: ``ablate`` (the paper's tables), ``bench``;
+* ``configs/`` (addressed as ``occle/<name>``; ``three_phase_10pct`` is Algorithm 1), ``README.md`` and
+  ``RESULTS.md``.
 """

@@ -42,7 +42,7 @@ Assumptions (where the paper is silent or inconsistent):
   (:class:`GeometryHead`; its depth is not given: ``3x3x3 conv -> BN -> ReLU`` blocks then a ``1x1x1`` conv).
 - Tab. 4(a) baseline ("Conv3D and 3D DA"): frame fusion as above, modalities concatenated, one
   ``3x3x3 conv -> BN -> ReLU``, one single-scale 3D deformable self-attention layer (Deformable DETR's sampling
-  with a third offset), the same head.
+  with a third offset, the core's :class:`~occplug.nn.DeformableAttention`), the same head.
 - §3.2 voxelisation: "randomly samples up to 35 points per voxel"; :func:`voxelize_points` keeps the first
   ``max_points`` in input order (deterministic), so a caller who wants the paper's random subset shuffles the
   points first (that is also where the student's "sampling number" augmentation of Tab. 1 goes). The offset
@@ -51,30 +51,27 @@ Assumptions (where the paper is silent or inconsistent):
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from occplug.constraints import NonNegative, Positive
 from occplug.geometry import GridSpec
+from occplug.nn import ConvNormAct3d, DeformableAttention
 
 __all__ = [
     "Conv3dDeformableBaseline",
     "CrossPlaneFusion",
     "CrossPlaneGeometryBranch",
     "CrossPlanes",
-    "DeformableAttention3d",
     "FrameFusion",
     "GeometryHead",
     "LidarVoxelEncoder",
     "VoxelizedPoints",
     "cross_plane_product",
-    "deformable_sample_3d",
     "stack_frames",
     "voxelize_points",
 ]
@@ -276,11 +273,7 @@ class GeometryHead(nn.Module):
         blocks: list[nn.Module] = []
         width = channels
         for _ in range(layers):
-            blocks += [
-                nn.Conv3d(width, hidden, 3, padding=1, bias=False),
-                nn.BatchNorm3d(hidden),
-                nn.ReLU(inplace=True),
-            ]
+            blocks += ConvNormAct3d(width, hidden)  # its three layers, flattened: the keys stay ``net.<i>.*``
             width = hidden
         blocks.append(nn.Conv3d(width, num_classes, 1))
         self.net = nn.Sequential(*blocks)
@@ -331,91 +324,6 @@ class CrossPlaneGeometryBranch(nn.Module):
         return self.head(self.encode(lidar, image))
 
 
-def deformable_sample_3d(value: Tensor, offsets: Tensor, weights: Tensor) -> Tensor:
-    """Deformable sampling of a voxel grid: each voxel reads ``K`` trilinear samples near itself and sums them.
-
-    Voxel ``(i, j, k)``'s reference point is its centre; sample ``n`` lies at centre + ``offsets[..., n, :]``
-    voxels (so zero offsets read every voxel's own value exactly). Samples outside the grid read zero.
-
-    Args:
-        value: ``(B, M, D, X, Y, Z)``: ``M`` heads of ``D`` channels.
-        offsets: ``(B, M, K, 3, X, Y, Z)``: per head and sample, ``(dx, dy, dz)`` in voxels along the grid axes.
-        weights: ``(B, M, K, X, Y, Z)``: per head and sample (e.g. a softmax over ``K``).
-
-    Returns:
-        ``(B, M * D, X, Y, Z)``: ``sum_n weights[n] * value(centre + offsets[n])`` per head, heads concatenated.
-    """
-    b, m, d, x, y, z = value.shape
-    k = offsets.shape[2]
-    dev, dt = value.device, value.dtype
-    axes = [(torch.arange(n, device=dev, dtype=dt) + 0.5) / n * 2 - 1 for n in (x, y, z)]
-    ref = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)  # (X, Y, Z, 3) normalised (x, y, z)
-    scale = torch.tensor([2.0 / x, 2.0 / y, 2.0 / z], device=dev, dtype=dt)
-    loc = ref.view(1, 1, 1, x, y, z, 3) + offsets.permute(0, 1, 2, 4, 5, 6, 3) * scale  # (B, M, K, X, Y, Z, 3)
-    # grid_sample reads (N, C, D, H, W) = (., ., X, Y, Z) at coordinates ordered (W, H, D) = (z, y, x);
-    # the samples run along the output's last axis, which the CPU kernel vectorises over.
-    loc = loc.flip(-1).permute(0, 1, 3, 4, 5, 2, 6).reshape(b * m, 1, 1, x * y * z * k, 3)
-    sampled = F.grid_sample(
-        value.reshape(b * m, d, x, y, z), loc, mode="bilinear", padding_mode="zeros", align_corners=False
-    ).view(b, m, d, x, y, z, k)
-    out = (sampled * weights.permute(0, 1, 3, 4, 5, 2).unsqueeze(2)).sum(-1)
-    return out.reshape(b, m * d, x, y, z)
-
-
-def _sphere_directions(n: int) -> Tensor:
-    """``(n, 3)`` unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
-    i = torch.arange(n, dtype=torch.float32) + 0.5
-    z = 1 - 2 * i / n
-    r = (1 - z * z).clamp_min(0).sqrt()
-    phi = i * math.pi * (3 - math.sqrt(5))
-    return torch.stack([r * phi.cos(), r * phi.sin(), z], dim=-1)
-
-
-class DeformableAttention3d(nn.Module):
-    """Single-scale 3D deformable self-attention over a voxel grid (Deformable DETR's sampling, pure PyTorch).
-
-    Every voxel is a query at its own centre: per head it predicts ``K`` offsets (in voxels) and ``K`` softmax
-    weights, reads the value grid trilinearly there (:func:`deformable_sample_3d`) and sums; an output
-    projection, a residual connection, BatchNorm and ReLU follow. The offsets start on a sphere of one voxel.
-
-    Args:
-        channels: ``C`` (divisible by ``heads``); heads: attention heads; points: ``K`` samples per head.
-
-    Forward: ``(B, C, X, Y, Z)`` -> ``(B, C, X, Y, Z)``.
-    """
-
-    def __init__(
-        self,
-        channels: Annotated[int, Positive],
-        heads: Annotated[int, Positive] = 4,
-        points: Annotated[int, Positive] = 4,
-    ) -> None:
-        super().__init__()
-        if channels % heads:
-            raise ValueError(f"3D deformable attention: channels {channels} not divisible by heads {heads}")
-        self.heads, self.points = int(heads), int(points)
-        self.offsets = nn.Conv3d(channels, heads * points * 3, 1)
-        self.weights = nn.Conv3d(channels, heads * points, 1)
-        self.value = nn.Conv3d(channels, channels, 1)
-        self.out = nn.Conv3d(channels, channels, 1)
-        self.norm = nn.BatchNorm3d(channels)
-        nn.init.zeros_(self.offsets.weight)
-        with torch.no_grad():
-            self.offsets.bias.copy_(_sphere_directions(heads * points).reshape(-1))
-
-    def attend(self, x: Tensor) -> Tensor:
-        """The attention read before the output projection: ``(B, C, X, Y, Z)`` -> ``(B, C, X, Y, Z)``."""
-        b, c, *size = x.shape
-        m, k = self.heads, self.points
-        offsets = self.offsets(x).view(b, m, k, 3, *size)
-        weights = self.weights(x).view(b, m, k, *size).softmax(dim=2)
-        value = self.value(x).view(b, m, c // m, *size)
-        return deformable_sample_3d(value, offsets, weights)
-
-    def forward(self, x: Tensor) -> Tensor:
-        return F.relu(self.norm(x + self.out(self.attend(x))))
-
-
 class Conv3dDeformableBaseline(nn.Module):
     """Tab. 4(a)'s geometric-branch baseline: concatenation, Conv3D fusion, 3D deformable attention, head.
 
@@ -449,12 +357,8 @@ class Conv3dDeformableBaseline(nn.Module):
         self.num_frames = int(num_frames)
         self.lidar_frames = FrameFusion(self.lidar_channels, self.num_frames)
         self.image_frames = FrameFusion(self.image_channels, self.num_frames)
-        self.fuse = nn.Sequential(
-            nn.Conv3d(self.lidar_channels + self.image_channels, channels, 3, padding=1, bias=False),
-            nn.BatchNorm3d(channels),
-            nn.ReLU(inplace=True),
-        )
-        self.attention = DeformableAttention3d(channels, heads, points)
+        self.fuse = ConvNormAct3d(self.lidar_channels + self.image_channels, channels)
+        self.attention = DeformableAttention(channels, heads, points, dims=3)
         self.head = GeometryHead(channels, num_classes, hidden=channels, layers=head_layers)
 
     def encode(self, lidar: Frames, image: Frames) -> Tensor:

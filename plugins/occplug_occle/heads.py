@@ -15,14 +15,14 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from occplug.constraints import NonNegative, Positive
-from occplug.data.frame import Batch
+from occplug.data import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces import DEFAULT_QUERY_CHUNK, Head, ModelOutputs, OccupancyHead, Scene
+from occplug.nn import UNet2d
 
 from .geometry_branch import GeometryHead
 from .projection import ProjectionHead, feature_map_intrinsics, scatter_project
 from .scene import _no_query, conformance_scene
-from .unets import UNet2d
 
 __all__ = [
     "FusedOccupancyHead",
@@ -172,7 +172,7 @@ _IMAGE_CHANNELS = 32
 class ImageSemanticHead(Head):
     """``s``: per-pixel semantics from the image encoder's features (§3.2's 2D header of ``G_s2d``).
 
-    A small 2D UNet (:class:`~.unets.UNet2d`) over the encoder's primary feature level, at its resolution; the
+    A small 2D UNet (:class:`occplug.nn.UNet2d`) over the encoder's primary feature level, at its resolution; the
     ``occle_semantic`` loss upsamples the logits to the pseudo labels' resolution. Part of the semantic branch:
     it returns ``{}`` when the ``occle_scene`` switches that branch off.
 

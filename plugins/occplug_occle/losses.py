@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from occplug.data.stats import inverse_log_weights
+from occplug.data import inverse_log_weights
 from occplug.geometry import GridSpec
 
 __all__ = [

@@ -39,6 +39,8 @@ import torch.nn.functional as F
 import torch.utils.checkpoint
 from torch import Tensor, nn
 
+from occplug.nn import ConvNormAct3d, halving_stride, norm_layer
+
 from .selective_scan import ScanMode, selective_scan
 from .serialization import deserialize, serialize
 
@@ -218,12 +220,6 @@ class DualMambaBlock(nn.Module):
         return deserialize(sa, shape), deserialize(sb, shape)
 
 
-def _conv_norm_act(c_in: int, c_out: int) -> nn.Sequential:
-    return nn.Sequential(
-        nn.Conv3d(c_in, c_out, 3, padding=1, bias=False), nn.GroupNorm(math.gcd(8, c_out), c_out), nn.SiLU()
-    )
-
-
 class _Down(nn.Module):
     """``3x3x3`` convolution with stride 2 along the axes still >= ``2 * min_size`` long, 1 along the others."""
 
@@ -231,10 +227,10 @@ class _Down(nn.Module):
         super().__init__()
         self.min_size = min_size
         self.conv = nn.Conv3d(c_in, c_out, 3, padding=1, bias=False)
-        self.post = nn.Sequential(nn.GroupNorm(math.gcd(8, c_out), c_out), nn.SiLU())
+        self.post = nn.Sequential(norm_layer("group", c_out, 3), nn.SiLU())
 
     def forward(self, x: Tensor) -> Tensor:
-        stride = tuple(2 if s >= 2 * self.min_size else 1 for s in x.shape[2:])
+        stride = halving_stride(x.shape[2:], self.min_size)
         return self.post(F.conv3d(x, self.conv.weight, None, stride, 1))
 
 
@@ -288,8 +284,8 @@ class DualMambaUNet(nn.Module):
         self.down_blocks = nn.ModuleList(DualMambaBlock(widths[i], **block) for i in stages)
         self.downs_a = nn.ModuleList(_Down(widths[i], widths[i + 1], min_size) for i in stages)
         self.downs_b = nn.ModuleList(_Down(widths[i], widths[i + 1], min_size) for i in stages)
-        self.ups_a = nn.ModuleList(_conv_norm_act(widths[i + 1], widths[i]) for i in stages)
-        self.ups_b = nn.ModuleList(_conv_norm_act(widths[i + 1], widths[i]) for i in stages)
+        self.ups_a = nn.ModuleList(ConvNormAct3d(widths[i + 1], widths[i], norm="group", act="silu") for i in stages)
+        self.ups_b = nn.ModuleList(ConvNormAct3d(widths[i + 1], widths[i], norm="group", act="silu") for i in stages)
         self.up_blocks = nn.ModuleList(DualMambaBlock(widths[i], **block) for i in stages)
         self.head = nn.Conv3d(2 * widths[0], out_channels, 1)
 

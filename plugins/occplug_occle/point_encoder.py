@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from occplug.constraints import NonNegative, Positive
-from occplug.data.frame import Batch
+from occplug.data import Batch
 from occplug.geometry import GridSpec, transform_points
 from occplug.interfaces import PointEncoder
 

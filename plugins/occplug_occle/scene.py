@@ -30,14 +30,13 @@ import torch
 from torch import Tensor, nn
 
 from occplug.constraints import Length, NonNegative, Positive
-from occplug.data.frame import Batch
+from occplug.data import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces import DenseVoxelScene, Lifted, ModelOutputs, SceneRepresentation
-from occplug.nn import BasicBlock3d
+from occplug.nn import BasicBlock3d, UNet3d
 
 from .geometry_branch import Conv3dDeformableBaseline, CrossPlaneFusion
 from .mamba import DualMambaUNet
-from .unets import UNet3d
 
 __all__ = ["OccleGrids", "OccleScene", "conformance_scene"]
 

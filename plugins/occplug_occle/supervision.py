@@ -31,8 +31,7 @@ import torch
 from torch import Tensor
 
 from occplug.constraints import NonNegative, Positive
-from occplug.data.frame import Batch
-from occplug.data.labelled_points import lidar_points
+from occplug.data import Batch, lidar_points
 from occplug.geometry import GridSpec
 from occplug.interfaces import ModelOutputs, SupervisionSource
 
@@ -143,7 +142,7 @@ class OccleSemantic(SupervisionSource):
         weight: scale of every term.
         image_head: head giving ``s`` (``image_logits`` ``(B, N, K, h, w)``).
         lidar_head: head giving ``S`` (``logits`` ``(B, K, X, Y, Z)`` on the evaluation grid).
-        grid: the grid of ``S`` (the evaluation grid, ``${grid}``).
+        grid: the grid of ``S`` (the evaluation grid: the run's, given by the model).
         min_points: LiDAR returns a voxel needs for ``l_occ(S, S̄)`` (2: "more than one point").
         class_weights, class_frequencies: ``K`` CE class weights, or raw class counts (module docstring).
         free_label, ignore_label: the data set's (given).

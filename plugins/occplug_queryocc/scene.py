@@ -1,7 +1,8 @@
 """Scene ``queryocc_bev``: QueryOcc's BEV processing -- residual blocks, deformable attention, dynamic convolution.
 
 All three work on the plane's cells whatever the grid (metric or contracted): on a contracted plane a
-cell in the border band stands for a longer stretch of road, and the layers do not need to know.
+cell in the border band stands for a longer stretch of road, and the layers do not need to know. The residual
+blocks and the deformable attention are the core's (:mod:`occplug.nn`); the dynamic convolution is QueryOcc's.
 """
 
 from __future__ import annotations
@@ -13,58 +14,12 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from occplug.constraints import NonNegative, Positive
-from occplug.data.frame import Batch
+from occplug.data import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces import BevScene, Lifted, SceneRepresentation
-from occplug.nn import BasicBlock2d, ConvNormAct2d
+from occplug.nn import BasicBlock2d, ConvNormAct2d, DeformableAttention
 
-__all__ = ["DeformableAttention2d", "DynamicConv2d", "QueryOccBev"]
-
-
-class DeformableAttention2d(nn.Module):
-    """Single-scale deformable attention over a feature map (Deformable DETR's sampling, pure PyTorch).
-
-    Every cell is a query at its own centre: per head it predicts ``K`` offsets (in cells) and ``K``
-    softmax weights, reads the value map bilinearly at those points (``grid_sample``) and sums them;
-    an output projection and a residual connection with a norm follow.
-
-    Args:
-        channels: ``C`` (divisible by ``heads``); heads: attention heads; points: ``K`` samples per head.
-
-    Forward: ``(B, C, H, W)`` -> ``(B, C, H, W)``.
-    """
-
-    def __init__(self, channels: int, heads: int = 4, points: int = 4) -> None:
-        super().__init__()
-        if channels % heads:
-            raise ValueError(f"deformable attention: channels {channels} not divisible by heads {heads}")
-        self.heads, self.points = heads, points
-        self.offsets = nn.Conv2d(channels, heads * points * 2, 1)
-        self.weights = nn.Conv2d(channels, heads * points, 1)
-        self.value = nn.Conv2d(channels, channels, 1)
-        self.out = nn.Conv2d(channels, channels, 1)
-        self.norm = nn.BatchNorm2d(channels)
-        nn.init.zeros_(self.offsets.weight)
-        with torch.no_grad():  # start from a ring of points around each cell (as Deformable DETR)
-            angle = torch.arange(heads * points, dtype=torch.float32) * (2 * torch.pi / (heads * points))
-            self.offsets.bias.copy_(torch.stack([angle.cos(), angle.sin()], -1).reshape(-1))
-
-    def forward(self, x: Tensor) -> Tensor:
-        b, c, h, w = x.shape
-        m, k = self.heads, self.points
-        offsets = self.offsets(x).view(b, m, k, 2, h, w)
-        weights = self.weights(x).view(b, m, k, h, w).softmax(dim=2)
-        ys = (torch.arange(h, device=x.device, dtype=x.dtype) + 0.5) / h * 2 - 1
-        xs = (torch.arange(w, device=x.device, dtype=x.dtype) + 0.5) / w * 2 - 1
-        ref = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1)  # (h, w, 2) as grid_sample's (x, y)
-        scale = torch.tensor([2.0 / w, 2.0 / h], device=x.device, dtype=x.dtype)
-        loc = ref.view(1, 1, 1, h, w, 2) + offsets.permute(0, 1, 2, 4, 5, 3) * scale  # (B, m, K, h, w, 2)
-        value = self.value(x).view(b * m, c // m, h, w)
-        loc = loc.permute(0, 1, 3, 4, 2, 5).reshape(b * m, h, w * k, 2)
-        sampled = F.grid_sample(value, loc, mode="bilinear", padding_mode="zeros", align_corners=False)
-        sampled = sampled.view(b, m, c // m, h, w, k)
-        attended = (sampled * weights.permute(0, 1, 3, 4, 2).unsqueeze(2)).sum(-1).reshape(b, c, h, w)
-        return F.relu(self.norm(x + self.out(attended)))
+__all__ = ["DynamicConv2d", "QueryOccBev"]
 
 
 class DynamicConv2d(nn.Module):
@@ -105,7 +60,7 @@ class QueryOccBev(SceneRepresentation):
 
     Forward:
         a :class:`Lifted` with a BEV ``volume`` ``(B, C_in, X, Y)`` -> :class:`BevScene` ``(B, C, X, Y)`` on
-        the lifted grid. A 3D volume is a ``ValueError`` (use a BEV view transform such as ``lift_contract_splat``).
+        the lifted grid. A 3D volume is a ``ValueError`` (use a BEV view transform such as ``queryocc_lift_contract_splat``).
     """
 
     def __init__(
@@ -125,7 +80,8 @@ class QueryOccBev(SceneRepresentation):
         layers: list[nn.Module] = [ConvNormAct2d(in_channels, c)]
         layers += [BasicBlock2d(c, c) for _ in range(num_blocks)]
         if deformable:
-            layers.append(DeformableAttention2d(c, heads, points))
+            # QueryOcc's offsets list the plane's last axis (Y) first, as grid_sample does: kept for its checkpoints
+            layers.append(DeformableAttention(c, heads, points, dims=2, offset_order="grid_sample"))
         if dynamic:
             layers.append(DynamicConv2d(c, experts))
         self.layers = nn.Sequential(*layers)
@@ -136,7 +92,7 @@ class QueryOccBev(SceneRepresentation):
         if plane.dim() != 4:
             raise ValueError(
                 f"queryocc_bev needs a BEV plane (B, C, X, Y) but got a volume {tuple(plane.shape)}; "
-                f"use a BEV view transform such as lift_contract_splat"
+                f"use a BEV view transform such as queryocc_lift_contract_splat"
             )
         return BevScene(self.layers(plane), lifted.grid)
 

@@ -8,8 +8,9 @@ import torch
 from test_duocc_detector import GT_BOX, H, W, _cameras, _detector, _levels, _pose
 
 from occplug import runner
+from occplug.nn import sigmoid_focal_loss
 from occplug_duocc.denoising import DN_NOISE_SCALE, denoising_loss, make_denoising_queries
-from occplug_duocc.detector import SparseDetector, _DecoderLayer, detection_loss, sigmoid_focal
+from occplug_duocc.detector import SparseDetector, _DecoderLayer, detection_loss
 from occplug_duocc.matching import SPARSE4D_REG_WEIGHTS, encode_boxes
 
 SCALE = torch.tensor(DN_NOISE_SCALE)
@@ -196,7 +197,7 @@ def test_loss_of_a_padded_batch_by_hand():
 
 
 def _focal(logits, targets):
-    return sigmoid_focal(logits, targets, 0.25, 2.0)
+    return sigmoid_focal_loss(logits, targets, 0.25, 2.0)
 
 
 def test_negative_labels_are_refused():

@@ -1,7 +1,8 @@
-"""DuOcc's auxiliary mask decoder (``duocc_mask``, training only): costs, matching, groups, masking, training."""
+"""DuOcc's auxiliary mask decoder (``duocc_mask``, training only): matching, groups, masking, training.
+
+Its focal and dice costs and losses are the core's (``tests/nn/test_losses.py``)."""
 
 import dataclasses
-import math
 
 import pytest
 import torch
@@ -10,18 +11,13 @@ import torch.nn.functional as F
 from occplug import runner
 from occplug.interfaces import ModelOutputs
 from occplug.streams import set_stream_stage
-from occplug.testing import check_component, make_tiny_batch
-from occplug.testing.conformance import label_grid
-from occplug_duocc.detector import sigmoid_focal
+from occplug.testing import check_component, label_grid, make_tiny_batch
 from occplug_duocc.mask_decoder import (
     OCC3D_GROUP_SPLIT,
     DuOccMask,
     MaskDecoder,
     MaskDecoderOutput,
     group_lookup,
-    mask_dice_cost,
-    mask_dice_loss,
-    mask_focal_cost,
     match_masks,
 )
 from occplug_duocc.scene import StreamVoxelScene, coarse_grid
@@ -192,22 +188,6 @@ def test_loss_is_float32_under_bf16_autocast():
     for key in want:
         assert got[key].dtype == torch.float32, key
         torch.testing.assert_close(got[key], want[key], rtol=1e-5, atol=1e-6)
-
-
-def test_focal_and_dice_equal_hand_computed_values():
-    logits, target = torch.tensor([[0.0, 2.0]]), torch.tensor([[1.0, 0.0]])
-    p1 = 1 / (1 + math.exp(-2.0))
-    focal_v0 = 0.25 * (1 - 0.5) ** 2 * -math.log(0.5)  # positive voxel, p = 0.5
-    focal_v1 = 0.75 * p1**2 * -math.log(1 - p1)  # negative voxel
-    assert float(mask_focal_cost(logits, target)) == pytest.approx((focal_v0 + focal_v1) / 2, rel=1e-6)
-    dice = 1 - (2 * 0.5 + 1) / (0.5 + p1 + 1 + 1)
-    assert float(mask_dice_cost(logits, target, eps=1.0)) == pytest.approx(dice, rel=1e-6)
-    # the matching costs are the losses of each pair: the diagonal of a square case equals the paired losses
-    gen = torch.Generator().manual_seed(0)
-    pred, gt = torch.randn(3, 50, generator=gen), (torch.rand(3, 50, generator=gen) > 0.5).float()
-    focal_pairs = torch.stack([sigmoid_focal(pred[i], gt[i], 0.25, 2.0) / 50 for i in range(3)])
-    torch.testing.assert_close(mask_focal_cost(pred, gt).diagonal(), focal_pairs)
-    torch.testing.assert_close(mask_dice_cost(pred, gt).diagonal(), mask_dice_loss(pred, gt))
 
 
 def test_matching_finds_the_optimal_assignment_where_greedy_does_not():

@@ -5,16 +5,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from occplug.geometry import GridSpec, sample_volume
+from occplug.geometry import GridSpec
 from occplug_occle.geometry_branch import (
     Conv3dDeformableBaseline,
     CrossPlaneFusion,
     CrossPlaneGeometryBranch,
-    DeformableAttention3d,
     FrameFusion,
     LidarVoxelEncoder,
     cross_plane_product,
-    deformable_sample_3d,
     voxelize_points,
 )
 
@@ -204,41 +202,6 @@ def test_branch_and_baseline_share_the_input_output_contract():
         assert m(lidar, image).shape == (2, 3, X, Y, Z)
         assert m(list(lidar.unbind(1)), list(image.unbind(1))).shape == (2, 3, X, Y, Z)
         assert m.encode(lidar, image).shape == (2, 8, X, Y, Z)
-
-
-def test_deformable_sampling_with_zero_offsets_is_the_identity():
-    g = torch.Generator().manual_seed(0)
-    value = torch.randn(2, 3, 4, X, Y, Z, generator=g)
-    weights = torch.rand(2, 3, 5, X, Y, Z, generator=g).softmax(dim=2)
-    out = deformable_sample_3d(value, torch.zeros(2, 3, 5, 3, X, Y, Z), weights)
-    assert torch.allclose(out, value.reshape(2, 12, X, Y, Z), atol=1e-5)
-
-
-def test_deformable_attention_with_zero_offsets_reads_its_values_at_the_voxel_centres():
-    torch.manual_seed(0)
-    attn = DeformableAttention3d(8, heads=2, points=3)
-    nn.init.zeros_(attn.offsets.bias)
-    x = torch.randn(1, 8, X, Y, Z)
-    value = attn.value(x)
-    centres = GRID.centers().reshape(1, -1, 3)
-    ref = sample_volume(value, GRID, centres).transpose(1, 2).reshape(value.shape)  # trilinear, at the centres
-    assert torch.allclose(attn.attend(x), ref, atol=1e-5)
-    assert torch.allclose(ref, value, atol=1e-5)
-
-
-def test_deformable_offsets_are_in_voxels_along_x_y_z():
-    # Offsets (dx, dy, dz) in voxels move each sample by dx*vx, dy*vy, dz*vz metres along the grid axes:
-    # compare against the core's trilinear sampling at those points (zero outside the grid, as both pad).
-    g = torch.Generator().manual_seed(1)
-    grid = GridSpec((0.0, -3.0, -1.0, 8.0, 3.0, 3.0), (1.0, 0.5, 2.0))
-    x, y, z = grid.shape
-    value = torch.randn(1, 1, 2, x, y, z, generator=g)
-    step = torch.tensor([0.5, -1.25, 0.3])
-    offsets = step.view(1, 1, 1, 3, 1, 1, 1).expand(1, 1, 1, 3, x, y, z)
-    out = deformable_sample_3d(value, offsets, torch.ones(1, 1, 1, x, y, z))
-    pts = grid.centers().reshape(1, -1, 3) + step * torch.tensor(grid.voxel_size)
-    ref = sample_volume(value[:, 0], grid, pts).transpose(1, 2).reshape(1, 2, x, y, z)
-    assert torch.allclose(out, ref, atol=1e-5)
 
 
 def test_voxelize_puts_points_in_their_voxels_with_centre_offsets():

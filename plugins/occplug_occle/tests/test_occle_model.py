@@ -146,8 +146,7 @@ def test_two_frames_fuses_the_previous_frame_in_the_geometric_branch():
 
 
 def test_two_frames_composes_with_the_phased_recipe():
-    from occplug.config import validate
-    from occplug.config.phases import phase_specs
+    from occplug.config import phase_specs, validate
     from occplug.plugins import get_registry
 
     cfg = runner.load_config(["occle/three_phase_10pct", "occle/two_frames"])

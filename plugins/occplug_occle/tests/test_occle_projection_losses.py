@@ -8,6 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from occplug.geometry import GridSpec, make_pose, project_to_image
+from occplug.nn import UNet2d, UNet3d
 from occplug.ops import feature_cell_centers
 from occplug_occle.losses import (
     OccupancyLoss,
@@ -18,7 +19,6 @@ from occplug_occle.losses import (
     weighted_cross_entropy,
 )
 from occplug_occle.projection import ProjectionHead, ScatterProjection, feature_map_intrinsics, scatter_project
-from occplug_occle.unets import UNet2d, UNet3d
 
 # ------------------------------------------------------------------ a pinhole camera looking along ego +x
 H, W = 24, 32
@@ -268,25 +268,7 @@ def test_lidar_count_mask_keeps_voxels_with_more_than_one_point():
     assert int(lidar_count_mask([pts], grid, min_points=1).sum()) == 2
 
 
-# ------------------------------------------------------------------ UNets
-@pytest.mark.parametrize(
-    ("shape", "bottleneck"), [((64, 64, 8), (8, 8, 2)), ((32, 32, 4), (4, 4, 2)), ((9, 7, 3), (3, 2, 3))]
-)
-def test_unet3d_keeps_anisotropic_grid_shapes(shape, bottleneck):
-    net = UNet3d(in_channels=16, num_classes=5, base_channels=4, depth=3)
-    seen = []
-    net.down[-1].register_forward_hook(lambda _m, _i, out: seen.append(tuple(out.shape[2:])))
-    out = net(torch.randn(1, 16, *shape))
-    assert out.shape == (1, 5, *shape)
-    assert seen == [bottleneck]  # an axis stops halving once it would drop below min_size = 2 cells
-    assert net.features(torch.randn(1, 16, *shape)).shape == (1, 4, *shape)
-
-
-def test_unet2d_shapes_on_odd_images():
-    net = UNet2d(in_channels=3, num_classes=7, base_channels=8, depth=3)
-    assert net(torch.randn(2, 3, 37, 50)).shape == (2, 7, 37, 50)
-
-
+# ------------------------------------------------------------------ the core's UNets (occplug.nn) under OccLE's losses
 def _fit(net: torch.nn.Module, x: torch.Tensor, loss_fn, steps: int = 20) -> tuple[float, float]:
     opt = torch.optim.Adam(net.parameters(), lr=1e-2)
     losses = []
