@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from .kinds import KINDS
+from .settings import settings_arguments
 
 __all__ = ["KINDS", "ComponentClashError", "Entry", "Registry", "UnknownComponentError"]
 
@@ -147,7 +148,8 @@ class Registry:
 
         ``defaults`` are passed for parameters the factory accepts and the node does not set
         (the model uses this to fill ``in_channels`` from the previous component). The node is
-        assumed validated (:mod:`occplug.config.validate`); this does no type checking.
+        assumed validated (:mod:`occplug.config.validate`); this does no type checking. A mapping given to
+        an argument annotated with a settings class (:func:`occplug.config.settings`) becomes that class.
         """
         spec = dict(spec)
         name = spec.pop("type", None)
@@ -159,7 +161,7 @@ class Registry:
         for key, value in defaults.items():
             if key not in spec and (key in params or accepts_any):
                 spec[key] = value
-        return entry.factory(**spec)
+        return entry.factory(**settings_arguments(entry.factory, spec))
 
 
 def _dist(distribution: str | None) -> str:

@@ -27,6 +27,10 @@ the builder (:meth:`occplug.Registry.build`) turns the mapping into the class be
 so the component receives a validated, typed, immutable object and checks no keys itself. Values the model
 already knows (feature widths, the grid, the classes) are not settings: the component takes them as
 ``given`` arguments and hands them to whatever it builds from the settings.
+
+A leaf module (as :mod:`occplug.slots` and :mod:`occplug.constraints`): the registry converts settings when it
+builds, and the config package validates them, so neither may import the other's package. Plugins import
+``settings`` from :mod:`occplug.config`.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ import typing
 from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
-from .slots import component_params
+from occplug.slots import component_params
 
 __all__ = ["is_settings", "make_settings", "settings", "settings_arguments", "settings_type"]
 

@@ -29,7 +29,7 @@ class Slot:
 #: Top-level sections: name -> Slot for component sections, or a description for plain ones.
 TOP_LEVEL: dict[str, Slot | str] = {
     "seed": "int: global random seed",
-    "grid": "mapping {range, voxel_size}: the label/evaluation grid, shared via ${grid}",
+    "grid": "mapping {range, voxel_size}: the label/evaluation grid, given to every component that takes a grid",
     "data": Slot("data"),
     "model": Slot("model"),
     "optimizer": "mapping {type: adamw|adam|sgd, lr, ..., reference_batch, lr_scaling: none|linear}",

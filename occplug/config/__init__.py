@@ -1,9 +1,12 @@
 """Config composition, validation and reference resolution."""
 
+from occplug.settings import make_settings, settings
+from occplug.slots import TOP_LEVEL, Slot
+
 from .compose import Composed, compose, resolve
 from .errors import ConfigError
+from .phases import phase_specs
 from .refs import resolve_ref, search_path
-from .slots import TOP_LEVEL, Slot
 from .validate import validate
 
 __all__ = [
@@ -12,8 +15,11 @@ __all__ = [
     "ConfigError",
     "Slot",
     "compose",
+    "make_settings",
+    "phase_specs",
     "resolve",
     "resolve_ref",
     "search_path",
+    "settings",
     "validate",
 ]

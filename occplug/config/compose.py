@@ -27,10 +27,10 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from occplug.plugins import get_registry
+from occplug.slots import component_params, slot_at
 
 from .errors import ConfigError
 from .refs import resolve_ref
-from .slots import component_params, slot_at
 
 __all__ = ["Composed", "compose", "resolve"]
 

@@ -2,7 +2,8 @@
 
 Every component node is checked against its factory's constructor signature: an unknown key
 (with the closest valid key), a missing required key, or a value of the wrong type is one
-:class:`ConfigError` line naming the full key path.
+:class:`ConfigError` line naming the full key path. An argument annotated with a group of settings
+(:func:`occplug.config.settings`) is checked the same way, field by field, down to any depth.
 """
 
 from __future__ import annotations
@@ -13,15 +14,16 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
+from occplug.constraints import NonNegative, Positive, Range, UnitInterval, violated
 from occplug.geometry import GridSpec
 from occplug.kinds import given_arguments
 from occplug.registry import Registry, closest
+from occplug.settings import is_settings, settings_type
+from occplug.slots import TOP_LEVEL, Slot, component_params, slot_of
 
-from .constraints import NonNegative, Positive, Range, UnitInterval, violated
 from .errors import ConfigError
-from .slots import TOP_LEVEL, Slot, component_params, slot_of
 
-__all__ = ["RUN_CONSTRAINTS", "OPTIMIZERS", "SCHEDULERS", "UsedComponent", "check_type", "validate"]
+__all__ = ["RUN_CONSTRAINTS", "OPTIMIZERS", "SCHEDULERS", "UsedComponent", "check_type", "validate", "validate_component"]
 
 #: Optimizer names a config may use (``optimizer.type``); never an import path.
 OPTIMIZERS = ("adamw", "adam", "sgd")
@@ -51,6 +53,8 @@ def _type_name(annotation: Any) -> str:
         return f"{base}[{', '.join(_type_name(a) for a in args)}]" if args and base == "list" else base
     if annotation is GridSpec:
         return "grid mapping {range, voxel_size}"
+    if is_settings(annotation):
+        return f"a mapping of {annotation.__name__}"
     return getattr(annotation, "__name__", str(annotation))
 
 
@@ -78,6 +82,8 @@ def check_type(value: Any, annotation: Any) -> bool:
         return isinstance(value, str)
     if annotation is GridSpec:
         return isinstance(value, (dict, GridSpec))
+    if is_settings(annotation):  # a nested group of settings: a mapping (checked key by key) or the object
+        return isinstance(value, (dict, annotation))
     if origin in (list, tuple, cabc.Sequence) or annotation in (list, tuple, cabc.Sequence):
         if not isinstance(value, (list, tuple)):
             return False
@@ -123,30 +129,43 @@ class _Validator:
         except LookupError as exc:
             raise ConfigError(f"{path}.type: {exc}") from None
         self.used.append(UsedComponent(path, kind, entry.name, entry.plugin, entry.distribution))
-        params = component_params(entry.factory)
         label = f"{entry.name} ({kind}{', plugin ' + entry.plugin if entry.plugin != 'occplug' else ''})"
+        given = given_arguments(kind, entry.factory)
+        self.arguments(node, component_params(entry.factory), path, label, "parameter", given)
+
+    def arguments(
+        self,
+        node: dict[str, Any],
+        params: dict[str, tuple[inspect.Parameter, Any]],
+        path: str,
+        label: str,
+        noun: str,
+        given: set[str] | frozenset[str] = frozenset(),
+    ) -> None:
+        """Check a component node's arguments, or a settings group's values, against ``params``."""
         for key, value in node.items():
-            if key == "type":
+            if key == "type" and noun == "parameter":
                 continue
             if key not in params:
                 hint = closest(str(key), list(params))
                 suggestion = f"; did you mean '{hint}'?" if hint else f"; valid keys: {', '.join(params) or '(none)'}"
-                raise ConfigError(f"{path}.{key}: {label} has no parameter '{key}'{suggestion}")
+                raise ConfigError(f"{path}.{key}: {label} has no {noun} '{key}'{suggestion}")
             param, annotation = params[key]
             slot = slot_of(annotation)
+            group = settings_type(annotation)
             if slot is not None:
                 self.slot(value, slot, f"{path}.{key}")
             elif not check_type(value, annotation):
                 raise ConfigError(f"{path}.{key}: expected {_type_name(annotation)}, got {_describe(value)}")
             elif (problem := violated(value, annotation)) is not None:
                 raise ConfigError(f"{path}.{key}: expected {problem}, got {_describe(value)}")
-        missing = [
-            k
-            for k, (p, _) in params.items()
-            if p.default is inspect.Parameter.empty and k not in node and k not in given_arguments(kind, entry.factory)
-        ]
+            elif group is not None and isinstance(value, dict):
+                self.arguments(value, component_params(group), f"{path}.{key}", group.__name__, "setting")
+        missing = [k for k, (p, _) in params.items() if p.default is inspect.Parameter.empty and k not in node]
+        missing = [k for k in missing if k not in given]
         if missing:
-            raise ConfigError(f"{path}: {label} is missing required argument(s): {', '.join(missing)}")
+            what = "argument" if noun == "parameter" else noun
+            raise ConfigError(f"{path}: {label} is missing required {what}(s): {', '.join(missing)}")
 
     def slot(self, value: Any, slot: Slot, path: str) -> None:
         if slot.mapping:
@@ -340,6 +359,14 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
         check_query_config(config["model"], registry)
     _check_stateful_needs_sequential(config, v.used, registry)
     return v.used
+
+
+def validate_component(node: Any, kind: str, key: str, registry: Registry) -> None:
+    """Check one component node (``{type: ..., args...}``) of ``kind`` at config ``key``, as :func:`validate` does.
+
+    Raises :class:`ConfigError` with the one-line message a whole config would get.
+    """
+    _Validator(registry).node(node, kind, key)
 
 
 def _check_stateful_needs_sequential(config: dict[str, Any], used: list[UsedComponent], registry: Registry) -> None:

@@ -35,17 +35,20 @@ traffic cone).
 
 from __future__ import annotations
 
-import difflib
-from collections.abc import Mapping, Sequence
+import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import torch
 from torch import Tensor, nn
 
-from occplug.data.frame import Batch
+from occplug.config import settings
+from occplug.constraints import Length, NonNegative, Positive, Range, UnitInterval
+from occplug.data import Batch
 from occplug.geometry import GridSpec
 
+from .denoising import DN_NOISE_SCALE
 from .detector import DetectorOutput, DetectorState, SparseDetector, VoxelToQuery
 from .dqa import CODE_SELECTION, PAPER_SELECTION, DynamicQueryAggregation, VoxelFFN, select_queries
 from .matching import encode_boxes, hungarian_match
@@ -53,9 +56,11 @@ from .matching import encode_boxes, hungarian_match
 __all__ = [
     "DEFAULT_DETECTION_CLASSES",
     "DEFAULT_SMALL_CLASSES",
-    "QUERY_AGG_KEYS",
+    "DetectorSettings",
     "QueryAggOutput",
+    "QueryAggSettings",
     "QueryAggregation",
+    "SelectionSettings",
     "detection_targets",
 ]
 
@@ -65,28 +70,99 @@ DEFAULT_DETECTION_CLASSES = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
 #: Occ3D label ids the paper's selection treats as small objects (cost test): barrier, bicycle, motorcycle,
 #: pedestrian, traffic cone.
 DEFAULT_SMALL_CLASSES = (1, 2, 6, 7, 8)
-#: The keys of ``duocc_stream``'s ``query_agg`` mapping and their defaults.
-QUERY_AGG_KEYS: dict[str, Any] = {
-    "v2q": True,
-    "dqa": True,
-    "gt_boxes": False,
-    "gt_box_drop": 0.0,
-    "gt_box_noise": 0.0,
-    "select_with_gt": True,
-    "selection": "paper",
-    "small_classes": list(DEFAULT_SMALL_CLASSES),
-    "score_threshold": 0.3,
-    "max_queries": None,
-    "detection_classes": list(DEFAULT_DETECTION_CLASSES),
-    "level_channels": None,
-    "detector": {},
-    "v2q_heads": 4,
-    "v2q_points": 6,
-    "dqa_heads": 4,
-    "coverage": "center",
-    "positional": True,
-    "ffn_hidden": None,
-}
+#: A score threshold: sigmoid scores lie in (0, 1), so at 1 or above no query is ever selected (negative: all are).
+_SCORE_THRESHOLD = Range(high=1.0, high_open=True)
+
+
+@settings
+class SelectionSettings:
+    """``query_agg.selection`` given as a mapping: :func:`~.dqa.select_queries`' training thresholds.
+
+    Each threshold left out is the paper's (:data:`~.dqa.PAPER_SELECTION`). ``small_classes`` are detection class
+    indices here (positions in ``detection_classes``), ``null`` for no small / large split (either test admits a
+    query, the public code's rule); left out, the small set is ``query_agg.small_classes``.
+    """
+
+    score_threshold: Annotated[float, _SCORE_THRESHOLD] = PAPER_SELECTION["score_threshold"]
+    iou_threshold: Annotated[float, Range(high=1.0, high_open=True)] | None = PAPER_SELECTION["iou_threshold"]
+    cost_threshold: Annotated[float, Positive] | None = PAPER_SELECTION["cost_threshold"]
+    center_weight: Annotated[float, NonNegative] = PAPER_SELECTION["center_weight"]
+    size_weight: Annotated[float, NonNegative] = PAPER_SELECTION["size_weight"]
+    small_classes: Literal["query_agg"] | tuple[Annotated[int, NonNegative], ...] | None = "query_agg"
+    small_size: Annotated[float, Positive] | None = None
+
+
+@settings
+class DetectorSettings:
+    """``query_agg.detector``: the image-to-query detector's settings (:class:`~.detector.SparseDetector`).
+
+    The detector's other arguments come from what the scene is given: ``num_classes`` is
+    ``len(detection_classes)`` and ``level_channels`` the image encoder's levels' channels. ``anchor_range``
+    left out (``null``) is the scene's grid range. The defaults are :class:`~.detector.SparseDetector`'s.
+    """
+
+    channels: Annotated[int, Positive] = 64
+    num_queries: Annotated[int, Positive] = 64
+    num_layers: Annotated[int, Positive] = 2
+    num_temporal: Annotated[int, NonNegative] = 32
+    heads: Annotated[int, Positive] = 4
+    groups: Annotated[int, Positive] = 4
+    num_learnable_points: Annotated[int, NonNegative] = 6
+    anchor_range: Annotated[tuple[float, ...], Length(exact=6)] | None = None
+    anchor_size: Annotated[tuple[Annotated[float, Positive], ...], Length(exact=3)] = (4.0, 1.8, 1.6)
+    anchor_centres: tuple[Annotated[tuple[float, ...], Length(exact=3)], ...] | None = None
+    learn_instance_feature: bool = True
+    confidence_decay: Annotated[float, UnitInterval] = 0.6
+    use_velocity: bool = True
+    max_time_interval: Annotated[float, Positive] = 2.0
+    dropout: Annotated[float, Range(low=0.0, high=1.0, high_open=True)] = 0.1
+    num_dn_groups: Annotated[int, NonNegative] = 0
+    dn_noise_scale: Annotated[tuple[Annotated[float, NonNegative], ...], Length(exact=10)] = DN_NOISE_SCALE
+    max_dn_gt: Annotated[int, Positive] = 32
+    dn_negatives: bool = True
+
+
+@settings
+class QueryAggSettings:
+    """``duocc_stream``'s ``query_agg``: QueryAgg's settings (module docstring).
+
+    Attributes:
+        v2q, dqa: V2Q into ``V_S.A`` and DQA on the selected queries (both off: Tab. 4 C, the detector alone);
+            V2Q needs DQA.
+        gt_boxes: DQA reads the ground-truth boxes (Tab. 4 "D with GT boxes", an evaluation ablation);
+            ``gt_box_drop`` (probability) / ``gt_box_noise`` (metres, std of the centre in x and y) degrade them.
+        select_with_gt: select by the ground truth in training (else by score only).
+        selection: ``paper`` (suppl. A.2), ``code`` (the public code's rule) or a mapping
+            (:class:`SelectionSettings`).
+        small_classes: label ids the paper's rule treats as small objects (only those among ``detection_classes``).
+        score_threshold: selection without ground truth (evaluation, prediction): ``score > score_threshold``.
+        max_queries: keep at most this many selected queries per sample (None: all).
+        detection_classes: label id of each detection class, in order.
+        detector: the detector's settings (:class:`DetectorSettings`).
+        v2q_heads, v2q_points: V2Q's attention heads and sampling points per head.
+        dqa_heads, coverage, positional: DQA's heads, which voxels a box covers (``center``: the voxel centre
+            inside the rotated box, Eq. 10; ``aabb``: the public code) and its positional encoding.
+        ffn_hidden: the voxel FFN's hidden width (None: 4 x the scene's channels).
+    """
+
+    v2q: bool = True
+    dqa: bool = True
+    gt_boxes: bool = False
+    gt_box_drop: Annotated[float, UnitInterval] = 0.0
+    gt_box_noise: Annotated[float, NonNegative] = 0.0
+    select_with_gt: bool = True
+    selection: Literal["paper", "code"] | SelectionSettings = "paper"
+    small_classes: tuple[Annotated[int, NonNegative], ...] | None = DEFAULT_SMALL_CLASSES
+    score_threshold: Annotated[float, _SCORE_THRESHOLD] = 0.3
+    max_queries: Annotated[int, Positive] | None = None
+    detection_classes: Annotated[tuple[Annotated[int, NonNegative], ...], Length(min=1)] = DEFAULT_DETECTION_CLASSES
+    detector: DetectorSettings = DetectorSettings()
+    v2q_heads: Annotated[int, Positive] = 4
+    v2q_points: Annotated[int, Positive] = 6
+    dqa_heads: Annotated[int, Positive] = 4
+    coverage: Literal["center", "aabb"] = "center"
+    positional: bool = True
+    ffn_hidden: Annotated[int, Positive] | None = None
 
 
 def detection_targets(batch: Batch, classes: Sequence[int], who: str) -> tuple[list[Tensor], list[Tensor]]:
@@ -117,17 +193,16 @@ def detection_targets(batch: Batch, classes: Sequence[int], who: str) -> tuple[l
     return labels, boxes
 
 
-def _selection_rule(selection: str | Mapping[str, Any], small: list[int]) -> dict[str, Any]:
-    """``select_queries`` keyword arguments of ``paper`` / ``code`` / a mapping on top of the paper's."""
-    if isinstance(selection, str):
-        if selection not in ("paper", "code"):
-            raise ValueError(
-                f"duocc_stream query_agg.selection must be 'paper', 'code' or a mapping, got {selection!r}"
-            )
-        if selection == "code":
-            return dict(CODE_SELECTION)
+def _selection_rule(selection: str | SelectionSettings, small: list[int]) -> dict[str, Any]:
+    """``select_queries`` keyword arguments of ``paper`` / ``code`` / :class:`SelectionSettings`."""
+    if selection == "code":
+        return dict(CODE_SELECTION)
+    if selection == "paper":
         return {**PAPER_SELECTION, "small_classes": small}
-    return {**PAPER_SELECTION, "small_classes": small, **dict(selection)}
+    rule = dataclasses.asdict(selection)
+    if rule["small_classes"] == "query_agg":
+        rule["small_classes"] = small
+    return rule
 
 
 @dataclass
@@ -158,58 +233,45 @@ class QueryAggregation(nn.Module):
     Args:
         channels: ``C`` of ``V_S.A``.
         grid: the coarse grid of ``V_S.A`` (ego frame).
-        spec: the ``query_agg`` mapping (keys :data:`QUERY_AGG_KEYS`; ``detector`` holds
-            :class:`~.detector.SparseDetector` arguments, ``level_channels`` the image levels' channels).
+        level_channels: the image levels' channels, finest first (the image encoder's ``level_channels``).
+        config: QueryAgg's settings (validated by the config's validator).
 
     Raises:
-        ValueError: an unknown key (one line, with the closest key), or a missing ``level_channels``.
+        ValueError: settings that contradict each other (one line).
     """
 
-    def __init__(self, channels: int, grid: GridSpec, spec: Mapping[str, Any]) -> None:
+    def __init__(
+        self, channels: int, grid: GridSpec, level_channels: Sequence[int], config: QueryAggSettings | None = None
+    ) -> None:
         super().__init__()
-        unknown = [k for k in spec if k not in QUERY_AGG_KEYS]
-        if unknown:
-            near = difflib.get_close_matches(unknown[0], list(QUERY_AGG_KEYS), n=1)
-            hint = f"; did you mean '{near[0]}'?" if near else f"; keys are: {', '.join(QUERY_AGG_KEYS)}"
-            raise ValueError(f"duocc_stream query_agg has no key '{unknown[0]}'{hint}")
-        cfg = {**QUERY_AGG_KEYS, **dict(spec)}
-        if not cfg["level_channels"]:
-            raise ValueError(
-                "duocc_stream query_agg.level_channels: give the image encoder's level channels "
-                "(e.g. ['${model.encoder.out_channels}'] per level)"
-            )
+        cfg = QueryAggSettings() if config is None else config
         self.grid = grid
-        self.v2q_on, self.dqa_on = bool(cfg["v2q"]), bool(cfg["dqa"])
+        self.v2q_on, self.dqa_on = bool(cfg.v2q), bool(cfg.dqa)
         if self.v2q_on and not self.dqa_on:
             raise ValueError(
                 "duocc_stream query_agg: v2q: true needs dqa: true (V2Q runs after the detector's last layer here, "
                 "so without DQA nothing reads its output); the detector alone is v2q: false, dqa: false"
             )
-        self.gt_boxes, self.select_with_gt = bool(cfg["gt_boxes"]), bool(cfg["select_with_gt"])
-        self.gt_box_drop, self.gt_box_noise = float(cfg["gt_box_drop"]), float(cfg["gt_box_noise"])
-        if not 0.0 <= self.gt_box_drop <= 1.0:
-            raise ValueError(
-                f"duocc_stream query_agg.gt_box_drop: expected a probability in [0, 1], got {self.gt_box_drop}"
-            )
-        if not self.gt_box_noise >= 0.0:
-            raise ValueError(f"duocc_stream query_agg.gt_box_noise: expected metres >= 0, got {self.gt_box_noise}")
+        self.gt_boxes, self.select_with_gt = bool(cfg.gt_boxes), bool(cfg.select_with_gt)
+        self.gt_box_drop, self.gt_box_noise = float(cfg.gt_box_drop), float(cfg.gt_box_noise)
         if (self.gt_box_drop or self.gt_box_noise) and not self.gt_boxes:
             raise ValueError(
                 "duocc_stream query_agg.gt_box_drop / gt_box_noise degrade the ground-truth boxes: they need gt_boxes: true"
             )
-        self.classes = tuple(int(c) for c in cfg["detection_classes"])
-        small_ids = [self.classes.index(int(c)) for c in (cfg["small_classes"] or []) if int(c) in self.classes]
-        self.rule = _selection_rule(cfg["selection"], small_ids)
-        self.score_threshold = float(cfg["score_threshold"])
-        self.max_queries = None if cfg["max_queries"] is None else int(cfg["max_queries"])
-        det = dict(cfg["detector"])
-        det.setdefault("anchor_range", tuple(grid.range))
+        self.classes = tuple(int(c) for c in cfg.detection_classes)
+        small_ids = [self.classes.index(int(c)) for c in (cfg.small_classes or []) if int(c) in self.classes]
+        self.rule = _selection_rule(cfg.selection, small_ids)
+        self.score_threshold = float(cfg.score_threshold)
+        self.max_queries = None if cfg.max_queries is None else int(cfg.max_queries)
+        det = dataclasses.asdict(cfg.detector)
+        if det["anchor_range"] is None:
+            det["anchor_range"] = tuple(grid.range)
         self.detector = SparseDetector(
-            num_classes=len(self.classes), level_channels=[int(c) for c in cfg["level_channels"]], **det
+            num_classes=len(self.classes), level_channels=[int(c) for c in level_channels], **det
         )
         q = self.detector.channels
         self.v2q = (
-            VoxelToQuery(q, grid, volume_channels=channels, heads=cfg["v2q_heads"], points=cfg["v2q_points"])
+            VoxelToQuery(q, grid, volume_channels=channels, heads=cfg.v2q_heads, points=cfg.v2q_points)
             if self.v2q_on
             else None
         )
@@ -220,11 +282,11 @@ class QueryAggregation(nn.Module):
                 channels,
                 grid,
                 query_channels=q,
-                heads=cfg["dqa_heads"],
-                coverage=cfg["coverage"],
-                positional=cfg["positional"],
+                heads=cfg.dqa_heads,
+                coverage=cfg.coverage,
+                positional=cfg.positional,
             )
-            self.ffn = VoxelFFN(channels, cfg["ffn_hidden"])
+            self.ffn = VoxelFFN(channels, cfg.ffn_hidden)
 
     # ------------------------------------------------------------------ state
     def state_template(self, batch: Batch, device: torch.device) -> dict[str, Tensor] | None:

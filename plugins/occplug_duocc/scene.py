@@ -17,13 +17,13 @@ import torch
 from torch import Tensor, nn
 
 from occplug.constraints import Length, Positive, Range
-from occplug.data.frame import Batch
+from occplug.data import Batch
 from occplug.geometry import GridSpec, relative_pose, warp_volume
 from occplug.interfaces import DenseVoxelScene, Lifted, ModelOutputs, SceneRepresentation
 from occplug.streams import StreamState
 
 from .fpn3d import VoxelFPN3D
-from .queryagg import QueryAggregation
+from .queryagg import QueryAggregation, QueryAggSettings
 from .stream_agg import StreamAggregation
 
 __all__ = [
@@ -139,7 +139,7 @@ class DuOccStream(_DuOccVoxels):
     In training the auxiliary heads publish their logits in ``outputs.extras`` (:data:`OCCUPIED_KEY`,
     :data:`FORECAST_KEY`) for the ``duocc_occupied`` and ``duocc_forecast`` supervision sources.
 
-    ``query_agg`` (a mapping, off when None; :mod:`occplug_duocc.queryagg`) adds QueryAgg (§3.2) after StreamAgg:
+    ``query_agg`` (:class:`~occplug_duocc.queryagg.QueryAggSettings`, off when None) adds QueryAgg (§3.2) after StreamAgg:
     the image-to-query detector on ``outputs.image_levels``, V2Q into ``V_S.A``, DQA on the selected queries and the
     voxel FFN give ``V_fin``, which is what the history keeps. The detector's state lives in the same
     :class:`~occplug.streams.StreamState` entry as the voxel history (``{"voxels", "detector"}``), so it is kept per
@@ -164,9 +164,11 @@ class DuOccStream(_DuOccVoxels):
         max_gap_s: seconds between frames above which the history restarts (DuOcc: 2.0).
         train_cut_prob: probability of restarting a continuing history in training (not in the paper or
             the code; 0: off): the current frame must then stand alone, as at a stream start.
-        query_agg: QueryAgg's settings (:data:`~occplug_duocc.queryagg.QUERY_AGG_KEYS`: ``v2q``, ``dqa``,
-            ``gt_boxes``, ``selection`` (``paper`` | ``code`` | a mapping), ``detector``, ``level_channels``, ...), or
-            None (off: Tab. 4 B). Needs ``stream: true``.
+        query_agg: QueryAgg's settings (a mapping in a config, checked by config validation:
+            :class:`~occplug_duocc.queryagg.QueryAggSettings`: ``v2q``, ``dqa``, ``gt_boxes``, ``selection``,
+            ``detector``, ...), or None (off: Tab. 4 B). Needs ``stream: true``.
+        level_channels: the image encoder's levels' channels, finest first (given by the model; QueryAgg's
+            detector reads those levels).
 
     Forward:
         :class:`~occplug.interfaces.Lifted` ``V_init`` ``(B, C_init, X, Y, Z)``, the batch (``scene``,
@@ -196,7 +198,8 @@ class DuOccStream(_DuOccVoxels):
         residual_relu: bool = False,
         max_gap_s: Annotated[float, Positive] = 2.0,
         train_cut_prob: Annotated[float, Range(low=0.0, high=1.0, high_open=True)] = 0.0,
-        query_agg: dict | None = None,
+        query_agg: QueryAggSettings | None = None,
+        level_channels: Sequence[int] | None = None,
     ) -> None:
         super().__init__(in_channels, grid, channels, downsample, fpn_channels, fpn_blocks)
         self.stream = bool(stream)
@@ -221,7 +224,9 @@ class DuOccStream(_DuOccVoxels):
             self.history = StreamState(on_reset=_itself, max_gap_s=max_gap_s, train_cut_prob=train_cut_prob)
         self.query_agg: QueryAggregation | None = None
         if query_agg is not None:
-            self.query_agg = QueryAggregation(self.out_channels, self.coarse, query_agg)
+            if not level_channels:
+                raise ValueError("duocc_stream query_agg needs level_channels, the image encoder's (the model gives them)")
+            self.query_agg = QueryAggregation(self.out_channels, self.coarse, level_channels, query_agg)
 
     def forward(self, lifted: Lifted, batch: Batch, outputs: ModelOutputs | None = None) -> StreamVoxelScene:
         """``V_fin`` of this frame; stores it as the history of each slot (see the class docstring)."""

@@ -9,7 +9,7 @@ import pytest
 
 import occplug
 from occplug.config import ConfigError, validate
-from occplug.config.constraints import Fraction, Length, NonNegative, Positive, Range, UnitInterval, violated
+from occplug.constraints import Fraction, Length, NonNegative, Positive, Range, UnitInterval, violated
 from occplug.plugins import isolated
 from occplug.runner import load_config
 

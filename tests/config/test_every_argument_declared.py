@@ -3,7 +3,7 @@
 Generated from the registry: the core's components, every installed plugin's, and the example plugin's
 (loaded from ``plugins/example`` when it is not installed). An argument whose annotation is numeric
 (``int``, ``float``) or list-like (``list``, ``tuple``, ``Sequence``), looked at through ``Annotated``
-and ``X | None``, must declare a constraint (``occplug.config.constraints``) on itself or on its
+and ``X | None``, must declare a constraint (``occplug.constraints``) on itself or on its
 elements, or stand on :data:`ALLOWED` below with the reason it takes any value. Nested component
 nodes (``Slot``) and the arguments a kind's contract fills in (``given``) are not config values of
 the component and are skipped.
@@ -24,11 +24,11 @@ from typing import Any
 import pytest
 
 from occplug.config import ConfigError
-from occplug.config.constraints import Constraint, Length, constraints_of, violated
-from occplug.config.slots import component_params, slot_of
 from occplug.config.validate import _Validator
+from occplug.constraints import Constraint, Length, constraints_of, violated
 from occplug.kinds import given_arguments
 from occplug.plugins import ENTRY_POINT_GROUP, isolated
+from occplug.slots import component_params, slot_of
 
 EXAMPLE_SRC = Path(__file__).resolve().parents[2] / "plugins" / "example" / "src"
 

@@ -20,7 +20,7 @@ grid: {range: [-24.0, -24.0, -1.0, 24.0, 24.0, 5.4], voxel_size: 0.8}
 model:
   type: occ_model
   encoder: {type: small_cnn, out_channels: 64, stride: 8}
-  view_transform: {type: lss, grid: "${grid}", out_channels: 32, depth_bins: [1.0, 40.0, 1.0]}
+  view_transform: {type: lss, out_channels: 32, depth_bins: [1.0, 40.0, 1.0]}
   scene: {type: dense_voxels, out_channels: 32, num_blocks: 1}
   heads:
     occupancy: {type: voxel_classifier, hidden: 64}
@@ -40,8 +40,7 @@ def test_layered_baseline_resolves_exactly_as_the_flat_one(tmp_path):
     assert layered.resolved() == compose([str(flat)]).resolved()
     assert MODEL_BASE in [p.resolve() for p in layered.files]
     assert Path(layered.sources["model.heads.occupancy.type"]).resolve() == MODEL_BASE
-    assert layered.resolved()["model"]["view_transform"]["grid"] == {"range": [-24.0, -24.0, -1.0, 24.0, 24.0, 5.4],
-                                                                      "voxel_size": 0.8}
+    assert "grid" not in layered.resolved()["model"]["view_transform"]  # the model gives it the top-level grid
 
 
 def test_the_example_recipe_changes_only_the_occupancy_head(monkeypatch, isolated_registry):

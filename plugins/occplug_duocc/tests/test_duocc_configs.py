@@ -20,7 +20,7 @@ def test_occ3d_nuscenes_has_the_papers_settings_and_validates():
     model = cfg["model"]
     assert cfg["data"]["type"] == "occ3d_nuscenes" and cfg["data"]["image_size"] == [256, 704]
     assert cfg["grid"] == {"range": [-40.0, -40.0, -1.0, 40.0, 40.0, 5.4], "voxel_size": 0.4}  # 200 x 200 x 16
-    assert model["view_transform"]["grid"] == cfg["grid"] and model["scene"]["grid"] == cfg["grid"]
+    assert "grid" not in model["view_transform"] and "grid" not in model["scene"]  # both given the run's grid
     assert model["encoder"] == {
         "type": "timm",
         "model_name": "resnet50",
@@ -91,3 +91,22 @@ def test_synthetic_recipes_weight_the_occupancy_ce_by_the_default_worlds_counts(
     # the real-data recipe keeps the code's nuScenes weights
     nusc = compose(["duocc/occ3d_nuscenes"]).resolved()["model"]["supervision"]["occupancy"]["class_weights"]
     assert nusc[-1] == 0.117 and nusc != overlay["class_weights"]
+
+
+def test_the_detector_settings_default_to_the_detectors_own_defaults():
+    """``query_agg.detector`` left out builds the same detector as :class:`SparseDetector`'s defaults (its
+    ``anchor_range`` excepted: left out, it is the scene's grid range, and ``num_classes`` / ``level_channels``,
+    which the scene gives)."""
+    import dataclasses
+    import inspect
+
+    from occplug_duocc.detector import SparseDetector
+    from occplug_duocc.queryagg import DetectorSettings
+
+    params = inspect.signature(SparseDetector).parameters
+    given = {"num_classes", "level_channels"}
+    assert {f.name for f in dataclasses.fields(DetectorSettings)} == set(params) - given
+    for field in dataclasses.fields(DetectorSettings):
+        if field.name != "anchor_range":
+            default = params[field.name].default
+            assert field.default == (tuple(default) if isinstance(default, list) else default), field.name
