@@ -9,7 +9,7 @@ Each constraint can also list values that violate it (:meth:`Constraint.violatio
 generated from the registry proves every declared rule is enforced.
 
 A leaf module (it imports nothing of occplug), so data modules and metrics declare rules without an
-import circle through the config package; plugin authors import it as ``occplug.config.constraints``.
+import circle through the config package. It is the constraints' one home: plugins import them from here.
 """
 
 from __future__ import annotations

@@ -38,24 +38,24 @@ from torch import Tensor, nn
 from occplug.geometry import relative_pose
 
 __all__ = ["STAGES", "StreamRead", "StreamStages", "StreamState", "check_streaming", "find_streams",
-           "is_stateful", "set_stream_stage", "zeros_like"]
+           "is_stateful", "set_stream_stage", "tree_leaves", "tree_map", "zeros_like"]
 
 #: The stores of a :class:`StreamState`, one per Lightning loop.
 STAGES = ("train", "val", "test", "predict")
 
 
-def _map(fn: Callable[..., Any], tree: Any, *others: Any) -> Any:
+def tree_map(fn: Callable[..., Any], tree: Any, *others: Any) -> Any:
     """Apply ``fn`` to the tensor leaves of nested dicts / lists / tuples (``others`` share the structure)."""
     if isinstance(tree, Tensor):
         return fn(tree, *others)
     if isinstance(tree, dict):
         if any(not isinstance(o, dict) or o.keys() != tree.keys() for o in others):
             raise ValueError("StreamState: the stored and the new structure differ (dict keys)")
-        return {k: _map(fn, v, *(o[k] for o in others)) for k, v in tree.items()}
+        return {k: tree_map(fn, v, *(o[k] for o in others)) for k, v in tree.items()}
     if isinstance(tree, (list, tuple)):
         if any(not isinstance(o, (list, tuple)) or len(o) != len(tree) for o in others):
             raise ValueError("StreamState: the stored and the new structure differ (sequence length)")
-        items = [_map(fn, v, *(o[i] for o in others)) for i, v in enumerate(tree)]
+        items = [tree_map(fn, v, *(o[i] for o in others)) for i, v in enumerate(tree)]
         if isinstance(tree, tuple) and hasattr(tree, "_fields"):  # a namedtuple
             return type(tree)(*items)
         return type(tree)(items)
@@ -64,15 +64,15 @@ def _map(fn: Callable[..., Any], tree: Any, *others: Any) -> Any:
     raise TypeError(f"StreamState holds tensors in dicts, lists and tuples, not {type(tree).__name__}")
 
 
-def _leaves(tree: Any) -> list[Tensor]:
+def tree_leaves(tree: Any) -> list[Tensor]:
     out: list[Tensor] = []
-    _map(lambda t: out.append(t), tree)
+    tree_map(lambda t: out.append(t), tree)
     return out
 
 
 def zeros_like(current: Any) -> Any:
     """The default reset: zeros shaped like ``current`` (any nested structure)."""
-    return _map(torch.zeros_like, current)
+    return tree_map(torch.zeros_like, current)
 
 
 @dataclass
@@ -182,14 +182,14 @@ class StreamState:
         size = len(batch.scene)
         store = self._stores.get(self.stage, {})
         init = self.on_reset(current)
-        init_leaves = _leaves(init)
+        init_leaves = tree_leaves(init)
         ref = init_leaves[0] if init_leaves else None
         cont = []
         for b in range(size):
             entry = store.get(b)
             ok = self._continues(entry, batch, b)
             if ok and entry is not None:  # a stored shape that no longer fits (another resolution) restarts
-                ok = all(s.shape == i.shape[1:] for s, i in zip(_leaves(entry.value), init_leaves, strict=True))
+                ok = all(s.shape == i.shape[1:] for s, i in zip(tree_leaves(entry.value), init_leaves, strict=True))
             cont.append(ok)
         if self.train_cut_prob > 0.0 and self.stage == "train" and torch.is_grad_enabled():
             cut = (torch.rand(size) < self.train_cut_prob).tolist()
@@ -212,7 +212,7 @@ class StreamState:
             return torch.stack(rows)
 
         stored_values = [store[b].value if c else _slice(init, b) for b, c in enumerate(cont)]
-        value = _map(pick, init, *stored_values)
+        value = tree_map(pick, init, *stored_values)
         return StreamRead(value, reset, motion, dt)
 
     def update(self, batch: Any, value: Any) -> None:
@@ -221,7 +221,7 @@ class StreamState:
         poses = batch.ego_to_global.detach().to(torch.float64)
         for b in range(len(batch.scene)):
             store[b] = _Entry(
-                value=_map(lambda t, b=b: t[b].detach(), value),
+                value=tree_map(lambda t, b=b: t[b].detach(), value),
                 scene=str(batch.scene[b]),
                 frame_index=int(batch.frame_index[b]),
                 timestamp=float(batch.timestamp[b]),
@@ -247,7 +247,7 @@ class StreamState:
 
 def _slice(tree: Any, b: int) -> Any:
     """Slot ``b`` of a batched structure."""
-    return _map(lambda t: t[b], tree)
+    return tree_map(lambda t: t[b], tree)
 
 
 # ---------------------------------------------------------------------------------------------- model level

@@ -7,8 +7,8 @@ from typing import Annotated, Literal
 from torch import Tensor, nn
 
 import occplug
-from occplug.config.slots import Slot
 from occplug.interfaces.model import OccupancyModel
+from occplug.slots import Slot
 
 
 class ToyEncoder(occplug.ImageEncoder):

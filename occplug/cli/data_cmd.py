@@ -8,7 +8,7 @@ import argparse
 import yaml
 
 from occplug.config import ConfigError
-from occplug.config.validate import _Validator
+from occplug.config.validate import validate_component
 from occplug.plugins import get_registry
 
 from . import paths as check
@@ -186,7 +186,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
             raise ConfigError(f"'{item}': expected key=value (a synthetic data-module argument)")
         node[key] = yaml.safe_load(raw) if raw.strip() else None
     registry = get_registry()
-    _Validator(registry).node(node, "data", "data")
+    validate_component(node, "data", "data", registry)
     if args.pseudo is not None and args.format == "frames":
         raise UsageError("--pseudo needs --format occ3d or semantickitti (the frames format has no pseudo-label files)")
     out = check.output_dir("--out", args.out, empty=True)

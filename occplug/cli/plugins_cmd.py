@@ -29,9 +29,14 @@ def cmd_plugins(args: argparse.Namespace) -> int:
             d = r.to_dict()
             if args.kind:
                 d["components"] = {k: v for k, v in d["components"].items() if k == args.kind}
+            # where each component's code is, so a config's `type:` reaches it in one step
+            d["sources"] = {k: {n: registry.get(k, n).source for n in names} for k, names in d["components"].items()}
             out.append(d)
         print(json.dumps(out, indent=2))
         return 0
+    entries = [registry.get(k, n) for r in reports for k, ns in r.components.items() for n in ns]
+    name_width = max((len(e.name) for e in entries), default=0)
+    width = max((len(e.source) for e in entries), default=0)
     for r in reports:
         version = f" {r.version}" if r.version else ""
         dist = f" [{r.distribution}{version}]" if r.distribution else ""
@@ -43,5 +48,5 @@ def cmd_plugins(args: argparse.Namespace) -> int:
                 continue
             for name in r.components.get(kind, []):
                 entry = registry.get(kind, name)
-                print(f"  {kind:<15} {name:<22} {entry.summary}")
+                print(f"  {kind:<15} {name:<{name_width}} {entry.source:<{width}}  {entry.summary}")
     return 0

@@ -24,7 +24,7 @@ from .heads import VoxelClassifier
 from .point_encoders import VoxelPoints
 from .scenes import DenseVoxels, DenseVoxelScene
 from .supervision import VoxelCrossEntropy
-from .view_transforms import BackwardProjection, LSSViewTransform, splat
+from .view_transforms import BackwardProjection, LSSViewTransform, build_depth_net, depth_bin_centers, splat
 
 __all__ = [
     "BackwardProjection",
@@ -41,5 +41,7 @@ __all__ = [
     "VoxelClassifier",
     "VoxelCrossEntropy",
     "VoxelPoints",
+    "build_depth_net",
+    "depth_bin_centers",
     "splat",
 ]

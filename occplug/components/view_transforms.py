@@ -29,7 +29,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from occplug.config.slots import Slot
 from occplug.constraints import Length, NonNegative, Positive
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, project_to_image
@@ -43,6 +42,7 @@ from occplug.ops.splat import (
     frustum_points,
     splat,
 )
+from occplug.slots import Slot
 
 from .depth_nets import DepthNet
 

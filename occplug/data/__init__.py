@@ -1,16 +1,48 @@
-"""Data: the Frame/Batch contract, class taxonomies, data modules and the synthetic world."""
+"""Data: the Frame/Batch contract, class taxonomies, labelled points, class statistics and the data modules.
 
-from .classes import OCC3D_CLASSES, OCC3D_FREE, OCC3D_NUM_CLASSES, SEMANTIC_KITTI_CLASSES
-from .datamodule import OccDataModule
+Everything but the contract and the class lists loads on first use, so importing the contract
+(``occplug.data.Frame``) does not import Lightning (the data modules subclass ``LightningDataModule``).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from . import classes
+from .classes import *  # noqa: F403 -- the class lists and label mappings are part of this facade
 from .frame import Batch, Frame, collate_frames
 
+#: names loaded on first attribute access (the data modules import Lightning; the rest keep the facade light)
+_LAZY = {
+    "OccDataModule": "occplug.data.datamodule",
+    "Occ3DNuScenesDataModule": "occplug.data.nuscenes.reader",
+    "SemanticKITTIDataModule": "occplug.data.semantickitti.reader",
+    "LabelCut": "occplug.data.label_fraction",
+    "LabelledPoints": "occplug.data.labelled_points",
+    "lidar_points": "occplug.data.labelled_points",
+    "pseudo_depth_points": "occplug.data.labelled_points",
+    "to_frame": "occplug.data.labelled_points",
+    "class_counts": "occplug.data.stats",
+    "inverse_log_weights": "occplug.data.stats",
+    "FrameTransform": "occplug.data.extensions",
+    "LabelSource": "occplug.data.extensions",
+    "save_frame": "occplug.data.records",
+    "read_frame": "occplug.data.records",
+    "OCC3D_GRID": "occplug.data.nuscenes.format",
+    "build_index": "occplug.data.nuscenes.index",
+}
+
 __all__ = [
-    "OCC3D_CLASSES",
-    "OCC3D_FREE",
-    "OCC3D_NUM_CLASSES",
-    "SEMANTIC_KITTI_CLASSES",
+    *classes.__all__,
     "Batch",
     "Frame",
-    "OccDataModule",
     "collate_frames",
+    *_LAZY,
 ]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'occplug.data' has no attribute {name!r}")

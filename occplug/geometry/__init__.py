@@ -3,7 +3,7 @@
 from .cameras import effective_intrinsics, pixel_centers, project_to_image, unproject_from_image
 from .contraction import Contraction, contract, uncontract
 from .grid import GridSpec
-from .raycast import first_hit, observed_mask, traversed_mask
+from .raycast import first_hit, first_hits, observed_mask, traversed_mask
 from .rays import camera_rays, lidar_ray_directions
 from .transforms import invert_pose, make_pose, relative_pose, rotation_z, transform_points, wrap_angle, yaw_of
 from .volumes import sample_volume, warp_volume
@@ -15,6 +15,7 @@ __all__ = [
     "contract",
     "effective_intrinsics",
     "first_hit",
+    "first_hits",
     "invert_pose",
     "lidar_ray_directions",
     "make_pose",

@@ -2,7 +2,7 @@
 
 from .base import EvalMask, OccMetric, evaluation_mask
 from .miou import Occ3DMIoU, confusion_matrix, iou_from_confusion
-from .rayiou import RayIoU
+from .rayiou import RayIoU, cast_query_rays, query_ray_directions, select_origins
 from .ssc import SSCMetrics
 
 __all__ = [
@@ -11,7 +11,10 @@ __all__ = [
     "OccMetric",
     "RayIoU",
     "SSCMetrics",
+    "cast_query_rays",
     "confusion_matrix",
     "evaluation_mask",
     "iou_from_confusion",
+    "query_ray_directions",
+    "select_origins",
 ]

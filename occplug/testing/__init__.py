@@ -9,7 +9,7 @@ a config, through the same code the CLI runs).
 
 from __future__ import annotations
 
-from .conformance import check_component
+from .conformance import check_component, label_grid
 from .fixtures import (
     hand_batch,
     isolated_registry,
@@ -24,6 +24,7 @@ __all__ = [
     "hand_batch",
     "isolated_registry",
     "label_batch",
+    "label_grid",
     "make_tiny_batch",
     "run_config",
     "tiny_batch",

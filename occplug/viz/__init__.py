@@ -20,7 +20,9 @@ Modules:
 
 from __future__ import annotations
 
+from .cameras import occupancy_in_cameras
 from .deps import MissingExtraError
+from .render3d import default_view, render_voxels
 from .style import Palette
 
-__all__ = ["MissingExtraError", "Palette"]
+__all__ = ["MissingExtraError", "Palette", "default_view", "occupancy_in_cameras", "render_voxels"]

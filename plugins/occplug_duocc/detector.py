@@ -6,7 +6,8 @@ Pure PyTorch, no custom ops. The pieces:
   image features (Sparse4D v3's deformable aggregation, done with ``grid_sample``), with temporal propagation of
   the top-k instances of the previous frame through an explicit :class:`DetectorState` (no hidden state).
 * :func:`detection_loss` — Sparse4D v3's loss: Hungarian matching per layer (:func:`~.matching.hungarian_match`),
-  sigmoid focal classification and weighted L1 regression on :func:`~.matching.encode_boxes`.
+  sigmoid focal classification (:func:`occplug.nn.sigmoid_focal_loss`) and weighted L1 regression on
+  :func:`~.matching.encode_boxes`.
 * :class:`VoxelToQuery` — Eq. 6: 3D deformable attention of each query into the stream-aggregated volume.
 * :func:`detection_map` — nuScenes-style mAP by BEV centre distance (the detector's metric on the synthetic world).
 * :func:`select_detections` — Sparse4D's post-processing (top-k over queries x classes, score threshold).
@@ -24,7 +25,7 @@ Assumptions (where the paper, §3.2 "I2Q"/"V2Q" and suppl. A.4, is silent; the p
 ``duocc-code-notes.md`` §3):
 
 * §3.2 I2Q, anchors: 900 k-means anchors of the training boxes in the code; here ``anchor_centres`` when given
-  (``scripts/duocc_anchors.py`` makes them as the code does, :mod:`.anchors`), else ``num_queries`` centres drawn
+  (``python -m occplug_duocc.fit_anchors`` makes them as the code does, :mod:`.anchors`), else ``num_queries`` centres drawn
   uniformly (fixed seed) in ``anchor_range``; size ``anchor_size``, yaw 0, all learnable. The
   instance features start at zero (code) and are learnable unless ``learn_instance_feature=False`` (the code
   freezes them).
@@ -77,12 +78,13 @@ from torch import Tensor, nn
 
 from occplug.constraints import NonNegative, Positive
 from occplug.geometry import GridSpec, project_to_image, relative_pose, sample_volume, transform_points
+from occplug.nn import sigmoid_focal_loss
 
 from .denoising import DN_NOISE_SCALE, DenoisingQueries, denoising_loss, make_denoising_queries
 from .matching import SPARSE4D_REG_WEIGHTS, encode_boxes, hungarian_match
 
 if TYPE_CHECKING:
-    from occplug.data.frame import Batch
+    from occplug.data import Batch
 
 __all__ = [
     "BOX_DIM",
@@ -102,7 +104,6 @@ __all__ = [
     "propagate_state",
     "sample_image_features",
     "select_detections",
-    "sigmoid_focal",
 ]
 
 #: Width of the encoded box / anchor: ``[cx, cy, cz, log l, log w, log h, sin, cos, vx, vy]``.
@@ -541,7 +542,7 @@ class SparseDetector(nn.Module):
         anchor_range: ``(x_min, y_min, z_min, x_max, y_max, z_max)`` ego-frame box in which anchor centres start.
         anchor_size: initial ``(l, w, h)`` of every anchor, metres.
         anchor_centres: ``num_queries`` ego-frame ``(x, y, z)`` starting centres (the code's k-means anchors;
-            ``scripts/duocc_anchors.py``), or None to draw them uniformly in ``anchor_range``.
+            ``python -m occplug_duocc.fit_anchors``), or None to draw them uniformly in ``anchor_range``.
         learn_instance_feature: whether the initial instance features are learned (code: frozen zeros).
         confidence_decay: decay of a cached instance's confidence per frame.
         use_velocity: move cached anchors by constant velocity as well as by ego motion.
@@ -600,7 +601,7 @@ class SparseDetector(nn.Module):
             if len(anchor_centres) != num_queries:
                 raise ValueError(
                     f"SparseDetector: anchor_centres must be num_queries={num_queries} rows of (x, y, z), got "
-                    f"{len(anchor_centres)} rows; make them for this query count with scripts/duocc_anchors.py "
+                    f"{len(anchor_centres)} rows; make them for this query count with python -m occplug_duocc.fit_anchors "
                     "--queries, or set anchor_centres: null"
                 )
             bad = [i for i, c in enumerate(anchor_centres) if len(c) != 3]
@@ -813,15 +814,6 @@ def select_detections(
 # ---------------------------------------------------------------------------------------------- loss
 
 
-def sigmoid_focal(logits: Tensor, targets: Tensor, alpha: float, gamma: float) -> Tensor:
-    """Sigmoid focal loss (Lin et al.), summed over every element of ``logits`` and the same-shape ``targets``."""
-    p = logits.sigmoid()
-    ce = F.binary_cross_entropy_with_logits(logits, targets, reduction="none")
-    p_t = p * targets + (1 - p) * (1 - targets)
-    a_t = alpha * targets + (1 - alpha) * (1 - targets)
-    return (a_t * (1 - p_t).pow(gamma) * ce).sum()
-
-
 def detection_loss(
     outputs: DetectorOutput,
     gt_labels: Sequence[Tensor],
@@ -903,7 +895,7 @@ def detection_loss(
             diff = (pred[b, qi] - torch.nan_to_num(tgt, nan=0.0)).abs()
             box_loss = box_loss + (diff * w).sum()
         norm = max(num_pos, 1)
-        total_cls = total_cls + w_layer * cls_weight * sigmoid_focal(logits, cls_target, alpha, gamma) / norm
+        total_cls = total_cls + w_layer * cls_weight * sigmoid_focal_loss(logits, cls_target, alpha, gamma) / norm
         total_box = total_box + w_layer * box_weight * box_loss / norm
     out = {"det_cls": total_cls, "det_box": total_box}
     if outputs.denoising is not None and outputs.dn_cls_logits and outputs.dn_encoded_boxes:
@@ -912,7 +904,7 @@ def detection_loss(
                 outputs.denoising,
                 outputs.dn_cls_logits,
                 outputs.dn_encoded_boxes,
-                lambda logits, targets: sigmoid_focal(logits, targets, alpha, gamma),
+                lambda logits, targets: sigmoid_focal_loss(logits, targets, alpha, gamma),
                 cls_weight,
                 box_weight,
                 reg_weights,

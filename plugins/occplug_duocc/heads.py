@@ -8,7 +8,7 @@ import torch
 from torch import Tensor, nn
 
 from occplug.constraints import Positive, Range
-from occplug.data.frame import Batch
+from occplug.data import Batch
 from occplug.geometry import GridSpec, sample_volume
 from occplug.interfaces import DEFAULT_QUERY_CHUNK, DenseVoxelScene, OccupancyHead, QueryResult, Scene
 

@@ -10,7 +10,7 @@ import occplug
 
 @occplug.hookimpl
 def occplug_register_components(registry: occplug.Registry) -> None:
-    from .decoder import DuOccDecoder
+    from .heads import DuOccDecoder
     from .mask_decoder import DuOccMask
     from .scene import DuOccStacking, DuOccStream
     from .supervision import DuOccDetection, DuOccForecast, DuOccOccupied

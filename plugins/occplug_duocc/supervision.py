@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from occplug.constraints import NonNegative
-from occplug.data.frame import Batch
+from occplug.data import Batch
 from occplug.interfaces import ModelOutputs, SupervisionSource
 
 from .detector import DetectorOutput, detection_loss

@@ -1,4 +1,4 @@
-"""Head ``query_decoder``: QueryOcc's unified query decoder, answering at any 4D point ``(x, y, z, t)``.
+"""Head ``queryocc_decoder``: QueryOcc's unified query decoder, answering at any 4D point ``(x, y, z, t)``.
 
 Per query (QueryOcc §3.3): contract ``(x, y)`` into the scene grid's coordinates (the grid's own
 :meth:`~occplug.geometry.GridSpec.normalize`, so a contracted plane is read where the splat put the
@@ -18,7 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from occplug.constraints import NonNegative, Positive, Range
-from occplug.data.frame import Batch
+from occplug.data import Batch
 from occplug.interfaces import OccupancyHead, QueryResult, Scene
 
 __all__ = ["QueryDecoder"]
@@ -76,7 +76,7 @@ class QueryDecoder(OccupancyHead):
     ) -> None:
         super().__init__()
         if not 0.0 < occupancy_threshold < 1.0:
-            raise ValueError(f"query_decoder occupancy_threshold must lie in (0, 1), got {occupancy_threshold}")
+            raise ValueError(f"queryocc_decoder occupancy_threshold must lie in (0, 1), got {occupancy_threshold}")
         self.num_classes, self.free_label = int(num_classes), free_label
         self.occupancy_threshold = float(occupancy_threshold)
         self.num_offsets, self.offset_range, self.time_scale = int(offsets), float(offset_range), float(time_scale)

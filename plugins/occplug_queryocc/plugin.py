@@ -10,17 +10,16 @@ import occplug
 
 @occplug.hookimpl
 def occplug_register_components(registry: occplug.Registry) -> None:
-    from .bev import QueryOccBev
-    from .decoder import QueryDecoder
-    from .query_supervision import QuerySupervision
-    from .render_supervision import RenderSupervision
+    from .heads import QueryDecoder
+    from .scene import QueryOccBev
+    from .supervision import QuerySupervision, RenderSupervision
     from .view_transform import LiftContractSplat
 
-    registry.add("view_transform", "lift_contract_splat", LiftContractSplat)
+    registry.add("view_transform", "queryocc_lift_contract_splat", LiftContractSplat)
     registry.add("scene", "queryocc_bev", QueryOccBev)
-    registry.add("head", "query_decoder", QueryDecoder)
-    registry.add("supervision", "query_points", QuerySupervision)
-    registry.add("supervision", "render_points", RenderSupervision)
+    registry.add("head", "queryocc_decoder", QueryDecoder)
+    registry.add("supervision", "queryocc_query_points", QuerySupervision)
+    registry.add("supervision", "queryocc_render_points", RenderSupervision)
 
 
 @occplug.hookimpl

@@ -1,4 +1,4 @@
-"""View transform ``lift_contract_splat``: QueryOcc's lift of image features into a (contracted) BEV plane.
+"""View transform ``queryocc_lift_contract_splat``: QueryOcc's lift of image features into a (contracted) BEV plane.
 
 Three changes to Lift-Splat-Shoot (QueryOcc §3.2), each switchable off for the ablation:
 
@@ -23,10 +23,10 @@ from typing import Annotated, Literal
 import torch
 from torch import Tensor, nn
 
-from occplug.components.view_transforms import build_depth_net
-from occplug.config.slots import Slot
+from occplug.components import build_depth_net
+from occplug.config import Slot
 from occplug.constraints import NonNegative, Positive, UnitInterval
-from occplug.data.frame import Batch
+from occplug.data import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces import Lifted, ViewTransform
 from occplug.ops import FrustumSplatter
@@ -92,7 +92,7 @@ class LiftContractSplat(ViewTransform):
     ) -> None:
         super().__init__()
         if bins not in ("log_linear", "uniform"):
-            raise ValueError(f"lift_contract_splat bins must be 'log_linear' or 'uniform', got {bins!r}")
+            raise ValueError(f"queryocc_lift_contract_splat bins must be 'log_linear' or 'uniform', got {bins!r}")
         self.grid = GridSpec.from_config(grid)
         self.image_stride = int(image_stride)
         self.out_channels = int(out_channels)

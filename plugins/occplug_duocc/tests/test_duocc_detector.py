@@ -388,7 +388,7 @@ def test_decode_inverts_encode():
 
 
 def test_detector_loss_and_map_on_the_core_batch():
-    from occplug.testing.fixtures import make_tiny_batch
+    from occplug.testing import make_tiny_batch
 
     batch = make_tiny_batch()  # 2 samples, 6 cameras, boxes (M, 9) with Occ3D class ids
     torch.manual_seed(0)

@@ -5,13 +5,12 @@ import math
 import pytest
 import torch
 
-from occplug.data.labelled_points import LabelledPoints
-from occplug.geometry import GridSpec, contract, transform_points, uncontract
-from occplug.geometry.transforms import invert_pose
+from occplug.data import LabelledPoints
+from occplug.geometry import GridSpec, contract, invert_pose, transform_points, uncontract
 from occplug.interfaces import BevScene
 from occplug.testing import make_tiny_batch
 from occplug_queryocc import QueryDecoder, log_linear_depths, sample_queries, supervision_points, visibility
-from occplug_queryocc.query_supervision import QuerySupervision
+from occplug_queryocc.supervision import QuerySupervision
 
 
 def test_contraction_is_continuous_monotone_bounded_and_invertible():
@@ -89,7 +88,7 @@ def _box_contains(boxes, pts, margin=0.3):
 
 def _later_frames(offsets):
     """Frames 1 and 2 of the tiny world's first scene (frame 0 has no previous frame) with perfect pseudo labels."""
-    from occplug.data.frame import collate_frames
+    from occplug.data import collate_frames
     from occplug.data.synthetic import SyntheticDataModule
 
     dm = SyntheticDataModule(preset="tiny", adjacent_offsets=offsets, pseudo_labels={"synthetic": "perfect"})
@@ -222,7 +221,7 @@ def test_lidar_points_take_their_class_from_the_pseudo_semantics(source):
     seen = pts.labels != 255
     assert seen.float().mean() > 0.2
     # perfect pseudo semantics: the projected class is the point's own label where a camera sees it
-    from occplug.data.labelled_points import lidar_points
+    from occplug.data import lidar_points
 
     lid = lidar_points(batch)[0]
     ref = batch.point_labels[0]

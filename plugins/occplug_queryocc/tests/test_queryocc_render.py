@@ -1,5 +1,5 @@
-"""render_points: QueryOcc's rendering-only baseline -- exact alpha blending, the query budget of query_points,
-a ground-truth field renders the true depth, a small decoder learns from it, and it trains beside query_points."""
+"""queryocc_render_points: QueryOcc's rendering-only baseline -- exact alpha blending, the query budget of queryocc_query_points,
+a ground-truth field renders the true depth, a small decoder learns from it, and it trains beside queryocc_query_points."""
 
 from __future__ import annotations
 
@@ -12,13 +12,13 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from occplug.data.frame import Batch
+from occplug.data import Batch
 from occplug.geometry import GridSpec, camera_rays, invert_pose, transform_points
 from occplug.interfaces import BevScene, ModelOutputs, QueryResult
 from occplug.testing import check_component, hand_batch, make_tiny_batch, run_config
 from occplug_queryocc import QuerySupervision, RenderSupervision
-from occplug_queryocc.decoder import QueryDecoder
-from occplug_queryocc.render_supervision import render_rays, transmittance_weights
+from occplug_queryocc.heads import QueryDecoder
+from occplug_queryocc.supervision import render_rays, transmittance_weights
 
 # The field of test 1: a voxel grid whose ground slab's top (z = 0) and wall's face (x = 8) are voxel faces.
 FIELD = GridSpec((-48.0, -48.0, -0.8, 48.0, 48.0, 12.0), 0.8)
@@ -178,7 +178,7 @@ def test_the_losses_equal_a_hand_computed_example():
     assert losses["sem"] == 0
 
 
-# ---------------------------------------------------------------- 3: the query budget of query_points
+# ---------------------------------------------------------------- 3: the query budget of queryocc_query_points
 @pytest.mark.parametrize("offsets", [[0], [-1, 0, 1]])
 def test_queries_per_step_equal_rays_times_samples_and_query_points_default(offsets):
     render, queries = RenderSupervision(frame_offsets=offsets), QuerySupervision(frame_offsets=offsets)
@@ -212,7 +212,7 @@ def test_queries_per_step_equal_rays_times_samples_and_query_points_default(offs
 
 
 def test_render_points_conforms_and_registers():
-    source = check_component("supervision", "render_points", batch=make_tiny_batch())
+    source = check_component("supervision", "queryocc_render_points", batch=make_tiny_batch())
     assert isinstance(source, RenderSupervision) and source.query_head == "occupancy"
 
 

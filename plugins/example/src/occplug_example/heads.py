@@ -7,7 +7,7 @@ from typing import Annotated
 from torch import Tensor, nn
 
 import occplug
-from occplug.config.constraints import Positive
+from occplug.constraints import Positive
 
 
 class TinyMLPHead(occplug.OccupancyHead):
