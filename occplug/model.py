@@ -12,7 +12,6 @@ import torch
 from torch import Tensor, nn
 
 from occplug import interfaces as I
-from occplug.config.slots import Slot, component_params
 from occplug.constraints import NonNegative
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, relative_pose
@@ -21,6 +20,7 @@ from occplug.interfaces.model import OccupancyModel
 from occplug.kinds import KINDS, given_arguments
 from occplug.plugins import get_registry
 from occplug.queries import check_query_support
+from occplug.slots import Slot, component_params
 from occplug.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
 
 __all__ = ["OccModel", "build_component", "frame_in_current_ego", "head_order"]
@@ -140,7 +140,8 @@ class OccModel(OccupancyModel):
         encoder: the image ``encoder`` node.
         view_transform: the ``view_transform`` node (``in_channels``/``image_stride`` default to
             the encoder's primary level; ``level_channels``/``level_strides`` where it takes them).
-        scene: the ``scene`` node (``in_channels`` defaults to the view transform's).
+        scene: the ``scene`` node (``in_channels`` defaults to the view transform's, ``level_channels`` to the
+            encoder's where it takes them).
         heads: named ``head`` nodes; a ``null`` entry is switched off.
         point_encoders: named ``point_encoder`` nodes (a LiDAR branch); ``grid`` defaults to the
             evaluation grid; a ``null`` entry is switched off.
@@ -186,6 +187,8 @@ class OccModel(OccupancyModel):
         if isinstance(grid, GridSpec):  # hyper-parameters stay plain data (weights_only checkpoint loading)
             grid = self.grid.to_dict()
         self.save_hyperparameters()
+        # the run's grid, normalised once: the one route by which it reaches every component that takes a `grid`
+        run_grid = self.grid.to_dict()
         self.class_names = list(class_names) if class_names else []
         self.num_classes = len(self.class_names) or 18
         self.free_label = free_label
@@ -193,7 +196,7 @@ class OccModel(OccupancyModel):
         self.encoder = build_component("encoder", encoder)
         self.point_encoders = nn.ModuleDict(
             {
-                name: build_component("point_encoder", spec, grid=self.grid.to_dict())
+                name: build_component("point_encoder", spec, grid=run_grid)
                 for name, spec in (point_encoders or {}).items()
                 if spec is not None
             }
@@ -205,8 +208,15 @@ class OccModel(OccupancyModel):
             image_stride=self.encoder.stride,
             level_channels=list(self.encoder.level_channels),
             level_strides=list(self.encoder.level_strides),
+            grid=run_grid,
         )
-        self.scene = build_component("scene", scene, in_channels=self.view_transform.out_channels)
+        self.scene = build_component(
+            "scene",
+            scene,
+            in_channels=self.view_transform.out_channels,
+            level_channels=list(self.encoder.level_channels),
+            grid=run_grid,
+        )
         self.heads = nn.ModuleDict(
             {
                 name: build_component(
@@ -215,6 +225,7 @@ class OccModel(OccupancyModel):
                     in_channels=self.scene.out_channels,
                     num_classes=self.num_classes,
                     free_label=free_label,
+                    grid=run_grid,
                 )
                 for name, spec in heads.items()
                 if spec is not None
@@ -228,7 +239,7 @@ class OccModel(OccupancyModel):
             )
         self.supervision = nn.ModuleDict(
             {
-                name: build_component("supervision", spec, free_label=free_label, ignore_label=ignore_label)
+                name: build_component("supervision", spec, free_label=free_label, ignore_label=ignore_label, grid=run_grid)
                 for name, spec in supervision.items()
                 if spec is not None
             }
@@ -259,6 +270,7 @@ class OccModel(OccupancyModel):
                 class_names=self.class_names or None,
                 free_label=self.free_label,
                 ignore_label=ignore_label,
+                grid=self.grid.to_dict(),
             )
         return out
 

@@ -48,6 +48,7 @@ from occplug.streams import check_streaming
 
 __all__ = [
     "AtomicCheckpointIO",
+    "RunError",
     "build_datamodule",
     "build_model",
     "build_run",
@@ -59,6 +60,7 @@ __all__ = [
     "load_config",
     "plugin_versions",
     "predict",
+    "resolve_run_config",
     "write_text_atomic",
 ]
 
@@ -112,8 +114,9 @@ def plugin_versions() -> dict[str, str | None]:
 
 
 def build_datamodule(cfg: dict[str, Any]) -> OccDataModule:
-    """The data module of ``cfg['data']``."""
-    dm = get_registry().build("data", cfg["data"])
+    """The data module of ``cfg['data']``, given the run's top-level ``grid`` where the config has one."""
+    given = {} if cfg.get("grid") is None else {"grid": cfg["grid"]}
+    dm = get_registry().build("data", cfg["data"], **given)
     if not isinstance(dm, OccDataModule):
         raise TypeError(f"data '{cfg['data']['type']}' built a {type(dm).__name__}, not an OccDataModule")
     return dm
@@ -137,23 +140,21 @@ def build_model(cfg: dict[str, Any], dm: OccDataModule) -> OccupancyModel:
         ignore_label=dm.ignore_label,
         optimizer=cfg.get("optimizer"),
         scheduler=cfg.get("scheduler"),
-        metrics=metric_nodes(cfg.get("metrics"), grid, cfg.get("eval_mask") or DEFAULT_EVAL_MASK),
+        metrics=metric_nodes(cfg.get("metrics"), cfg.get("eval_mask") or DEFAULT_EVAL_MASK),
     )
     model.run_config = cfg  # stored in every checkpoint (self-contained checkpoints)
     return model
 
 
-def metric_nodes(specs: list | None, grid: dict[str, Any], eval_mask: str = DEFAULT_EVAL_MASK) -> list | None:
-    """The config's ``metrics`` as nodes, with the run's ``grid`` and ``eval_mask`` filled into the
-    metrics that take them (``grid``: e.g. ``rayiou``; ``mask``: e.g. ``occ3d_miou``)."""
+def metric_nodes(specs: list | None, eval_mask: str = DEFAULT_EVAL_MASK) -> list | None:
+    """The config's ``metrics`` as nodes, with the run's ``eval_mask`` filled into the metrics that take it
+    (``mask``: e.g. ``occ3d_miou``). The grid reaches them from the model, as every component's does (``given``)."""
     if specs is None:
         return None
     out = []
     for spec in specs:
         node = {"type": spec} if isinstance(spec, str) else dict(spec)
         params = inspect.signature(get_registry().get("metric", node["type"]).factory).parameters
-        if "grid" not in node and "grid" in params:
-            node["grid"] = grid
         if "mask" in params:
             node["mask"] = eval_mask
         out.append(node)

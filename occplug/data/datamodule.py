@@ -6,7 +6,7 @@ import itertools
 import os
 import random
 from collections.abc import Collection, Iterator, Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import lightning as L
 import numpy as np
@@ -45,6 +45,9 @@ class OccDataModule(L.LightningDataModule):
         label_cut: the training split's label fraction and subset (:mod:`occplug.data.label_fraction`);
             a subclass that takes ``label_fraction`` / ``subset`` sets it.
     """
+
+    #: Constructor arguments the runner fills in when the config leaves them out: the run's top-level ``grid``.
+    given: ClassVar[tuple[str, ...]] = ("grid",)
 
     def __init__(
         self,

@@ -5,8 +5,13 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar, NamedTuple
 
+import torch
 from torch import Tensor, nn
 
+from occplug.data.frame import Batch
+from occplug.geometry import GridSpec
+
+from .checks import CHECK_CHANNELS, assert_gradient, eval_twice
 from .view_transform import random_image_features
 
 __all__ = ["DepthAndContext", "DepthNet"]
@@ -61,6 +66,28 @@ class DepthNet(nn.Module, ABC):
         Returns:
             :class:`DepthAndContext` with ``(B, N, D, h, w)`` logits and ``(B, N, C, h, w)`` context.
         """
+
+    @classmethod
+    def check_conformance(cls, component: DepthNet, batch: Batch, grid: GridSpec) -> None:
+        """The kind's contract, checked: depth logits and context of the declared shapes, deterministic in eval,
+        gradients to the image features and its parameters.
+
+        :func:`occplug.testing.check_component` runs it on every registered component of this kind.
+        """
+        net = component
+        inputs = type(net).conformance_inputs(batch, grid, CHECK_CHANNELS)
+        first, second = eval_twice(net, lambda m: m(*inputs))
+        b, n, _, h, w = inputs[0].shape
+        assert isinstance(first, DepthAndContext), "a depth net returns DepthAndContext"
+        assert first.depth_logits.shape == (b, n, net.num_bins, h, w), f"depth logits {tuple(first.depth_logits.shape)}"
+        assert first.context.shape == (b, n, net.out_channels, h, w), f"context {tuple(first.context.shape)}"
+        assert torch.equal(first.depth_logits, second.depth_logits) and torch.equal(first.context, second.context), (
+            "depth net is not deterministic in eval mode"
+        )
+        out = net(*inputs)
+        (out.depth_logits.square().mean() + out.context.square().mean()).backward()
+        assert inputs[0].grad is not None and inputs[0].grad.abs().sum() > 0, "no gradient reaches the image features"
+        assert_gradient(net, "depth net")
 
     @classmethod
     def conformance_inputs(cls, batch: Any, grid: Any, channels: int) -> tuple[Any, ...]:

@@ -5,10 +5,13 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
+import torch
 from torch import Tensor, nn
 
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
+
+from .checks import CHECK_CHANNELS, assert_finite, assert_gradient, eval_twice
 
 __all__ = ["ImageEncoder", "PointEncoder", "feature_levels"]
 
@@ -77,6 +80,32 @@ class ImageEncoder(nn.Module, ABC):
         """
 
     @classmethod
+    def check_conformance(cls, component: ImageEncoder, batch: Batch, grid: GridSpec) -> None:
+        """The kind's contract, checked: its levels' shapes match its declared channels and strides, eval is
+        deterministic, outputs finite, gradients reach its parameters.
+
+        :func:`occplug.testing.check_component` runs it on every registered component of this kind.
+        """
+        enc = component
+        assert isinstance(enc.out_channels, int) and isinstance(enc.stride, int), "encoder must set out_channels and stride"
+        b, n, _, h, w = batch.images.shape
+        inputs = type(enc).conformance_inputs(batch, grid, CHECK_CHANNELS)
+        first, second = eval_twice(enc, lambda m: feature_levels(m(*inputs)))
+        channels, strides = enc.level_channels, enc.level_strides
+        assert len(first) == len(channels) == len(strides), f"encoder gave {len(first)} levels, declares {len(channels)}"
+        assert 0 <= enc.primary_level < len(first), f"primary_level {enc.primary_level} outside {len(first)} levels"
+        assert (channels[enc.primary_level], strides[enc.primary_level]) == (enc.out_channels, enc.stride), (
+            "the primary level must have out_channels and stride"
+        )
+        for level, (a, c, s) in enumerate(zip(first, channels, strides, strict=True)):
+            assert a.shape == (b, n, c, h // s, w // s), f"encoder level {level}: {tuple(a.shape)}"
+        for a, c in zip(first, second, strict=True):
+            assert torch.equal(a, c), "encoder is not deterministic in eval mode"
+            assert_finite(a, "encoder output")
+        torch.stack([x.square().mean() for x in feature_levels(enc(*inputs))]).sum().backward()
+        assert_gradient(enc, "encoder")
+
+    @classmethod
     def conformance_inputs(cls, batch: Batch, grid: GridSpec, channels: int) -> tuple[Any, ...]:
         """Positional ``forward`` inputs for the conformance check: the batch's images."""
         return (batch.images,)
@@ -113,6 +142,23 @@ class PointEncoder(nn.Module, ABC):
         Returns:
             ``(B, out_channels, X, Y, Z)`` features on ``grid`` in the ego frame.
         """
+
+    @classmethod
+    def check_conformance(cls, component: PointEncoder, batch: Batch, grid: GridSpec) -> None:
+        """The kind's contract, checked: a ``(B, out_channels, *grid.shape)`` volume, deterministic in eval,
+        finite, with gradients.
+
+        :func:`occplug.testing.check_component` runs it on every registered component of this kind.
+        """
+        enc = component
+        assert isinstance(enc.out_channels, int) and isinstance(enc.grid, GridSpec), "point encoder sets out_channels, grid"
+        inputs = type(enc).conformance_inputs(batch, grid, CHECK_CHANNELS)
+        first, second = eval_twice(enc, lambda m: m(*inputs))
+        assert first.shape == (len(batch), enc.out_channels, *enc.grid.shape), f"point encoder output {tuple(first.shape)}"
+        assert torch.equal(first, second), "point encoder is not deterministic in eval mode"
+        assert_finite(first, "point encoder output")
+        enc(*inputs).square().mean().backward()
+        assert_gradient(enc, "point encoder")
 
     @classmethod
     def conformance_inputs(cls, batch: Batch, grid: GridSpec, channels: int) -> tuple[Any, ...]:

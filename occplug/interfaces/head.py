@@ -11,6 +11,7 @@ from torch import Tensor, nn
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 
+from .checks import CHECK_CHANNELS, assert_finite, assert_gradient, eval_twice
 from .query import QueryResult
 from .scene import DenseVoxelScene, Scene
 
@@ -42,7 +43,7 @@ class Head(nn.Module, ABC):
     """
 
     #: Constructor arguments the model fills in when the config leaves them out.
-    given: ClassVar[tuple[str, ...]] = ("in_channels", "num_classes", "free_label")
+    given: ClassVar[tuple[str, ...]] = ("in_channels", "num_classes", "free_label", "grid")
     #: Config names of the heads whose outputs this head reads (an instance may set its own).
     reads: tuple[str, ...] = ()
     #: Whether ``forward`` takes a third argument, the :class:`~occplug.interfaces.ModelOutputs` so far.
@@ -66,6 +67,49 @@ class Head(nn.Module, ABC):
 
         A head with ``reads`` (or ``reads_outputs``) is called with a third argument ``outputs``.
         """
+
+    @classmethod
+    def check_conformance(cls, component: Head, batch: Batch, grid: GridSpec) -> None:
+        """The kind's contract, checked: named tensors, deterministic in eval; an occupancy head's
+        ``occupancy_logits`` equal its forward logits and its queries at voxel centres equal them; gradients.
+
+        :func:`occplug.testing.check_component` runs it on every registered component of this kind.
+        """
+        head = component
+        inputs = type(head).conformance_inputs(batch, grid, CHECK_CHANNELS)
+        scene = inputs[0]
+        first, second = eval_twice(head, lambda m: m(*inputs))
+        assert isinstance(first, dict) and all(isinstance(v, Tensor) for v in first.values()), (
+            "a head returns dict[str, Tensor]"
+        )
+        for key in first:
+            assert torch.equal(first[key], second[key]), f"head output '{key}' is not deterministic in eval mode"
+        assert_finite(first, "head output")
+        reads = bool(getattr(head, "reads", ())) or head.reads_outputs
+        if isinstance(head, OccupancyHead) and not reads:  # a reading head is evaluated from its forward logits
+            head.eval()
+            logits = head.occupancy_logits(scene, grid)
+            assert logits.shape == (len(batch), head.num_classes, *grid.shape), f"occupancy_logits {tuple(logits.shape)}"
+            assert torch.allclose(logits, head(*inputs)["logits"], atol=1e-5), "occupancy_logits != forward logits"
+            if head.queryable:  # queries at voxel centres agree with the voxel logits; t != 0 only for temporal heads
+                idx = torch.tensor([[1, 2, 3], [5, 0, 1]])
+                pts = grid.index_to_coord(idx)[None].expand(len(batch), -1, -1)
+                result = head.query(scene, pts)
+                assert isinstance(result, QueryResult), f"query returned a {type(result).__name__}, not a QueryResult"
+                expected = logits[:, :, idx[:, 0], idx[:, 1], idx[:, 2]].transpose(1, 2)
+                queried = result.logits(head.free_label)
+                assert torch.allclose(queried, expected, atol=1e-4), "query at voxel centres != occupancy logits"
+                if not head.temporal:
+                    try:
+                        head.query(scene, pts, torch.full(pts.shape[:2], 0.5))
+                    except ValueError:
+                        pass
+                    else:
+                        raise AssertionError("a head that is not temporal must reject queries at t != 0 (ValueError)")
+            head.train()
+        out = head(*inputs)
+        torch.stack([v.float().square().mean() for v in out.values() if v.is_floating_point()]).sum().backward()
+        assert_gradient(head, "head")
 
     @classmethod
     def conformance_inputs(cls, batch: Batch, grid: GridSpec, channels: int) -> tuple[Any, ...]:

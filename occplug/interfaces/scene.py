@@ -11,6 +11,7 @@ from torch import Tensor, nn
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, sample_volume
 
+from .checks import CHECK_CHANNELS, assert_finite, assert_gradient, eval_twice
 from .view_transform import Lifted
 
 __all__ = ["BevScene", "DenseVoxelScene", "Scene", "SceneRepresentation"]
@@ -106,7 +107,9 @@ class SceneRepresentation(nn.Module, ABC):
     """Builds a :class:`Scene` from lifted features (and may hold state across a stream).
 
     Contract:
-        given: ``in_channels`` (the view transform's ``out_channels`` when the config leaves it out).
+        given: ``in_channels`` (the view transform's ``out_channels`` when the config leaves it out) and, to a
+        representation that takes them, ``level_channels`` (the image encoder's levels' channels, finest first:
+        a scene that reads ``outputs.image_levels`` builds its layers for them).
         declares: ``out_channels``; ``reads_outputs = True`` to be called as
         ``forward(lifted, batch, outputs)`` with the model's outputs so far (e.g. a scene fusing
         the camera volume with a point encoder's volume from ``outputs.encoded``).
@@ -119,7 +122,7 @@ class SceneRepresentation(nn.Module, ABC):
     """
 
     #: Constructor arguments the model fills in when the config leaves them out.
-    given: ClassVar[tuple[str, ...]] = ("in_channels",)
+    given: ClassVar[tuple[str, ...]] = ("in_channels", "level_channels", "grid")
     #: Whether ``forward`` takes a third argument, the :class:`~occplug.interfaces.ModelOutputs` so far.
     reads_outputs: ClassVar[bool] = False
     #: Whether it carries state from frame to frame (a :class:`~occplug.streams.StreamState`); a stateful model
@@ -135,6 +138,26 @@ class SceneRepresentation(nn.Module, ABC):
     @abstractmethod
     def forward(self, lifted: Lifted, batch: Batch) -> Scene:
         """Build the scene for ``batch``."""
+
+    @classmethod
+    def check_conformance(cls, component: SceneRepresentation, batch: Batch, grid: GridSpec) -> None:
+        """The kind's contract, checked: a :class:`Scene` whose ``sample`` gives ``(B, P, channels)``,
+        deterministic in eval, finite, with gradients.
+
+        :func:`occplug.testing.check_component` runs it on every registered component of this kind.
+        """
+        rep = component
+        inputs = type(rep).conformance_inputs(batch, grid, CHECK_CHANNELS)
+        first, second = eval_twice(rep, lambda m: m(*inputs).features)
+        assert torch.equal(first, second), "scene is not deterministic in eval mode"
+        scene = rep(*inputs)
+        assert isinstance(scene, Scene), "a scene representation returns a Scene"
+        points = grid.centers()[::3, ::3, ::2].reshape(1, -1, 3).expand(len(batch), -1, -1)
+        out = scene.sample(points)
+        assert out.shape == (len(batch), points.shape[1], scene.channels), f"sample shape {tuple(out.shape)}"
+        assert_finite(out, "scene sample")
+        out.square().mean().backward()
+        assert_gradient(rep, "scene")
 
     @classmethod
     def conformance_inputs(cls, batch: Batch, grid: GridSpec, channels: int) -> tuple[Any, ...]:

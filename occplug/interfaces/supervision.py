@@ -7,10 +7,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
+import torch
 from torch import Tensor, nn
 
 from occplug.data.frame import Batch
+from occplug.geometry import GridSpec
 
+from .checks import CHECK_CHANNELS, assert_gradient
 from .query import QueryResult
 from .scene import Scene
 from .view_transform import Lifted
@@ -69,7 +72,28 @@ class SupervisionSource(nn.Module, ABC):
     """
 
     #: Constructor arguments the model fills in when the config leaves them out.
-    given: ClassVar[tuple[str, ...]] = ("free_label", "ignore_label")
+    given: ClassVar[tuple[str, ...]] = ("free_label", "ignore_label", "grid")
+
+    @classmethod
+    def check_conformance(cls, component: SupervisionSource, batch: Batch, grid: GridSpec, model: nn.Module) -> None:
+        """The kind's contract, checked: a non-empty dict of finite scalar losses whose gradients reach the
+        model (``model``: a small LSS model on ``grid`` whose outputs train the source, unless the source
+        supplies its own :meth:`conformance_outputs`).
+
+        :func:`occplug.testing.check_component` runs it on every registered component of this kind.
+        """
+        source = component
+        own = type(source).conformance_outputs(batch, grid, CHECK_CHANNELS)
+        outputs = model(batch) if own is None else own
+        losses = source(batch, outputs)
+        assert isinstance(losses, dict) and losses, "a supervision source returns a non-empty dict of losses"
+        for key, value in losses.items():
+            assert value.dim() == 0 and torch.isfinite(value), f"loss '{key}' must be a finite scalar"
+        total = torch.stack(list(losses.values())).sum()
+        assert total.requires_grad, "the losses carry no gradient"
+        total.backward()
+        if own is None:
+            assert_gradient(model, "model under this supervision")
 
     @classmethod
     def conformance_outputs(cls, batch: Batch, grid: Any, channels: int) -> ModelOutputs | None:

@@ -12,6 +12,8 @@ from torch import Tensor, nn
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 
+from .checks import CHECK_CHANNELS, assert_finite, assert_gradient, eval_twice
+
 __all__ = ["Lifted", "ViewTransform", "random_image_features"]
 
 
@@ -53,7 +55,7 @@ class ViewTransform(nn.Module, ABC):
     """
 
     #: Constructor arguments the model fills in when the config leaves them out.
-    given: ClassVar[tuple[str, ...]] = ("in_channels", "image_stride", "level_channels", "level_strides")
+    given: ClassVar[tuple[str, ...]] = ("in_channels", "image_stride", "level_channels", "level_strides", "grid")
     #: Whether ``forward`` takes a third argument, the :class:`~occplug.interfaces.ModelOutputs` so far.
     reads_outputs: ClassVar[bool] = False
     #: Whether it carries state from frame to frame (a :class:`~occplug.streams.StreamState`); a stateful model
@@ -79,6 +81,32 @@ class ViewTransform(nn.Module, ABC):
         Returns:
             A :class:`Lifted` volume in the ego frame.
         """
+
+    @classmethod
+    def check_conformance(cls, component: ViewTransform, batch: Batch, grid: GridSpec) -> None:
+        """The kind's contract, checked: a :class:`Lifted` volume on its grid, depth probabilities summing to 1,
+        deterministic in eval, gradients to the features and its parameters.
+
+        :func:`occplug.testing.check_component` runs it on every registered component of this kind.
+        """
+        vt = component
+        inputs = type(vt).conformance_inputs(batch, grid, CHECK_CHANNELS)
+        first, second = eval_twice(vt, lambda m: m(*inputs).volume)
+        assert torch.equal(first, second), "view transform is not deterministic in eval mode"
+        lifted = vt(*inputs)
+        b = len(batch)
+        assert isinstance(lifted, Lifted), "a view transform returns Lifted"
+        assert lifted.volume.shape[:2] == (b, vt.out_channels), f"volume shape {tuple(lifted.volume.shape)}"
+        assert tuple(lifted.volume.shape[2:]) in (lifted.grid.shape, lifted.grid.shape[:2])
+        if lifted.depth_probs is not None:
+            assert lifted.depth_bins is not None and lifted.depth_probs.shape[2] == lifted.depth_bins.shape[0]
+            assert torch.allclose(lifted.depth_probs.sum(2), torch.ones(()), atol=1e-4), "depth_probs must sum to 1"
+        assert_finite(lifted.volume, "lifted volume")
+        lifted.volume.square().mean().backward()
+        feats = inputs[0]
+        if isinstance(feats, Tensor) and feats.requires_grad:
+            assert feats.grad is not None and feats.grad.abs().sum() > 0, "no gradient reaches the image features"
+        assert_gradient(vt, "view transform")
 
     @classmethod
     def conformance_inputs(cls, batch: Batch, grid: GridSpec, channels: int) -> tuple[Any, ...]:

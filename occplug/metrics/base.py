@@ -12,6 +12,7 @@ from torchmetrics import Metric
 
 from occplug.data.classes import class_groups
 from occplug.data.frame import Batch
+from occplug.geometry import GridSpec
 
 __all__ = ["EvalMask", "OccMetric", "check_class_ids", "evaluation_mask", "excluded_class_ids", "group_class_ids"]
 
@@ -30,11 +31,27 @@ class OccMetric(Metric):
     """
 
     full_state_update = False
-    #: Constructor arguments the model fills in when the config leaves them out (its ``grid`` and
-    #: ``mask`` come from the run's config: see ``occplug.runner.metric_nodes``).
-    given: ClassVar[tuple[str, ...]] = ("num_classes", "class_names", "free_label", "ignore_label")
+    #: Constructor arguments the model fills in when the config leaves them out (the run's ``grid`` among them;
+    #: the evaluation ``mask`` comes from the run's config: see ``occplug.runner.metric_nodes``).
+    given: ClassVar[tuple[str, ...]] = ("num_classes", "class_names", "free_label", "ignore_label", "grid")
     #: Optional Frame fields the metric reads beyond the labels (see ``SupervisionSource.requires``).
     requires: frozenset[str] = frozenset()
+
+    @classmethod
+    def check_conformance(cls, component: OccMetric, batch: Batch, grid: GridSpec) -> None:
+        """The kind's contract, checked: scalar results from ``compute`` after an ``update`` with the truth.
+
+        :func:`occplug.testing.check_component` runs it on every registered component of this kind.
+        """
+        metric = component
+        assert isinstance(metric, OccMetric)
+        batch.require("voxel_labels", by="the metric conformance check")
+        metric.update(batch.voxel_labels.long(), batch)
+        perfect = metric.compute()
+        assert isinstance(perfect, dict) and perfect, "compute() returns a non-empty dict"
+        for key, value in perfect.items():
+            assert value.dim() == 0, f"metric result '{key}' must be a scalar"
+        metric.reset()
 
     @abstractmethod
     def update(self, pred: Tensor, batch: Batch) -> None:  # type: ignore[override]

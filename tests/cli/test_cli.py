@@ -26,10 +26,12 @@ def run_cli(*args, cwd=ROOT):
 
 
 def test_config_show_applies_override(capsys):
-    assert main(["config", "show", "-c", BASELINE, "trainer.max_epochs=3"]) == 0
+    wired = "model.view_transform.out_channels=${model.scene.out_channels}"
+    assert main(["config", "show", "-c", BASELINE, "trainer.max_epochs=3", wired]) == 0
     cfg = yaml.safe_load(capsys.readouterr().out)
     assert cfg["trainer"]["max_epochs"] == 3
-    assert cfg["model"]["view_transform"]["grid"] == cfg["grid"]  # interpolation resolved
+    assert cfg["model"]["view_transform"]["out_channels"] == cfg["model"]["scene"]["out_channels"]  # resolved
+    assert "grid" not in cfg["model"]["view_transform"]  # the model gives it the top-level grid
 
 
 def test_config_show_explain(capsys):

@@ -30,15 +30,34 @@ def test_ssc_run_reports_completion_and_semantic_scores(tmp_path, capsys):
     assert "SemanticKITTI SSC (semantic-kitti-api scorer; empty = free (17)" in capsys.readouterr().out
 
 
-def test_grid_and_mask_are_filled_only_into_metrics_that_take_them():
+def test_the_mask_is_filled_only_into_metrics_that_take_it():
     grid = {"range": [-8.0, -8.0, -1.0, 8.0, 8.0, 2.2], "voxel_size": 0.8}
     own = {"range": [0, 0, 0, 4, 4, 4], "voxel_size": 1.0}
-    nodes = metric_nodes(["occ3d_miou", "rayiou", {"type": "rayiou", "grid": own}, "ssc"], grid, "lidar")
+    nodes = metric_nodes(["occ3d_miou", "rayiou", {"type": "rayiou", "grid": own}, "ssc"], "lidar")
     assert nodes == [
         {"type": "occ3d_miou", "mask": "lidar"},
-        {"type": "rayiou", "grid": grid},
+        {"type": "rayiou"},
         {"type": "rayiou", "grid": own},
         {"type": "ssc"},
     ]
-    assert metric_nodes(None, grid) is None
+    assert metric_nodes(None) is None
     assert isinstance(Occ3DMIoU(), Occ3DMIoU) and RayIoU(grid=grid).grid == GridSpec.from_config(grid)
+
+
+def test_the_model_gives_its_grid_to_metrics_that_leave_it_out():
+    from occplug.model import OccModel
+
+    grid = {"range": [-8.0, -8.0, -1.0, 8.0, 8.0, 2.2], "voxel_size": 0.8}
+    own = {"range": [0.0, 0.0, 0.0, 4.0, 4.0, 4.0], "voxel_size": 1.0}
+    model = OccModel(
+        encoder={"type": "small_cnn", "out_channels": 8, "width": 8, "stride": 4},
+        view_transform={"type": "lss", "out_channels": 8, "hidden": 0, "depth_bins": [1.0, 41.0, 2.0]},
+        scene={"type": "dense_voxels", "out_channels": 8, "num_blocks": 0},
+        heads={"occupancy": {"type": "voxel_classifier", "hidden": 8}},
+        supervision={},
+        grid=grid,
+        metrics=metric_nodes(["rayiou", {"type": "rayiou", "grid": own}]),
+    )
+    first, second = model.val_metrics.values()
+    assert first.grid == GridSpec.from_config(grid) and second.grid == GridSpec.from_config(own)
+    assert model.view_transform.grid == GridSpec.from_config(grid)  # the view transform's node names no grid
