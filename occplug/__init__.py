@@ -48,9 +48,9 @@ PUBLIC_MODULES: tuple[str, ...] = (
     "occplug.data.synthetic",  # the synthetic world and its writers of real-format trees
     "occplug.metrics",  # mIoU, RayIoU, SSC metrics and their building blocks
     "occplug.testing",  # fixtures, conformance check, run_config
-    "occplug.runner",  # scripts: load_config, build_run, fit, evaluate, load_checkpoint
-    "occplug.training",  # scripts: the optimiser and schedule a config builds
-    "occplug.bench",  # scripts: the cost / accuracy benchmark, mean_std
+    "occplug.run.runner",  # scripts: load_config, build_run, fit, evaluate, load_checkpoint
+    "occplug.run.training",  # scripts: the optimiser and schedule a config builds
+    "occplug.run.bench",  # scripts: the cost / accuracy benchmark, mean_std
     "occplug.plugins",  # scripts: the plugin manager and the registry (get_registry)
     "occplug.viz",  # scripts: pictures (palette, camera ray casts, 3D view)
     "occplug.cli",  # scripts: the command line (main)

@@ -20,8 +20,8 @@ from occplug.interfaces.model import OccupancyModel
 from occplug.kinds import KINDS, given_arguments
 from occplug.plugins import get_registry
 from occplug.queries import check_query_support
+from occplug.run.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
 from occplug.slots import Slot, component_params
-from occplug.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
 
 __all__ = ["OccModel", "build_component", "frame_in_current_ego", "head_order"]
 

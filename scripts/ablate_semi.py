@@ -24,7 +24,7 @@ import sys
 import time
 from pathlib import Path
 
-from occplug.bench import mean_std
+from occplug.run.bench import mean_std
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = {"full": ROOT / "configs/semi/baseline_100pct.yaml", "semi": ROOT / "configs/semi/baseline_10pct.yaml"}
@@ -33,7 +33,7 @@ RECIPES = {"full": ROOT / "configs/semi/baseline_100pct.yaml", "semi": ROOT / "c
 def phase_epochs(recipe: Path) -> dict[str, int]:
     """``{phase: trainer.max_epochs}`` of a recipe (the run's own epochs where a phase sets none)."""
     from occplug.config import phase_specs
-    from occplug.runner import load_config
+    from occplug.run.runner import load_config
 
     cfg = load_config([str(recipe)])
     return {s.name: int(s.config["trainer"]["max_epochs"]) for s in phase_specs(cfg)}

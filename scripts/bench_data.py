@@ -73,7 +73,7 @@ class _WaitTimer(L.Callback):
 
 
 def _wait_fraction(preset: str, train_scenes: int, workers: int, steps: int) -> tuple[float, float, float]:
-    from occplug import runner
+    from occplug.run import runner
 
     cfg = runner.load_config(
         [str(ROOT / "configs" / "baseline.yaml")],

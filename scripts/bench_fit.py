@@ -33,7 +33,7 @@ import torch
 from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.profilers import SimpleProfiler
 
-from occplug import runner
+from occplug.run import runner
 
 ROOT = Path(__file__).resolve().parents[1]
 

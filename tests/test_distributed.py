@@ -130,7 +130,7 @@ def test_ddp_fit_on_two_processes_equals_single_process_validation(tmp_path: Pat
 def test_rank_zero_follows_the_launcher_environment(
     monkeypatch: pytest.MonkeyPatch, rank_env: dict, expected: bool
 ) -> None:
-    from occplug import runner
+    from occplug.run import runner
 
     for key in ("RANK", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK", "SLURM_PROCID"):
         monkeypatch.delenv(key, raising=False)

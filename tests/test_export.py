@@ -19,9 +19,10 @@ import pytest
 import torch
 
 from occplug import export as ex
-from occplug import runner
 from occplug.cli import main
+from occplug.export.tracing import _index_add_as_scatter_add, _inverse3
 from occplug.plugins import ENTRY_POINT_GROUP, isolated
+from occplug.run import runner
 from occplug.testing import run_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -235,7 +236,7 @@ def test_cached_splat_plan_cannot_be_traced(checkpoint, monkeypatch):
     model, (batch,) = _restored(checkpoint, frames=1)
     if not hasattr(model, "view_transform") or not hasattr(model.view_transform, "splatter"):
         pytest.skip("no lift-splat view transform")
-    monkeypatch.setattr(ex, "export_ready", lambda model: contextlib.nullcontext())
+    monkeypatch.setattr("occplug.export.graph.export_ready", lambda model: contextlib.nullcontext())
     with pytest.raises(ex.ExportError) as err:
         ex.trace(model, batch)
     message = str(err.value)
@@ -351,9 +352,9 @@ def test_index_add_exports_as_scatter_add_with_the_same_sums():
     out = torch.randn(4, 5, 3, generator=g, dtype=torch.float64)
     src = torch.randn(4, 40, 3, generator=g, dtype=torch.float64)
     index = torch.randint(0, 5, (40,), generator=g)  # duplicates: the case onnxruntime's ScatterND races on
-    got = ex._index_add_as_scatter_add(out, -2, index, src)
+    got = _index_add_as_scatter_add(out, -2, index, src)
     assert torch.equal(got, out.index_add(1, index, src))  # the same sums in the same order: bit for bit
-    got = ex._index_add_as_scatter_add(out, 1, index, src, alpha=-2.5)
+    got = _index_add_as_scatter_add(out, 1, index, src, alpha=-2.5)
     assert torch.allclose(got, out.index_add(1, index, src, alpha=-2.5), rtol=0, atol=1e-13)
 
 
@@ -384,11 +385,11 @@ def test_racy_accumulation_is_refused_with_one_line(baseline_checkpoint, monkeyp
 def test_inverse3_matches_linalg_inv():
     g = torch.Generator().manual_seed(0)
     a = torch.rand(5, 2, 3, 3, generator=g, dtype=torch.float64) + 3 * torch.eye(3, dtype=torch.float64)
-    inv, info = ex._inverse3(a)
+    inv, info = _inverse3(a)
     assert torch.allclose(inv, torch.linalg.inv(a), atol=1e-12) and info.shape == (5, 2) and not info.any()
     k = torch.tensor([[500.0, 0.0, 320.0], [0.0, 400.0, 240.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
     expected = torch.tensor([[1 / 500, 0.0, -320 / 500], [0.0, 1 / 400, -240 / 400], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    assert torch.allclose(ex._inverse3(k)[0], expected, atol=1e-15)
+    assert torch.allclose(_inverse3(k)[0], expected, atol=1e-15)
 
 
 def test_perturb_flips_and_scales_about_the_centre():
@@ -438,7 +439,7 @@ def test_parity_outside_the_thresholds_exits_1(checkpoint, tmp_path, monkeypatch
                 "max_abs_logit_diff": 0.5, "class_agreement": 0.9, "eager_latency_ms": 1.0,
                 "exported_latency_ms": 1.0, "versions": {"torch": torch.__version__}}
 
-    monkeypatch.setattr(ex, "parity", bad_parity)
+    monkeypatch.setattr("occplug.export.checkpoint.parity", bad_parity)
     out = tmp_path / "model.pt2"
     assert main(["export", "--ckpt", str(checkpoint), "--format", "torch_export", "--out", str(out)]) == 1
     captured = capsys.readouterr()

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from occplug import runner
 from occplug.config import ConfigError
-from occplug.loggers import build_loggers, check_logger_names, quiet_lightning_tips
+from occplug.run import runner
+from occplug.run.loggers import build_loggers, check_logger_names, quiet_lightning_tips
 from occplug.testing import run_config
 
 ROOT = Path(__file__).resolve().parents[1]

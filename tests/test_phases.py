@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import torch
 
-from occplug import runner
 from occplug.config import ConfigError
 from occplug.config.phases import InitFrom, merge_overlay, phase_specs
 from occplug.data.formats import FormatError
@@ -18,7 +17,8 @@ from occplug.data.label_fraction import LabelCut, labelled_indices
 from occplug.data.synthetic.dataset import SyntheticDataset
 from occplug.data.teacher_labels import DONE, META, TeacherPseudoLabels, write_teacher_file
 from occplug.geometry import GridSpec
-from occplug.phases import fit_phases, freeze, init_from
+from occplug.run import runner
+from occplug.run.phases import fit_phases, freeze, init_from
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = str(ROOT / "configs" / "baseline.yaml")

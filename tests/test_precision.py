@@ -9,7 +9,7 @@ from pathlib import Path
 
 import torch
 
-from occplug import runner
+from occplug.run import runner
 from occplug.testing import run_config
 
 ROOT = Path(__file__).resolve().parents[1]

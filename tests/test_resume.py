@@ -20,7 +20,7 @@ from occplug.cli import main
 from occplug.config import ConfigError
 from occplug.data.datamodule import ResumableLoader
 from occplug.data.sequences import SceneIndex, StreamRunSampler
-from occplug.runner import AtomicCheckpointIO, load_config, write_json, write_text_atomic
+from occplug.run.runner import AtomicCheckpointIO, load_config, write_json, write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = str(ROOT / "configs" / "baseline.yaml")
@@ -133,7 +133,7 @@ def test_the_data_module_carries_the_train_loader_position_only_inside_an_epoch(
     taken at the epoch's end carries nothing (the next epoch starts afresh)."""
     from types import SimpleNamespace
 
-    from occplug.runner import build_datamodule
+    from occplug.run.runner import build_datamodule
 
     cfg = load_config([BASELINE], ["data.preset=tiny"])
     dm = build_datamodule(cfg)

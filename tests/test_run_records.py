@@ -8,8 +8,8 @@ import torch
 
 from occplug.cli import main
 from occplug.config import ConfigError
-from occplug.runner import load_config
-from occplug.training import EffectiveBatch, batch_notice, build_optimizer, scaled_lr
+from occplug.run.runner import load_config
+from occplug.run.training import EffectiveBatch, batch_notice, build_optimizer, scaled_lr
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = str(ROOT / "configs" / "baseline.yaml")

@@ -1,4 +1,4 @@
-"""Per-seed result files of the ablation scripts (``occplug.bench.write_seed_result`` / ``write_table_seeds``)."""
+"""Per-seed result files of the ablation scripts (``occplug.run.bench.write_seed_result`` / ``write_table_seeds``)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import subprocess
 from pathlib import Path
 
-from occplug.bench import code_commit, write_seed_result, write_table_seeds
+from occplug.run.bench import code_commit, write_seed_result, write_table_seeds
 
 ROOT = Path(__file__).resolve().parents[1]
 

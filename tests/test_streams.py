@@ -267,7 +267,7 @@ def test_stateful_model_needs_sequential_data(tmp_path, capsys):
 def test_sanity_check_and_mid_epoch_validation_leave_the_training_stream_alone():
     import lightning as L
 
-    from occplug.runner import build_run, load_config
+    from occplug.run.runner import build_run, load_config
 
     cfg = load_config(
         [BASELINE],

@@ -1,4 +1,4 @@
-"""``occplug bench RUN_OR_CONFIG...``: one table comparing models on this machine (see :mod:`occplug.bench`)."""
+"""``occplug bench RUN_OR_CONFIG...``: one table comparing models on this machine (see :mod:`occplug.run.bench`)."""
 
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from occplug.bench import BenchSettings, resolve_target, run_bench
+    from occplug.run.bench import BenchSettings, resolve_target, run_bench
 
     for flag in ("repeats", "batch_size"):
         if getattr(args, flag) < 1:
@@ -57,7 +57,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     report = run_bench(targets, settings, progress=lambda msg: print(msg, file=sys.stderr))
     text = report.to_json() if args.json else report.to_csv() if args.csv else report.to_markdown()
     if args.out:
-        from occplug.runner import write_text_atomic
+        from occplug.run.runner import write_text_atomic
 
         try:
             write_text_atomic(Path(args.out), text)  # a reader never sees half a table

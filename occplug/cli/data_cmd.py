@@ -149,8 +149,8 @@ def add_stats_parser(actions: argparse._SubParsersAction) -> None:
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
-    from occplug import runner
     from occplug.data.stats import class_counts
+    from occplug.run import runner
 
     if args.max_frames is not None and args.max_frames < 1:
         raise UsageError(f"--max-frames: expected a positive number of frames, got {args.max_frames}")

@@ -522,7 +522,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         }
         if "miou" in results:
             payload["eval_mask"] = args.mask or "camera"
-        from occplug.runner import write_text_atomic
+        from occplug.run.runner import write_text_atomic
 
         write_text_atomic(Path(args.json), json.dumps(payload, indent=2) + "\n")
     return 0

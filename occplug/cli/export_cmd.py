@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from occplug import runner
+from occplug.run import runner
 
 from . import paths as check
 from .errors import UsageError

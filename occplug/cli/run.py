@@ -8,9 +8,9 @@ from pathlib import Path
 
 import yaml
 
-from occplug import runner
-from occplug.phases import fit_phases
 from occplug.plugins import broken_plugins_warning
+from occplug.run import runner
+from occplug.run.phases import fit_phases
 
 from . import add_config_args
 from . import paths as check

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from occplug import runner
+from occplug.run import runner
 
 from . import add_config_args
 from . import paths as check

@@ -301,7 +301,7 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     from occplug.metrics.base import EvalMask
-    from occplug.training import OPTIMIZER_EXTRAS, optimizer_class, scheduler_factory
+    from occplug.run.training import OPTIMIZER_EXTRAS, optimizer_class, scheduler_factory
 
     eval_masks = typing.get_args(EvalMask)
 
@@ -346,7 +346,7 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
     if config.get("trainer") is not None:
         trainer = config["trainer"]
         if isinstance(trainer, dict) and "loggers" in trainer:  # occplug's own key, not a Trainer argument
-            from occplug.loggers import check_logger_names
+            from occplug.run.loggers import check_logger_names
 
             check_logger_names(trainer["loggers"])
             trainer = {k: v for k, v in trainer.items() if k != "loggers"}

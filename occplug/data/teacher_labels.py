@@ -1,7 +1,7 @@
 """Teacher pseudo labels: one file per frame of a teacher's voxel classes and confidence, and the label
 source that puts them into the frames that have no real labels.
 
-Layout of a pseudo-label folder (written by :func:`occplug.phases.write_teacher_labels`)::
+Layout of a pseudo-label folder (written by :func:`occplug.run.phases.write_teacher_labels`)::
 
     meta.json          {"grid": [X, Y, Z], "class_names": [...], "teacher": phase, "head": name, ...}
     <token>.npz        labels (X, Y, Z) uint8 class ids of the head, confidence (X, Y, Z) float16
@@ -72,7 +72,7 @@ class TeacherPseudoLabels(LabelSource):
     (``has_voxel_labels`` False, see :mod:`occplug.data.label_fraction`) gets the teacher's classes as
     its voxel labels, voxels whose confidence is below ``confidence_threshold`` set to the ignore
     label; a frame with real labels keeps them. ``occplug fit`` adds it to a phase with
-    ``pseudo_labels_from`` (:mod:`occplug.phases`); a config may also name a folder directly.
+    ``pseudo_labels_from`` (:mod:`occplug.run.phases`); a config may also name a folder directly.
 
     Args:
         folder: the pseudo-label folder (see the module docstring).

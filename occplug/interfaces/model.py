@@ -35,7 +35,7 @@ class OccupancyModel(L.LightningModule, ABC):
         grid: the evaluation grid :meth:`predict_occupancy` answers on.
         last_results: ``{"val"|"test": {metric key: value}}`` of the last evaluation epoch.
         last_tables: ``{metric name: per-class text table}`` of the last evaluation epoch.
-        effective_batch: samples per optimizer step (an ``occplug.training.EffectiveBatch``), or None.
+        effective_batch: samples per optimizer step (an ``occplug.run.training.EffectiveBatch``), or None.
         effective_lr: the learning rate actually used, or None.
         run_config: the resolved run config (set by the runner; stored in checkpoints).
 

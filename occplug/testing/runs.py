@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from occplug import runner
+from occplug.run import runner
 
 __all__ = ["run_config"]
 
@@ -18,7 +18,7 @@ def run_config(*refs: str, run_dir: Path | str, overrides: Sequence[str] = (), d
     all_refs = [*refs, "occplug/trainer/debug"] if debug else list(refs)
     cfg = runner.load_config(all_refs, overrides)
     if cfg.get("phases") is not None:
-        from occplug.phases import fit_phases
+        from occplug.run.phases import fit_phases
 
         return fit_phases(cfg, Path(run_dir))
     return runner.fit(cfg, Path(run_dir))

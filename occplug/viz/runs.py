@@ -1,6 +1,6 @@
 """Pictures of a run directory: training/validation curves and per-class IoU bars.
 
-A run directory (see :mod:`occplug.runner`) holds ``logs/version_<n>/metrics.csv`` (Lightning's
+A run directory (see :mod:`occplug.run.runner`) holds ``logs/version_<n>/metrics.csv`` (Lightning's
 CSV log; every ``--resume`` adds a version, continuing the global step) and ``metrics.json`` (the
 final validation metrics, flat: ``{"mIoU": ..., "IoU_car": ..., ...}``).
 

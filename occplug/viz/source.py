@@ -16,10 +16,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from occplug import runner
 from occplug.data.frame import Frame, collate_frames
 from occplug.data.sequences import SceneIndex
 from occplug.geometry import GridSpec
+from occplug.run import runner
 
 from .style import Palette
 

@@ -13,7 +13,7 @@ budget and evaluated on the validation split (camera mask), printed as mean ± s
   :func:`occplug_duocc.detector.detection_map` (nuScenes-style, BEV centre distance 0.5 / 1 / 2 / 4 m) over the
   validation split read in order, the stream state carried as in evaluation, top 100 (query, class) pairs per frame;
 * latency (ms per frame) and peak memory (MiB) of inference: the seed-0 run directories measured side by side by
-  :func:`occplug.bench.run_bench` (each in its own process, interleaved; on CPU the memory is the process's peak
+  :func:`occplug.run.bench.run_bench` (each in its own process, interleaved; on CPU the memory is the process's peak
   RSS, so compare rows, not absolute values).
 
 "D + GT boxes" is not trained: it is D's checkpoint evaluated with ``model.scene.query_agg.gt_boxes=true`` (what
@@ -41,7 +41,7 @@ import sys
 import time
 from pathlib import Path
 
-from occplug.bench import mean_std, write_table_seeds
+from occplug.run.bench import mean_std, write_table_seeds
 
 #: row -> (config stem trained, table label). ``full_gt_boxes`` evaluates ``full``'s runs.
 ROWS = {
@@ -84,7 +84,7 @@ def fit(config: str, seed: int, args: argparse.Namespace) -> Path:
     if (out / "config.yaml").is_file():  # reuse (or resume) only a run of the config the recipe composes today
         import yaml
 
-        from occplug import runner
+        from occplug.run import runner
 
         if yaml.safe_load((out / "config.yaml").read_text()) != runner.load_config([f"duocc/{config}"], overrides):
             print(
@@ -129,7 +129,7 @@ def detection_map_of(run: Path, gt_boxes: bool) -> float:
         return float(json.loads(path.read_text())["mAP"])
     import yaml
 
-    from occplug import runner
+    from occplug.run import runner
 
     from .detection_eval import stream_detection_map
 
@@ -185,7 +185,7 @@ def main() -> None:
     bench: dict[str, tuple[float, float]] = {}
     header = ""
     if not args.no_bench and runs:
-        from occplug.bench import BenchSettings, resolve_target, run_bench
+        from occplug.run.bench import BenchSettings, resolve_target, run_bench
 
         settings = BenchSettings(
             repeats=args.repeats, warmup=1, train_repeats=args.repeats, batch_size=1, device=args.device

@@ -6,7 +6,7 @@ stream, see the README) and ``duocc/stacking`` with
 ``num_history = K`` past frames (``K = 1, 2, 4, 8``: K warped ``V_curr`` concatenated with the current one, the
 dense multi-frame fusion of Fig. 1 a). Same view transform, 3D-FPN, decoder and losses otherwise.
 
-Time and memory: every row goes through :func:`occplug.bench.run_bench` together -- each model in its own process,
+Time and memory: every row goes through :func:`occplug.run.bench.run_bench` together -- each model in its own process,
 interleaved round by round, so the rows are measured side by side. Per-frame latency is inference at batch 1
 (median; the stacking rows fuse K + 1 volumes per frame, the stream one history); memory is the inference peak
 (CUDA's peak allocation on a GPU, else the process's peak RSS on CPU, which includes the data and the
@@ -42,7 +42,7 @@ import sys
 import time
 from pathlib import Path
 
-from occplug.bench import mean_std
+from occplug.run.bench import mean_std
 
 
 def rows(ks: list[int], full: bool = False) -> list[tuple[str, str, list[str]]]:
@@ -111,7 +111,7 @@ def main() -> None:
     if len(set(args.seeds)) != len(args.seeds):
         parser.error(f"--seeds: each seed once, got {args.seeds}")
 
-    from occplug.bench import BenchSettings, read_accuracy, resolve_target, run_bench
+    from occplug.run.bench import BenchSettings, read_accuracy, resolve_target, run_bench
 
     settings = BenchSettings(
         repeats=args.repeats, warmup=1, train_repeats=args.train_repeats, batch_size=1, device=args.device

@@ -30,10 +30,10 @@ from pathlib import Path
 
 import torch
 
-from occplug import runner
 from occplug.data import OCC3D_CLASSES
+from occplug.run import runner
+from occplug.run.training import build_optimizer
 from occplug.streams import find_streams, set_stream_stage
-from occplug.training import build_optimizer
 
 from .detection_eval import stream_detection_map
 

@@ -26,8 +26,8 @@ from pathlib import Path
 import torch
 import yaml
 
-from occplug import runner
 from occplug.config import ConfigError
+from occplug.run import runner
 
 
 def training_boxes(cfg: dict, classes: list[int], max_distance: float | None) -> torch.Tensor:

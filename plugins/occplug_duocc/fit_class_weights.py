@@ -20,8 +20,8 @@ from pathlib import Path
 
 import yaml
 
-from occplug import runner
 from occplug.config import ConfigError
+from occplug.run import runner
 
 
 def main(argv: list[str] | None = None) -> int:

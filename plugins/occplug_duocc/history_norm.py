@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from occplug import runner
+from occplug.run import runner
 from occplug.streams import find_streams, set_stream_stage
 
 

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import torch
 
-from occplug import runner
 from occplug.metrics import confusion_matrix, evaluation_mask
+from occplug.run import runner
 from occplug.streams import find_streams, set_stream_stage
 
 KEYS = ("mIoU", "mIoU_dynamic", "mIoU_static", "IoU")

@@ -57,7 +57,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from occplug.bench import mean_std, write_table_seeds
+from occplug.run.bench import mean_std, write_table_seeds
 
 #: Row name (the config ``occle/<name>``) -> its label in the tables.
 ROWS = {
@@ -126,7 +126,7 @@ def base_epochs(name: str) -> dict[str, int]:
     """``{phase: trainer.max_epochs}`` of the shipped config."""
     if name not in _EPOCHS:
         from occplug.config import phase_specs
-        from occplug.runner import load_config
+        from occplug.run.runner import load_config
 
         cfg = load_config([f"occle/{name}"])
         _EPOCHS[name] = {s.name: int(s.config["trainer"]["max_epochs"]) for s in phase_specs(cfg)}
@@ -156,7 +156,7 @@ def run_folder(name: str, seed: int, args: argparse.Namespace) -> Path:
 def specs(name: str, seed: int, args: argparse.Namespace) -> tuple[dict[str, Any], list[Any]]:
     """The resolved run config of a row and its phases."""
     from occplug.config import phase_specs
-    from occplug.runner import load_config
+    from occplug.run.runner import load_config
 
     cfg = load_config([f"occle/{name}"], overrides(name, seed, args))
     return cfg, phase_specs(cfg)

@@ -26,7 +26,7 @@ import sys
 import time
 from pathlib import Path
 
-from occplug.bench import mean_std, write_table_seeds
+from occplug.run.bench import mean_std, write_table_seeds
 
 ROWS = {
     "base": "query (pseudo points, T = {-1, 0, 1})",
@@ -79,7 +79,7 @@ def constant_class(preset: str) -> dict[str, float]:
     import torch
 
     from occplug.metrics import Occ3DMIoU, RayIoU
-    from occplug.runner import build_datamodule, load_config
+    from occplug.run.runner import build_datamodule, load_config
 
     cfg = load_config(["queryocc/base"], [f"data.preset={preset}", "data.adjacent_offsets=[]"])
     dm = build_datamodule(cfg)

@@ -11,7 +11,7 @@ supervised range R is the half-extent in x and y of the points the query source 
 * ``dense_fine`` (time and memory only, not trained): a dense plane over +-R at the contracted plane's near-field
   resolution, 1 m -- the memory a dense BEV needs to keep the near-field detail (2R x 2R cells).
 
-Time and memory: per range, the four BEVs go through :func:`occplug.bench.run_bench` together -- each model in
+Time and memory: per range, the four BEVs go through :func:`occplug.run.bench.run_bench` together -- each model in
 its own process, interleaved round by round, so a range's rows are measured side by side (training step at batch
 1, data loading excluded). Memory is the process's peak RSS on CPU (CUDA's peak allocation on a GPU), so it
 includes the data and the interpreter: compare rows, not absolute values. Accuracy: at ``--train-ranges`` the
@@ -122,7 +122,7 @@ def main() -> None:
     parser.add_argument("--out", default="runs/queryocc_bench")
     args = parser.parse_args()
 
-    from occplug.bench import BenchSettings, resolve_target, run_bench
+    from occplug.run.bench import BenchSettings, resolve_target, run_bench
 
     settings = BenchSettings(
         repeats=args.repeats, warmup=1, train_repeats=args.repeats, batch_size=1, device=args.device

@@ -15,7 +15,7 @@ import argparse
 
 import torch
 
-from occplug.runner import build_datamodule, load_config
+from occplug.run.runner import build_datamodule, load_config
 
 from .supervision import supervision_points
 

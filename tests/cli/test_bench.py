@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from occplug import runner
-from occplug.bench import BenchReport, BenchRow, interleave, mean_std, read_accuracy
 from occplug.cli import main
+from occplug.run import runner
+from occplug.run.bench import BenchReport, BenchRow, interleave, mean_std, read_accuracy
 
 ROOT = Path(__file__).resolve().parents[2]
 BASELINE = str(ROOT / "configs" / "baseline.yaml")
@@ -145,7 +145,7 @@ def test_bad_inputs_are_one_error_line_exit_2(case, tmp_path, capsys):
 
 def test_out_is_checked_before_measuring_and_written_whole(tmp_path, monkeypatch, capsys):
     """``-o`` below a file stops before any model is built; a good one is replaced atomically."""
-    import occplug.bench as bench
+    import occplug.run.bench as bench
 
     row = BenchRow("m", "cfg.yaml", 1_234_567, 12.345, 100.4, 56.78, 200.6)
     report = BenchReport(
@@ -175,7 +175,7 @@ def test_training_rounds_generate_only_the_frames_they_read(tmp_path, monkeypatc
     takes hours), only the frames those steps read."""
     from lightning.pytorch.callbacks import Callback
 
-    from occplug.bench import _train
+    from occplug.run.bench import _train
 
     monkeypatch.setenv("OCCPLUG_CACHE", str(tmp_path))
     cfg = runner.load_config([BASELINE], ["data.preset=tiny", "data.batch_size=1"])

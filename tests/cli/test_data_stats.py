@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from occplug import runner
 from occplug.cli import main
 from occplug.data.stats import class_counts
+from occplug.run import runner
 
 BASELINE = str(Path(__file__).resolve().parents[2] / "configs" / "baseline.yaml")
 TINY = ["data.preset=tiny"]

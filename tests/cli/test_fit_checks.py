@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from occplug import runner
 from occplug.cli import main
+from occplug.run import runner
 
 ROOT = Path(__file__).resolve().parents[2]
 BASELINE = str(ROOT / "configs" / "baseline.yaml")

@@ -11,7 +11,7 @@ import occplug
 from occplug.config import ConfigError, validate
 from occplug.constraints import Fraction, Length, NonNegative, Positive, Range, UnitInterval, violated
 from occplug.plugins import isolated
-from occplug.runner import load_config
+from occplug.run.runner import load_config
 
 
 @pytest.mark.parametrize(

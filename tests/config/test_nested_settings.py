@@ -191,7 +191,7 @@ def test_an_out_of_range_value_inside_query_agg_is_one_line(capsys, override, li
 
 
 def test_query_agg_reaches_the_scene_as_typed_settings(monkeypatch):
-    from occplug import runner
+    from occplug.run import runner
     from occplug_duocc import scene as duocc_scene
     from occplug_duocc.queryagg import DetectorSettings, QueryAggSettings, SelectionSettings
 

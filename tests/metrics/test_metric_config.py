@@ -5,7 +5,7 @@ from pathlib import Path
 
 from occplug.geometry import GridSpec
 from occplug.metrics import Occ3DMIoU, RayIoU
-from occplug.runner import metric_nodes
+from occplug.run.runner import metric_nodes
 from occplug.testing import run_config
 
 BASELINE = str(Path(__file__).resolve().parents[2] / "configs" / "baseline.yaml")

@@ -14,7 +14,6 @@ import torch
 from torch import Tensor, nn
 
 import occplug
-from occplug import runner
 from occplug.components import SmallCNN, VoxelPoints
 from occplug.components.point_encoders import voxel_point_statistics
 from occplug.config import validate
@@ -23,6 +22,7 @@ from occplug.interfaces import ModelOutputs, OccupancyHead, Scene, SupervisionSo
 from occplug.kinds import KINDS, given_arguments
 from occplug.model import OccModel, head_order
 from occplug.plugins import isolated
+from occplug.run import runner
 from occplug.testing import make_tiny_batch
 
 

@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from occplug import export as ex
-from occplug import runner
 from occplug.geometry import transform_points
 from occplug.model import frame_in_current_ego
+from occplug.run import runner
 
 BASELINE = ["configs/baseline.yaml"]
 TINY = ["data.preset=tiny", "data.adjacent_offsets=[-1]"]

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import pytest
 
-from occplug import runner
 from occplug.data.sequences import SceneIndex
+from occplug.run import runner
 from occplug.viz.source import SampleSource
 
 BASELINE = str(Path(__file__).resolve().parents[2] / "configs" / "baseline.yaml")

@@ -4,7 +4,7 @@ import pytest
 import torch
 import yaml
 
-from occplug import runner
+from occplug.run import runner
 from occplug_duocc import fit_anchors
 from occplug_duocc.anchors import kmeans, kmeans_anchors
 from occplug_duocc.detector import SparseDetector

@@ -4,8 +4,8 @@ import pytest
 import torch
 import yaml
 
-from occplug import runner
 from occplug.data import class_counts, inverse_log_weights
+from occplug.run import runner
 from occplug_duocc import fit_class_weights
 from occplug_duocc.class_weights import duocc_class_weights
 

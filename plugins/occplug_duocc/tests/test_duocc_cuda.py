@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from occplug import runner
+from occplug.run import runner
 from occplug.streams import set_stream_stage
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]

@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from occplug import runner
+from occplug.run import runner
 from occplug_duocc.detection_eval import stream_detection_map
 from occplug_duocc.queryagg import detection_targets
 from occplug_duocc.scene import DETECTION_CLASSES_KEY, DETECTION_KEY

@@ -4,9 +4,9 @@ import lightning as L
 import pytest
 import torch
 
-from occplug import runner
 from occplug.cli import main
 from occplug.config import ConfigError
+from occplug.run import runner
 from occplug.streams import set_stream_stage
 
 # 20 x 20 x 8 label voxels (V_curr 10 x 10 x 4): the recipes' 60 x 60 x 8 shrunk for test speed

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from occplug import runner
+from occplug.run import runner
 from occplug_duocc import stream_gain
 
 SMALL = ["grid.range=[-8.0,-8.0,-1.0,8.0,8.0,5.4]", "model.encoder.out_channels=16", "model.encoder.width=16"]

@@ -8,8 +8,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from occplug import runner
 from occplug.interfaces import ModelOutputs
+from occplug.run import runner
 from occplug.streams import set_stream_stage
 from occplug.testing import check_component, label_grid, make_tiny_batch
 from occplug_duocc.mask_decoder import (

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from occplug import runner
+from occplug.run import runner
 from occplug_occle.selective_scan import _mamba_ssm_kernel, selective_scan, selective_scan_ref
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]

@@ -6,7 +6,7 @@ import json
 import pytest
 import torch
 
-from occplug import runner
+from occplug.run import runner
 from occplug.testing import run_config
 
 # 16 x 16 x 8 voxels in front of the ego (the recipe's 32 x 32 x 8 shrunk for test speed)

@@ -163,7 +163,7 @@ def test_decoder_outputs_at_voxel_centres_equal_predict_occupancy():
 
 
 def test_the_model_predicts_what_its_decoder_answers_at_the_voxel_centres():
-    from occplug.runner import build_datamodule, build_model, load_config
+    from occplug.run.runner import build_datamodule, build_model, load_config
 
     cfg = load_config(["queryocc/base"], ["data.preset=tiny", "model.heads.occupancy.occupancy_threshold=0.4"])
     dm = build_datamodule(cfg)
@@ -235,7 +235,7 @@ def test_lidar_points_take_their_class_from_the_pseudo_semantics(source):
 def test_the_contraction_ablations_lay_a_metric_plane_of_the_same_cells(name, half, cells):
     """The ablation must drop the base's contraction (an overlay that changes only the range keeps it, and a
     contracted plane's cells do not depend on its numeric range: it trained identically to base)."""
-    from occplug.runner import load_config
+    from occplug.run.runner import load_config
 
     grid = GridSpec.from_config(load_config([f"queryocc/{name}"], [])["model"]["view_transform"]["grid"])
     assert grid.shape[:2] == (cells, cells)

@@ -32,10 +32,10 @@ import torch
 import yaml
 from lightning.pytorch.callbacks import Callback
 
-from occplug import runner
 from occplug.config.phases import InitFrom, PhaseSpec, PseudoLabelsFrom, phase_specs
 from occplug.data.teacher_labels import DONE, META, write_teacher_file
 from occplug.interfaces.model import OccupancyModel
+from occplug.run import runner
 from occplug.streams import find_streams
 
 __all__ = ["FrozenModulesEval", "fit_phases", "freeze", "init_from", "matching", "write_teacher_labels"]

@@ -7,7 +7,7 @@ Lightning's loop, data loading excluded; median) and the accuracy its run direct
 ``metrics.json`` (a config has none).
 
 Each model is measured in its own process (a process's peak memory only grows), started as
-``python -m occplug.bench``. The parent drives every process round by round (:func:`interleave`):
+``python -m occplug.run.bench``. The parent drives every process round by round (:func:`interleave`):
 round r of every model runs before round r+1, the order reversed every other round, so a machine
 that slows down or speeds up during the benchmark shifts every row alike and the ratios between rows
 hold. Protocol: the parent writes the job (one JSON line), then one command per line (``latency``,
@@ -288,7 +288,7 @@ def resolve_target(ref: str, settings: BenchSettings, overrides: Sequence[str] =
     Raises:
         BenchError: a missing path, a folder that is no run directory, a bad config (one line).
     """
-    from occplug import runner
+    from occplug.run import runner
 
     path = Path(ref)
     common = [*overrides, f"data.batch_size={settings.batch_size}"]
@@ -325,7 +325,7 @@ def environment(device: str) -> tuple[str, str, dict[str, str]]:
     import lightning
     import torch
 
-    from occplug import runner
+    from occplug.run import runner
 
     cpu = platform.processor() or platform.machine()
     try:
@@ -384,7 +384,7 @@ class _Worker:
         self.name = target.name
         self._log = tempfile.TemporaryFile(mode="w+")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "occplug.bench"],
+            [sys.executable, "-m", "occplug.run.bench"],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=self._log,
@@ -518,7 +518,7 @@ def _serve(job: dict[str, Any], answer: Callable[[dict[str, Any]], None]) -> Non
     import torch
     from lightning.pytorch.callbacks import Callback
 
-    from occplug import runner
+    from occplug.run import runner
 
     device = torch.device(job["device"])
     cuda = device.type == "cuda"
@@ -601,7 +601,7 @@ _STEP_KEYS = ("precision", "gradient_clip_val", "gradient_clip_algorithm", "dete
 
 
 def _train(cfg: dict[str, Any], dm: Any, model: Any, job: dict[str, Any], timer: Any) -> None:
-    from occplug import runner
+    from occplug.run import runner
 
     given = cfg.get("trainer") or {}
     trainer_cfg = {k: given[k] for k in _STEP_KEYS if k in given}

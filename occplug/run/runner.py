@@ -42,8 +42,8 @@ from occplug.data.datamodule import OccDataModule
 from occplug.data.formats import FormatError
 from occplug.errors import UserError
 from occplug.interfaces.model import OccupancyModel
-from occplug.loggers import build_loggers, quiet_lightning_tips
 from occplug.plugins import get_registry, plugin_reports
+from occplug.run.loggers import build_loggers, quiet_lightning_tips
 from occplug.streams import check_streaming
 
 __all__ = [
@@ -397,7 +397,7 @@ def fit(
     Everything is built before anything is written, so a configuration mistake leaves no
     half-made run directory. Under a multi-process strategy (e.g. ``trainer.strategy=ddp``) every
     rank runs this function; only global rank 0 checks and writes ``run_dir``. A config with
-    ``phases:`` runs through :func:`occplug.phases.fit_phases`, which calls this once per phase.
+    ``phases:`` runs through :func:`occplug.run.phases.fit_phases`, which calls this once per phase.
 
     Args:
         cfg: the resolved config.
@@ -408,7 +408,7 @@ def fit(
         callbacks: further Lightning callbacks.
     """
     if cfg.get("phases") is not None:
-        raise RunError("a config with phases runs through occplug.phases.fit_phases (as occplug fit does)")
+        raise RunError("a config with phases runs through occplug.run.phases.fit_phases (as occplug fit does)")
     run_dir = Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
     last = ckpt_dir / "last.ckpt"
