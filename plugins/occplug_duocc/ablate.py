@@ -10,7 +10,7 @@ budget and evaluated on the validation split (camera mask), printed as mean ± s
   class groups (``occplug.data.classes.OCC3D_STATIC`` / ``OCC3D_DYNAMIC``), the geometric IoU, and the IoU of car
   and pedestrian (car: the dynamic class with the most voxels);
 * the detector's mAP (C, D, D with GT boxes, D with the mask decoder):
-  :func:`occplug_duocc.detector.detection_map` (nuScenes-style, BEV centre distance 0.5 / 1 / 2 / 4 m) over the
+  :func:`occplug_duocc.detection_eval.detection_map` (nuScenes-style, BEV centre distance 0.5 / 1 / 2 / 4 m) over the
   validation split read in order, the stream state carried as in evaluation, top 100 (query, class) pairs per frame;
 * latency (ms per frame) and peak memory (MiB) of inference: the seed-0 run directories measured side by side by
   :func:`occplug.run.bench.run_bench` (each in its own process, interleaved; on CPU the memory is the process's peak

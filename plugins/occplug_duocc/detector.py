@@ -1,27 +1,17 @@
-"""DuOcc's image-to-query detector (I2Q, a small Sparse4D v3) and voxel-to-query aggregation (V2Q), paper §3.2.
+"""DuOcc's image-to-query detector (I2Q, paper §3.2): a small Sparse4D v3 in plain PyTorch, no custom ops.
 
-Pure PyTorch, no custom ops. The pieces:
-
-* :class:`SparseDetector` — anchor-based instance queries refined layer by layer from multi-view, multi-level
-  image features (Sparse4D v3's deformable aggregation, done with ``grid_sample``), with temporal propagation of
-  the top-k instances of the previous frame through an explicit :class:`DetectorState` (no hidden state).
-* :func:`detection_loss` — Sparse4D v3's loss: Hungarian matching per layer (:func:`~.matching.hungarian_match`),
-  sigmoid focal classification (:func:`occplug.nn.sigmoid_focal_loss`) and weighted L1 regression on
-  :func:`~.matching.encode_boxes`.
-* :class:`VoxelToQuery` — Eq. 6: 3D deformable attention of each query into the stream-aggregated volume.
-* :func:`detection_map` — nuScenes-style mAP by BEV centre distance (the detector's metric on the synthetic world).
+* :class:`SparseDetector` — anchor-based instance queries refined layer by layer (:class:`_DecoderLayer`) from
+  multi-view, multi-level image features (Sparse4D v3's deformable aggregation, :mod:`.image_aggregation`), with
+  temporal propagation of the top-k instances of the previous frame through an explicit :class:`DetectorState`
+  (:func:`propagate_state`; no hidden state). It returns a :class:`DetectorOutput`.
 * :func:`select_detections` — Sparse4D's post-processing (top-k over queries x classes, score threshold).
 
-Boxes. Decoded boxes use the :class:`~occplug.Frame` ``boxes`` layout, ``(..., 9)``
-``[cx, cy, cz, l, w, h, yaw, vx, vy]`` in the **ego** frame of the current sample (metres, radians about +z from
-+x, m/s), ``l`` along the heading. Anchors and regression live in Sparse4D's encoding (:func:`~.matching.encode_boxes`),
-``(..., 10)`` ``[cx, cy, cz, log l, log w, log h, sin yaw, cos yaw, vx, vy]`` (:data:`BOX_DIM`).
+Beside it: the encoded box (:mod:`.boxes`), the image aggregation (:mod:`.image_aggregation`), the loss
+(:mod:`.detection_loss`, with :mod:`.matching` and :mod:`.denoising`), V2Q (:mod:`.v2q`) and the mAP
+(:mod:`.detection_eval`). Boxes are decoded in the ego frame, ``(..., 9)``; anchors and regression live in
+Sparse4D's encoding, :data:`~.boxes.BOX_DIM` wide (:mod:`.boxes`).
 
-Pixels follow :mod:`occplug.geometry.cameras`: pixel ``[row, col]`` has its centre at ``(u, v) = (col, row)``
-of the augmented image (``img_aug @ intrinsics``); a feature level of stride ``s`` covers the image exactly, so
-``grid_sample(..., align_corners=False)`` at ``((u + 0.5) / W, (v + 0.5) / H)`` reads every level at the point.
-
-Assumptions (where the paper, §3.2 "I2Q"/"V2Q" and suppl. A.4, is silent; the public code's choices are in
+Assumptions (where the paper, §3.2 "I2Q" and suppl. A.4, is silent; the public code's choices are in
 ``duocc-code-notes.md`` §3):
 
 * §3.2 I2Q, anchors: 900 k-means anchors of the training boxes in the code; here ``anchor_centres`` when given
@@ -37,10 +27,6 @@ Assumptions (where the paper, §3.2 "I2Q"/"V2Q" and suppl. A.4, is silent; the p
 * Attention uses DETR's ``q = k = feature + anchor embedding, v = feature`` (the code concatenates the two
   into a 2C-wide attention); the anchor encoder is the code's four MLPs (position, size, yaw, velocity) with
   two (Linear, ReLU, LN) blocks each instead of four, channel split 1/2, 1/8, 1/8, 1/4.
-* Key points: the code's 7 fixed (centre, +-0.45 x size along each box axis) plus ``num_learnable_points``
-  predicted from the instance feature within +-0.5 x size; rotated by the anchor's yaw (sin/cos normalised).
-  The camera embedding is an MLP of ``cam_to_ego[:3, :4]`` (the code embeds the 3x4 ego-to-image matrix,
-  whose pixel-unit entries need normalising); a key point behind a camera (depth <= 1e-5 m) reads zeros.
 * Refinement: residual deltas on every encoded dimension (centre, log size, sin/cos, velocity in m/s); the code
   predicts sin/cos absolutely and velocity as a displacement over ``dt``. The anchor is not detached between
   layers (Sparse4D).
@@ -50,169 +36,40 @@ Assumptions (where the paper, §3.2 "I2Q"/"V2Q" and suppl. A.4, is silent; the p
   by the relative ego pose and, when ``use_velocity``, by constant velocity over ``dt``) are prepended to the top
   ``Q - k`` current queries, so ``Q`` stays ``num_queries``. A sample's cache is dropped when ``reset`` is set
   or ``|dt| > max_time_interval`` (2 s); later layers also cross-attend to the cached instances.
-* Suppl. A.4 / code loss: focal (alpha 0.25, gamma 2) x 2.0 and L1 x 0.25 with per-dimension weights
-  ``[2, 2, 2, 1, 1, 1, 1, 1, 1, 1]``, both divided by the number of matched ground truths in the batch (at least
-  1), summed over layers; the box loss counts only matches whose score exceeds ``reg_score_threshold`` (0.05,
-  Sparse4D's ``cls_threshold_to_reg``). DuOcc's overall weight 0.2 is the caller's.
-* §3.2 V2Q (Eq. 6): ``heads x points`` learnable offsets per query within +-0.5 x box size, rotated by yaw
-  (the code adds the 7 fixed key points; here the offset bias starts on a spread pattern instead); weights are
-  a zero-initialised Linear, softmax over each head's points; ``W'_h`` is a bias-free projection applied after
-  sampling (identical to projecting the volume first, since trilinear sampling is linear) and ``W_h`` the output
-  projection over the concatenated heads.
-* :func:`detection_map` follows the nuScenes devkit (greedy matching by score within each class, 101-point
-  precision interpolation without an envelope, ``min_recall = min_precision = 0.1``); classes are those present
-  in the ground truth.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Annotated
 
-import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from occplug.constraints import NonNegative, Positive
-from occplug.geometry import GridSpec, project_to_image, relative_pose, sample_volume, transform_points
-from occplug.nn import sigmoid_focal_loss
+from occplug.geometry import relative_pose, transform_points
 
-from .denoising import DN_NOISE_SCALE, DenoisingQueries, denoising_loss, make_denoising_queries
-from .matching import SPARSE4D_REG_WEIGHTS, encode_boxes, hungarian_match
+from .boxes import BOX_DIM, decode_boxes
+from .denoising import DN_NOISE_SCALE, DenoisingQueries, make_denoising_queries
+from .image_aggregation import DeformableImageAggregation, _mlp_block
 
 if TYPE_CHECKING:
     from occplug.data import Batch
 
 __all__ = [
-    "BOX_DIM",
     "AnchorEncoder",
     "AsymmetricFFN",
-    "DeformableImageAggregation",
-    "box_points",
-    "FIXED_KEY_POINTS",
-    "SPARSE4D_LOSS_REG_WEIGHTS",
     "DetectorOutput",
     "DetectorState",
     "SparseDetector",
-    "VoxelToQuery",
-    "decode_boxes",
-    "detection_loss",
-    "detection_map",
     "propagate_state",
-    "sample_image_features",
     "select_detections",
 ]
 
-#: Width of the encoded box / anchor: ``[cx, cy, cz, log l, log w, log h, sin, cos, vx, vy]``.
-BOX_DIM = 10
-#: Sparse4D v3's per-dimension weights of the L1 box loss on the encoded box.
-SPARSE4D_LOSS_REG_WEIGHTS = (2.0, 2.0, 2.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
-#: The 7 fixed key points of a box, as fractions of ``(l, w, h)`` in the box frame (Sparse4D ``fix_scale``).
-FIXED_KEY_POINTS = (
-    (0.0, 0.0, 0.0),
-    (0.45, 0.0, 0.0),
-    (-0.45, 0.0, 0.0),
-    (0.0, 0.45, 0.0),
-    (0.0, -0.45, 0.0),
-    (0.0, 0.0, 0.45),
-    (0.0, 0.0, -0.45),
-)
 
-
-# ---------------------------------------------------------------------------------------------- boxes
-
-
-def decode_boxes(encoded: Tensor) -> Tensor:
-    """Inverse of :func:`~.matching.encode_boxes`.
-
-    Args:
-        encoded: ``(..., 8)`` ``[x, y, z, log l, log w, log h, sin, cos]`` or ``(..., 10)`` with ``vx, vy``.
-
-    Returns:
-        ``(..., 7)`` ``[x, y, z, l, w, h, yaw]`` or ``(..., 9)`` with ``vx, vy`` (yaw from ``atan2(sin, cos)``).
-    """
-    yaw = torch.atan2(encoded[..., 6], encoded[..., 7])[..., None]
-    return torch.cat([encoded[..., :3], encoded[..., 3:6].exp(), yaw, encoded[..., 8:]], dim=-1)
-
-
-def _yaw_rotate(local: Tensor, sin_cos: Tensor) -> Tensor:
-    """Rotate ``(..., P, 3)`` box-frame offsets about +z by the (normalised) ``(..., 1, 2)`` ``[sin, cos]``."""
-    norm = sin_cos.norm(dim=-1, keepdim=True).clamp(min=1e-6)
-    s, c = (sin_cos / norm).unbind(-1)  # broadcast against the point axis of ``local``
-    x, y, z = local.unbind(-1)
-    return torch.stack([c * x - s * y, s * x + c * y, z], dim=-1)
-
-
-def box_points(anchors: Tensor, scales: Tensor) -> Tensor:
-    """Ego-frame points of boxes at box-frame fractions of their size.
-
-    Args:
-        anchors: ``(B, Q, >=8)`` encoded boxes (:data:`BOX_DIM` layout), ego frame.
-        scales: ``(B, Q, P, 3)`` fractions of ``(l, w, h)`` along the box's own axes (0 = centre).
-
-    Returns:
-        ``(B, Q, P, 3)`` ego-frame points.
-    """
-    local = scales * anchors[..., None, 3:6].exp()
-    return anchors[..., None, :3] + _yaw_rotate(local, anchors[..., None, 6:8])
-
-
-# ---------------------------------------------------------------------------------------------- image sampling
-
-
-def sample_image_features(
-    levels: Sequence[Tensor],
-    points: Tensor,
-    image_size: tuple[int, int],
-    intrinsics: Tensor,
-    cam_to_ego: Tensor,
-    img_aug: Tensor | None = None,
-    eps: float = 1e-5,
-) -> tuple[list[Tensor], Tensor, Tensor]:
-    """Bilinearly read every camera's feature levels at ego-frame points.
-
-    Args:
-        levels: ``L`` tensors ``(B, N, C_l, H_l, W_l)``, each covering the whole (augmented) image.
-        points: ``(B, Q, P, 3)`` ego-frame points.
-        image_size: ``(H, W)`` of the (augmented) images, pixels.
-        intrinsics: ``(B, N, 3, 3)`` original-image intrinsics.
-        cam_to_ego: ``(B, N, 4, 4)``.
-        img_aug: ``(B, N, 3, 3)`` original -> augmented pixels, or None (identity).
-        eps: points with camera depth at or below this read zeros.
-
-    Returns:
-        ``features``: ``L`` tensors ``(B, Q, P, N, C_l)`` (zeros outside an image or behind its camera);
-        ``uv``: ``(B, N, Q, P, 2)`` pixel coordinates in the augmented images (:func:`~occplug.geometry.project_to_image`);
-        ``valid``: ``(B, N, Q, P)`` bool, depth > ``eps``.
-    """
-    b, q, p = points.shape[:3]
-    n = cam_to_ego.shape[1]
-    pts = points.reshape(b, 1, q * p, 3).expand(b, n, q * p, 3).to(cam_to_ego.dtype)
-    uv, depth = project_to_image(pts, intrinsics, cam_to_ego, img_aug)
-    valid = depth > eps
-    h, w = image_size
-    scale = uv.new_tensor([w, h])
-    grid = (uv + 0.5) / scale * 2.0 - 1.0
-    grid = torch.where(valid[..., None], grid, torch.full_like(grid, -2.0))  # behind the camera: outside
-    grid = grid.reshape(b * n, 1, q * p, 2)
-    out = []
-    for level in levels:
-        c = level.shape[2]
-        s = F.grid_sample(
-            level.reshape(b * n, c, *level.shape[-2:]), grid.to(level.dtype), align_corners=False, padding_mode="zeros"
-        )
-        out.append(s.view(b, n, c, q, p).permute(0, 3, 4, 1, 2))
-    return out, uv.view(b, n, q, p, 2), valid.view(b, n, q, p)
-
-
-def _mlp_block(cin: int, cout: int, repeats: int = 2) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    for i in range(repeats):
-        layers += [nn.Linear(cin if i == 0 else cout, cout), nn.ReLU(inplace=True), nn.LayerNorm(cout)]
-    return nn.Sequential(*layers)
+# ---------------------------------------------------------------------------------------------- layers
 
 
 class AnchorEncoder(nn.Module):
@@ -239,97 +96,6 @@ class AnchorEncoder(nn.Module):
             ],
             dim=-1,
         )
-
-
-class DeformableImageAggregation(nn.Module):
-    """Sparse4D's deformable aggregation: each anchor reads the images at its key points.
-
-    ``P = 7 + num_learnable_points`` key points per anchor (:data:`FIXED_KEY_POINTS` plus learnable ones) are
-    projected into every camera and sampled bilinearly on every level; per group of ``C / groups`` channels,
-    weights predicted from ``feature + anchor embedding + camera embedding`` are softmaxed over
-    cameras x levels x points, and the weighted sum goes through an output projection.
-
-    Args:
-        channels: ``C``.
-        level_channels: channels of each image level (a bias-free Linear maps a level to ``C`` where they differ).
-        num_learnable_points: learnable key points per anchor (code 6).
-        groups: weight groups (code 8).
-        dropout: on the output.
-    """
-
-    def __init__(
-        self,
-        channels: int,
-        level_channels: Sequence[int],
-        num_learnable_points: int = 6,
-        groups: int = 8,
-        dropout: float = 0.1,
-    ) -> None:
-        super().__init__()
-        if channels % groups:
-            raise ValueError(f"DeformableImageAggregation: channels {channels} not divisible by groups {groups}")
-        self.channels, self.groups, self.num_levels = int(channels), int(groups), len(level_channels)
-        self.num_learnable = int(num_learnable_points)
-        self.num_points = len(FIXED_KEY_POINTS) + self.num_learnable
-        self.register_buffer("fixed_scale", torch.tensor(FIXED_KEY_POINTS), persistent=False)
-        self.learnable = nn.Linear(channels, self.num_learnable * 3) if self.num_learnable else None
-        self.level_proj = nn.ModuleList(
-            nn.Identity() if c == channels else nn.Linear(c, channels, bias=False) for c in level_channels
-        )
-        self.camera_embed = _mlp_block(12, channels)
-        self.weights = nn.Linear(channels, groups * self.num_levels * self.num_points)
-        self.output_proj = nn.Linear(channels, channels)
-        self.drop = nn.Dropout(dropout)
-        nn.init.zeros_(self.weights.weight)
-        nn.init.zeros_(self.weights.bias)
-
-    def key_points(self, anchors: Tensor, query: Tensor) -> Tensor:
-        """``(B, Q, P, 3)`` ego-frame key points of ``(B, Q, 10)`` anchors given ``(B, Q, C)`` feature + embedding.
-
-        Point 0 is the box centre; points 1-6 are at +-0.45 x (l, w, h) along the box axes; the rest are learned.
-        """
-        b, q = anchors.shape[:2]
-        scale = self.fixed_scale.to(anchors.dtype).expand(b, q, -1, 3)
-        if self.learnable is not None:
-            learned = self.learnable(query).view(b, q, self.num_learnable, 3).sigmoid() - 0.5
-            scale = torch.cat([scale, learned], dim=2)
-        return box_points(anchors, scale)
-
-    def forward(
-        self,
-        feature: Tensor,
-        anchor_embed: Tensor,
-        anchors: Tensor,
-        levels: Sequence[Tensor],
-        image_size: tuple[int, int],
-        intrinsics: Tensor,
-        cam_to_ego: Tensor,
-        img_aug: Tensor | None = None,
-    ) -> Tensor:
-        """Aggregate image features per anchor.
-
-        Args:
-            feature: ``(B, Q, C)`` instance features.
-            anchor_embed: ``(B, Q, C)`` their anchor embedding.
-            anchors: ``(B, Q, 10)`` encoded anchors, ego frame.
-            levels, image_size, intrinsics, cam_to_ego, img_aug: see :func:`sample_image_features`.
-
-        Returns:
-            ``(B, Q, C)`` aggregated features (after the output projection and dropout).
-        """
-        b, q, c = feature.shape
-        query = feature + anchor_embed
-        points = self.key_points(anchors, query)
-        sampled, _, _ = sample_image_features(levels, points, image_size, intrinsics, cam_to_ego, img_aug)
-        feats = torch.stack([proj(s) for proj, s in zip(self.level_proj, sampled, strict=True)], dim=4)  # B Q P N L C
-        n = feats.shape[3]
-        cam = self.camera_embed(cam_to_ego[..., :3, :4].reshape(b, n, 12).to(feature.dtype))  # (B, N, C)
-        logits = self.weights(query[:, :, None] + cam[:, None])  # (B, Q, N, L*P*G)
-        g, lv, p = self.groups, self.num_levels, self.num_points
-        w = logits.view(b, q, n, lv, p, g).permute(0, 1, 5, 2, 3, 4).reshape(b, q, g, n * lv * p).softmax(-1)
-        w = w.view(b, q, g, n, lv, p).permute(0, 1, 5, 3, 4, 2)[..., None]  # (B, Q, P, N, L, G, 1)
-        agg = (feats.view(b, q, p, n, lv, g, c // g) * w).sum(dim=(2, 3, 4)).reshape(b, q, c)
-        return self.drop(self.output_proj(agg))
 
 
 class AsymmetricFFN(nn.Module):
@@ -498,7 +264,7 @@ class DetectorOutput:
 
     Attributes:
         cls_logits: per layer ``(B, Q, K)`` class logits (sigmoid classification, no background class).
-        encoded_boxes: per layer ``(B, Q, 10)`` encoded boxes (:data:`BOX_DIM` layout), ego frame.
+        encoded_boxes: per layer ``(B, Q, 10)`` encoded boxes (:data:`~.boxes.BOX_DIM` layout), ego frame.
         features: ``(B, Q, C)`` instance features after the last layer (``q_img`` of Eq. 6).
         anchor_embed: ``(B, Q, C)`` embedding of the final boxes (a positional term for V2Q / DQA), or None.
         state: the state to pass to the next frame (detached), or None.
@@ -809,285 +575,3 @@ def select_detections(
         scores, idx = scores[keep], idx[keep]
         out.append((boxes[b].detach()[idx // k], scores, idx % k))
     return out
-
-
-# ---------------------------------------------------------------------------------------------- loss
-
-
-def detection_loss(
-    outputs: DetectorOutput,
-    gt_labels: Sequence[Tensor],
-    gt_boxes: Sequence[Tensor],
-    cls_weight: float = 2.0,
-    box_weight: float = 0.25,
-    alpha: float = 0.25,
-    gamma: float = 2.0,
-    reg_weights: Sequence[float] = SPARSE4D_LOSS_REG_WEIGHTS,
-    match_reg_weights: Sequence[float] = SPARSE4D_REG_WEIGHTS,
-    class_reg_weights: Mapping[int, Sequence[float]] | None = None,
-    reg_score_threshold: float | None = 0.05,
-    layer_weights: Sequence[float] | None = None,
-) -> dict[str, Tensor]:
-    """Sparse4D v3's detection loss, summed over decoder layers (suppl. A.4 ``L_det``).
-
-    Per layer: one-to-one Hungarian assignment (:func:`~.matching.hungarian_match`, same weights), then
-    ``cls_weight * focal(all queries, one-hot targets of the matched ones)`` and
-    ``box_weight * sum_matched sum_d w_d |b_pred,d - b_gt,d|`` on the encoded boxes, both divided by the number
-    of matched ground truths in the batch (at least 1). A NaN target dimension (e.g. unknown velocity) has weight 0.
-
-    Args:
-        outputs: the detector's output (``cls_logits`` and ``encoded_boxes`` per layer).
-        gt_labels: ``B`` tensors ``(G_b,)`` int64 class ids in ``[0, K)`` (``G_b`` may be 0).
-        gt_boxes: ``B`` tensors ``(G_b, 7)`` or ``(G_b, 9)`` boxes ``[cx, cy, cz, l, w, h, yaw(, vx, vy)]``, ego frame.
-        cls_weight, box_weight, alpha, gamma: loss (and matching-cost) weights; Sparse4D 2.0, 0.25, 0.25, 2.
-        reg_weights: per-dimension L1 weights (10, truncated to 8 for 7-column ground truth).
-        match_reg_weights: per-dimension weights of the matching cost.
-        class_reg_weights: ``{class id: weights}`` replacing ``reg_weights`` for that class (loss and matching).
-        reg_score_threshold: regress only matches whose score exceeds this (None: all).
-        layer_weights: weight of each layer (default 1 each).
-
-    Returns:
-        ``{"det_cls": scalar, "det_box": scalar}``, plus ``{"det_dn_cls", "det_dn_box"}`` when ``outputs`` carries
-        denoising queries (:func:`~.denoising.denoising_loss`, same weights).
-    """
-    if len(gt_labels) != len(gt_boxes):
-        raise ValueError("detection_loss: gt_labels and gt_boxes need one entry per sample")
-    targets = [encode_boxes(g.to(outputs.encoded_boxes[0].dtype)) for g in gt_boxes]
-    dims = {t.shape[-1] for t in targets} or {BOX_DIM}
-    if len(dims) > 1:
-        raise ValueError(f"detection_loss: ground-truth boxes of a batch have different widths {sorted(dims)}")
-    d = dims.pop()
-    weights = layer_weights or [1.0] * len(outputs.cls_logits)
-    total_cls = outputs.cls_logits[0].new_zeros(())
-    total_box = outputs.cls_logits[0].new_zeros(())
-    for w_layer, logits, enc in zip(weights, outputs.cls_logits, outputs.encoded_boxes, strict=True):
-        pred = enc[..., :d]
-        matches = hungarian_match(
-            logits,
-            pred,
-            gt_labels,
-            targets,
-            cls_weight=cls_weight,
-            box_weight=box_weight,
-            alpha=alpha,
-            gamma=gamma,
-            reg_weights=list(match_reg_weights)[:d],
-            class_reg_weights={c: list(v)[:d] for c, v in (class_reg_weights or {}).items()},
-        )
-        cls_target = torch.zeros_like(logits)
-        box_loss = logits.new_zeros(())
-        num_pos = 0
-        for b, (qi, gi) in enumerate(matches):
-            num_pos += int(qi.numel())
-            if qi.numel() == 0:
-                continue
-            labels = gt_labels[b].to(logits.device).long()[gi]
-            cls_target[b, qi, labels] = 1.0
-            tgt = targets[b][gi]
-            w = pred.new_tensor(list(reg_weights)[:d]).expand(qi.numel(), d)
-            if class_reg_weights:
-                for c, cw in class_reg_weights.items():
-                    w = torch.where((labels == c)[:, None], pred.new_tensor(list(cw)[:d]), w)
-            w = w * (~tgt.isnan()).to(w.dtype)
-            if reg_score_threshold is not None:
-                score = logits[b, qi].detach().sigmoid().amax(-1)
-                w = w * (score > reg_score_threshold).to(w.dtype)[:, None]
-            diff = (pred[b, qi] - torch.nan_to_num(tgt, nan=0.0)).abs()
-            box_loss = box_loss + (diff * w).sum()
-        norm = max(num_pos, 1)
-        total_cls = total_cls + w_layer * cls_weight * sigmoid_focal_loss(logits, cls_target, alpha, gamma) / norm
-        total_box = total_box + w_layer * box_weight * box_loss / norm
-    out = {"det_cls": total_cls, "det_box": total_box}
-    if outputs.denoising is not None and outputs.dn_cls_logits and outputs.dn_encoded_boxes:
-        out.update(
-            denoising_loss(
-                outputs.denoising,
-                outputs.dn_cls_logits,
-                outputs.dn_encoded_boxes,
-                lambda logits, targets: sigmoid_focal_loss(logits, targets, alpha, gamma),
-                cls_weight,
-                box_weight,
-                reg_weights,
-                layer_weights,
-            )
-        )
-    return out
-
-
-# ---------------------------------------------------------------------------------------------- V2Q
-
-
-class VoxelToQuery(nn.Module):
-    """V2Q (§3.2, Eq. 6): each instance query samples the voxel volume around its box and adds the result.
-
-    ``q_vox = q_img + W [concat_h sum_o alpha_hqo W'_h V(c_q + R(yaw_q) (s_hqo * size_q))]`` with offsets
-    ``s = sigmoid(Linear(q)) - 0.5`` (fractions of the box's ``(l, w, h)``, so inside the box), weights
-    ``alpha = softmax_o(Linear(q))`` per head, trilinear sampling (:func:`~occplug.geometry.sample_volume`, zeros
-    outside the grid).
-
-    Args:
-        channels: ``C`` of the queries (divisible by ``heads``).
-        grid: the grid the volume lies on (``GridSpec`` or ``{range, voxel_size}``), ego frame.
-        volume_channels: channels of the volume (default ``C``).
-        heads, points: ``H`` heads with ``O`` points each (code 8 x 6).
-        dropout: on the output.
-    """
-
-    def __init__(
-        self,
-        channels: Annotated[int, Positive],
-        grid: GridSpec | Mapping,
-        volume_channels: int | None = None,
-        heads: Annotated[int, Positive] = 8,
-        points: Annotated[int, Positive] = 6,
-        dropout: float = 0.1,
-    ) -> None:
-        super().__init__()
-        if channels % heads:
-            raise ValueError(f"VoxelToQuery: channels {channels} not divisible by heads {heads}")
-        self.grid = GridSpec.from_config(grid)
-        self.channels, self.heads, self.points = int(channels), int(heads), int(points)
-        self.offsets = nn.Linear(channels, heads * points * 3)
-        self.attn = nn.Linear(channels, heads * points)
-        self.value_proj = nn.Linear(int(volume_channels or channels), channels, bias=False)
-        self.out_proj = nn.Linear(channels, channels)
-        self.drop = nn.Dropout(dropout)
-        nn.init.zeros_(self.offsets.weight)
-        nn.init.zeros_(self.attn.weight)
-        nn.init.zeros_(self.attn.bias)
-        with torch.no_grad():  # start on a spread pattern: head h along direction 2 pi h / H, points at growing radius
-            theta = 2 * math.pi * torch.arange(heads, dtype=torch.float64) / heads
-            radius = 0.45 * (torch.arange(points, dtype=torch.float64) + 1) / points
-            frac = torch.stack(
-                [
-                    radius[None] * theta.cos()[:, None],
-                    radius[None] * theta.sin()[:, None],
-                    (0.2 * (torch.arange(heads) % 2 * 2 - 1))[:, None].expand(heads, points).to(torch.float64),
-                ],
-                dim=-1,
-            )
-            self.offsets.bias.copy_(torch.logit(frac + 0.5).flatten().float())
-
-    def sample_points(self, queries: Tensor, boxes: Tensor) -> Tensor:
-        """``(B, Q, H, O, 3)`` ego-frame sampling points of ``(B, Q, C)`` queries around ``(B, Q, >=7)`` boxes."""
-        b, q = queries.shape[:2]
-        frac = self.offsets(queries).view(b, q, self.heads * self.points, 3).sigmoid() - 0.5
-        yaw = boxes[..., 6]
-        enc = torch.cat(
-            [boxes[..., :3], boxes[..., 3:6].clamp(min=1e-6).log(), yaw.sin()[..., None], yaw.cos()[..., None]], -1
-        )
-        return box_points(enc, frac).view(b, q, self.heads, self.points, 3)
-
-    def forward(self, volume: Tensor, queries: Tensor, boxes: Tensor, query_pos: Tensor | None = None) -> Tensor:
-        """Refine instance queries with the voxel volume.
-
-        Args:
-            volume: ``V_S.A``, ``(B, C_v, X, Y, Z)`` on ``grid``, ego frame.
-            queries: ``q_img``, ``(B, Q, C)``.
-            boxes: ``(B, Q, >=7)`` their boxes ``[cx, cy, cz, l, w, h, yaw, ...]``, ego frame.
-            query_pos: ``(B, Q, C)`` added to the queries for predicting offsets and weights (e.g. the anchor
-                embedding), or None.
-
-        Returns:
-            ``q_vox``, ``(B, Q, C)``.
-        """
-        if tuple(volume.shape[2:]) != self.grid.shape:
-            raise ValueError(f"VoxelToQuery: volume {tuple(volume.shape)} is not on grid {self.grid.shape}")
-        b, q, c = queries.shape
-        h, o = self.heads, self.points
-        src = queries if query_pos is None else queries + query_pos
-        pts = self.sample_points(src, boxes)
-        sampled = sample_volume(volume, self.grid, pts.reshape(b, q * h * o, 3).to(volume.dtype))  # (B, QHO, C_v)
-        values = self.value_proj(sampled.to(queries.dtype)).view(b, q, h, o, h, c // h)
-        values = torch.diagonal(values, dim1=2, dim2=4).movedim(-1, 2)  # head h reads its own channels: (B,Q,H,O,d)
-        alpha = self.attn(src).view(b, q, h, o).softmax(-1)
-        out = (alpha[..., None] * values).sum(3).reshape(b, q, c)
-        return queries + self.drop(self.out_proj(out))
-
-
-# ---------------------------------------------------------------------------------------------- metric
-
-
-def _average_precision(tp: np.ndarray, npos: int, min_recall: float, min_precision: float) -> float:
-    """nuScenes ``accumulate`` + ``calc_ap`` for one class and threshold (``tp`` in descending-score order)."""
-    if tp.size == 0 or tp.sum() == 0:
-        return 0.0
-    ctp, cfp = np.cumsum(tp), np.cumsum(1 - tp)
-    prec = ctp / (ctp + cfp)
-    rec = ctp / float(npos)
-    prec = np.interp(np.linspace(0, 1, 101), rec, prec, right=0)
-    prec = prec[round(100 * min_recall) + 1 :] - min_precision
-    prec[prec < 0] = 0
-    return float(np.mean(prec)) / (1.0 - min_precision)
-
-
-def detection_map(
-    pred_boxes: Sequence[Tensor],
-    pred_scores: Sequence[Tensor],
-    pred_labels: Sequence[Tensor],
-    gt_boxes: Sequence[Tensor],
-    gt_labels: Sequence[Tensor],
-    thresholds: Sequence[float] = (0.5, 1.0, 2.0, 4.0),
-    min_recall: float = 0.1,
-    min_precision: float = 0.1,
-) -> dict[str, object]:
-    """nuScenes-style mean average precision by BEV centre distance.
-
-    Per class present in the ground truth and per threshold: predictions of that class (all samples) are taken
-    by descending score; each is a true positive when the nearest not-yet-matched ground truth of its class in
-    its sample lies within the threshold (BEV centre distance, metres, strict ``<``), which it then consumes.
-    AP is the devkit's: precision interpolated at 101 recalls, recalls up to ``min_recall`` dropped,
-    ``max(p - min_precision, 0)`` averaged and divided by ``1 - min_precision`` (0 and 0 give plain 101-point AP).
-
-    Args:
-        pred_boxes: ``B`` tensors ``(P_b, >=2)`` (only the centre ``x, y`` is used), ego frame.
-        pred_scores: ``B`` tensors ``(P_b,)``.
-        pred_labels: ``B`` tensors ``(P_b,)`` int64.
-        gt_boxes: ``B`` tensors ``(G_b, >=2)``, ego frame.
-        gt_labels: ``B`` tensors ``(G_b,)`` int64.
-        thresholds: centre-distance thresholds, metres (nuScenes 0.5, 1, 2, 4).
-        min_recall, min_precision: the devkit's 0.1 and 0.1.
-
-    Returns:
-        ``{"mAP": float (0 without ground truth), "AP": {class: AP averaged over thresholds},
-        "AP@": {threshold: AP averaged over classes}}``.
-    """
-    n = len(gt_boxes)
-    if not len(pred_boxes) == len(pred_scores) == len(pred_labels) == len(gt_labels) == n:
-        raise ValueError("detection_map: every argument needs one entry per sample")
-
-    def np_(t: Tensor) -> np.ndarray:
-        return t.detach().cpu().numpy()
-
-    gt_xy = [np_(g[:, :2]).astype(np.float64) for g in gt_boxes]
-    gt_cls = [np_(g).astype(np.int64) for g in gt_labels]
-    classes = sorted(set(np.concatenate(gt_cls).tolist())) if n else []
-    table = np.zeros((len(classes), len(thresholds)))
-    for ci, c in enumerate(classes):
-        npos = int(sum((g == c).sum() for g in gt_cls))
-        preds = []  # (score, sample, xy)
-        for s in range(n):
-            lab = np_(pred_labels[s]).astype(np.int64)
-            sc, xy = np_(pred_scores[s]).astype(np.float64), np_(pred_boxes[s][:, :2]).astype(np.float64)
-            preds += [(sc[i], s, xy[i]) for i in np.nonzero(lab == c)[0]]
-        order = np.argsort([-p[0] for p in preds], kind="stable")
-        for ti, thr in enumerate(thresholds):
-            taken = [np.zeros(int((g == c).sum()), dtype=bool) for g in gt_cls]
-            tp = np.zeros(len(preds))
-            for rank, pi in enumerate(order):
-                _, s, xy = preds[pi]
-                cand = gt_xy[s][gt_cls[s] == c]
-                if cand.shape[0] == 0:
-                    continue
-                dist = np.linalg.norm(cand - xy, axis=1)
-                dist[taken[s]] = np.inf
-                j = int(np.argmin(dist))
-                if dist[j] < thr:
-                    taken[s][j] = True
-                    tp[rank] = 1.0
-            table[ci, ti] = _average_precision(tp, npos, min_recall, min_precision)
-    return {
-        "mAP": float(table.mean()) if table.size else 0.0,
-        "AP": {int(c): float(table[ci].mean()) for ci, c in enumerate(classes)},
-        "AP@": {float(t): float(table[:, ti].mean()) if classes else 0.0 for ti, t in enumerate(thresholds)},
-    }

@@ -14,7 +14,7 @@ Per frame, after StreamAgg has produced ``V_S.A`` ``(B, C, x, y, z)`` (coarse gr
    ``gt_box_drop`` / ``gt_box_noise`` degrade that oracle (each box dropped with that probability; its
    centre moved by Gaussian noise of that std in metres along x and y, drawn from torch's global generator),
    to ask how good a detector DQA needs;
-3. **V2Q** (Eq. 6, :class:`~.detector.VoxelToQuery`): every query samples ``V_S.A`` inside its box;
+3. **V2Q** (Eq. 6, :class:`~.v2q.VoxelToQuery`): every query samples ``V_S.A`` inside its box;
 4. **DQA** (Eqs. 7-10, :class:`~.dqa.DynamicQueryAggregation`): the selected queries are written into the voxels
    their boxes cover (``V_DQA`` equals ``V_S.A`` bit for bit elsewhere), then :class:`~.dqa.VoxelFFN` gives
    ``V_fin``, which the stream stores as the next frame's history.
@@ -49,9 +49,10 @@ from occplug.data import Batch
 from occplug.geometry import GridSpec
 
 from .denoising import DN_NOISE_SCALE
-from .detector import DetectorOutput, DetectorState, SparseDetector, VoxelToQuery
+from .detector import DetectorOutput, DetectorState, SparseDetector
 from .dqa import CODE_SELECTION, PAPER_SELECTION, DynamicQueryAggregation, VoxelFFN, select_queries
 from .matching import encode_boxes, hungarian_match
+from .v2q import VoxelToQuery
 
 __all__ = [
     "DEFAULT_DETECTION_CLASSES",

@@ -17,7 +17,8 @@ from occplug.constraints import NonNegative
 from occplug.data import Batch
 from occplug.interfaces import ModelOutputs, SupervisionSource
 
-from .detector import DetectorOutput, detection_loss
+from .detection_loss import detection_loss
+from .detector import DetectorOutput
 from .queryagg import detection_targets
 from .scene import DETECTION_CLASSES_KEY, DETECTION_KEY, FORECAST_KEY, OCCUPIED_KEY
 from .stream_agg import forecast_loss, occupied_loss
@@ -162,7 +163,7 @@ class DuOccForecast(_AuxLoss):
 
 
 class DuOccDetection(SupervisionSource):
-    """``L_det``: Sparse4D v3's detection loss (:func:`~occplug_duocc.detector.detection_loss`) on QueryAgg's detector.
+    """``L_det``: Sparse4D v3's detection loss (:func:`~occplug_duocc.detection_loss.detection_loss`) on QueryAgg's detector.
 
     Reads ``outputs.extras["duocc_stream/detection"]`` (every layer's ``(B, Q, K)`` logits and ``(B, Q, 10)``
     encoded boxes, ego frame) and ``"duocc_stream/detection_classes"`` (the label id of each of the ``K`` classes),

@@ -6,19 +6,13 @@ import pytest
 import torch
 
 from occplug.geometry import GridSpec, make_pose, project_to_image, rotation_z, sample_volume, unproject_from_image
-from occplug_duocc.detector import (
-    DetectorOutput,
-    DetectorState,
-    SparseDetector,
-    VoxelToQuery,
-    decode_boxes,
-    detection_loss,
-    detection_map,
-    propagate_state,
-    sample_image_features,
-    select_detections,
-)
+from occplug_duocc.boxes import decode_boxes
+from occplug_duocc.detection_eval import detection_map
+from occplug_duocc.detection_loss import detection_loss
+from occplug_duocc.detector import DetectorOutput, DetectorState, SparseDetector, propagate_state, select_detections
+from occplug_duocc.image_aggregation import sample_image_features
 from occplug_duocc.matching import encode_boxes
+from occplug_duocc.v2q import VoxelToQuery
 
 H, W = 32, 48
 # one forward-looking camera (OpenCV axes: x right = -y ego, y down = -z ego, z forward = +x ego), 1.5 m up
