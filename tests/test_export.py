@@ -113,7 +113,7 @@ def streaming_checkpoint(tmp_path_factory) -> Path:
 
 def _restored(ckpt: Path, frames: int = 2):
     cfg = runner.resolve_run_config([], [], ckpt)
-    dm, model = runner._restore(cfg, runner.load_checkpoint(ckpt), ckpt)
+    dm, model = runner.restore_run(cfg, runner.load_checkpoint(ckpt), ckpt)
     model.eval()
     data = dm.dataset("val")
     return model, [dm.collate([data[i]]) for i in range(frames)]

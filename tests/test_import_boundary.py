@@ -170,6 +170,42 @@ def test_no_private_name_crosses_a_package():
     assert not bad, "a private name imported from another package:\n" + "\n".join(bad)
 
 
+def module_aliases(path: Path) -> dict[str, str]:
+    """Local names bound to occplug or plugin *modules* by ``path``'s imports (``from occplug.run import runner``,
+    ``import occplug.geometry as g``), mapped to the module's dotted name."""
+    aliases = {}
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.asname and (is_core(alias.name) or plugin_of(alias.name)):
+                    aliases[alias.asname] = alias.name
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            for alias in node.names:
+                dotted = f"{node.module}.{alias.name}"
+                target = ROOT / Path(*dotted.split("."))
+                if (is_core(dotted) or plugin_of(dotted)) and (target.is_dir() or target.with_suffix(".py").is_file()):
+                    aliases[alias.asname or alias.name] = dotted
+    return aliases
+
+
+def test_no_private_name_of_another_package_is_read_through_its_module():
+    plugin_packages = [p for fs in PLUGIN_DIRS.values() for p in sources(*fs) if module_name(p) is not None]
+    bad = []
+    for path in sources(ROOT / "occplug") + plugin_packages + sources(ROOT / "scripts"):
+        aliases = module_aliases(path)
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (
+                isinstance(node, ast.Attribute)
+                and isinstance(node.value, ast.Name)
+                and node.value.id in aliases
+                and node.attr.startswith("_")
+                and not node.attr.startswith("__")
+                and aliases[node.value.id].rpartition(".")[0] != package_of(path)
+            ):
+                bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {aliases[node.value.id]}.{node.attr}")
+    assert not bad, "a private name of another package read through its module:\n" + "\n".join(bad)
+
+
 def test_every_public_module_exists_and_exports_what_it_lists():
     import importlib
 

@@ -161,7 +161,7 @@ def cmd_stats(args: argparse.Namespace) -> int:
     names = list(dm.class_names)
     if not names:
         raise UsageError(f"data of {', '.join(args.config)}: the data module names no classes; nothing to count")
-    with runner._data_errors():
+    with runner.data_errors():
         result = class_counts(dm.dataset(args.split), len(names), mask=args.mask, max_frames=args.max_frames)
     if result.frames == 0:
         raise UsageError(f"--split {args.split}: no frame with usable voxel labels ({result.skipped} skipped)")

@@ -35,10 +35,10 @@ def export_checkpoint(ckpt: Path, fmt: str, out: Path, samples: int = 4) -> dict
         raise ExportError(f"--samples: must be >= 1, got {samples}")
     check_out(out)
     cfg = runner.resolve_run_config([], [], ckpt)
-    dm, model = runner._restore(cfg, runner.load_checkpoint(ckpt), ckpt)
+    dm, model = runner.restore_run(cfg, runner.load_checkpoint(ckpt), ckpt)
     model.eval()
     batches: list[Batch] = []
-    with runner._data_errors():
+    with runner.data_errors():
         for split in ("val", "train"):  # a small validation split is topped up with training frames
             dataset = dm.dataset(split)
             take = min(int(samples) - len(batches), len(dataset))  # type: ignore[arg-type]

@@ -530,7 +530,7 @@ def _serve(job: dict[str, Any], answer: Callable[[dict[str, Any]], None]) -> Non
     cfg = job["cfg"]
     torch.manual_seed(int(cfg.get("seed", 0)))
     if job["ckpt"]:
-        dm, model = runner._restore(cfg, runner.load_checkpoint(Path(job["ckpt"])), Path(job["ckpt"]))
+        dm, model = runner.restore_run(cfg, runner.load_checkpoint(Path(job["ckpt"])), Path(job["ckpt"]))
     else:
         dm, model = runner.build_run(cfg)
     dataset = dm.dataset("val")

@@ -163,7 +163,7 @@ def write_teacher_labels(teacher: PhaseSpec, consumer: PhaseSpec, source: Pseudo
     dataset = dm.dataset("train")
     size = max(1, int(dm.batch_size))
     count = 0
-    with torch.no_grad(), runner._data_errors():
+    with torch.no_grad(), runner.data_errors():
         for start in range(0, len(dataset), size):  # type: ignore[arg-type]
             batch = dm.collate([dataset[i] for i in range(start, min(start + size, len(dataset)))])  # type: ignore[arg-type]
             try:

@@ -52,6 +52,7 @@ __all__ = [
     "build_datamodule",
     "build_model",
     "build_run",
+    "data_errors",
     "Evaluation",
     "evaluate",
     "fit",
@@ -61,6 +62,7 @@ __all__ = [
     "plugin_versions",
     "predict",
     "resolve_run_config",
+    "restore_run",
     "write_text_atomic",
 ]
 
@@ -443,7 +445,7 @@ def fit(
             + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None),
         )
         write_text_atomic(run_dir / "plugins.json", json.dumps(plugin_versions(), indent=2) + "\n")
-    with _data_errors(), warnings.catch_warnings():
+    with data_errors(), warnings.catch_warnings():
         # the train loader does resume mid-epoch (OccDataModule.state_dict), through a path Lightning does not see
         warnings.filterwarnings("ignore", message=".*your dataloader is not resumable")
         trainer.fit(model, datamodule=dm, ckpt_path=str(last) if resume else None)
@@ -495,7 +497,7 @@ def print_tables(tables: dict[str, str], masks: dict[str, Any]) -> None:
 
 
 @contextlib.contextmanager
-def _data_errors() -> Iterator[None]:
+def data_errors() -> Iterator[None]:
     """A bad data file met during a loop (possibly in a loader worker) becomes one :class:`RunError` line."""
     try:
         yield
@@ -621,7 +623,7 @@ def first_batch_check(model: OccupancyModel, dm: OccDataModule) -> None:
         raise RunError("data: the training split is empty")
     py_state, np_state = random.getstate(), np.random.get_state()
     try:
-        with torch.random.fork_rng(devices=[]), torch.no_grad(), _data_errors():
+        with torch.random.fork_rng(devices=[]), torch.no_grad(), data_errors():
             batch = dm.collate([dataset[i] for i in range(count)])
             probe = copy.deepcopy(model)
             probe.train()
@@ -646,7 +648,8 @@ def callback_requirements(cfg: dict[str, Any]) -> set[str]:
     return out
 
 
-def _restore(cfg: dict[str, Any], ckpt: dict[str, Any], path: Path) -> tuple[OccDataModule, OccupancyModel]:
+def restore_run(cfg: dict[str, Any], ckpt: dict[str, Any], path: Path) -> tuple[OccDataModule, OccupancyModel]:
+    """The data module and model of a run's ``cfg`` with the checkpoint ``ckpt`` (read from ``path``) loaded."""
     dm, model = build_run(cfg)
     try:
         model.load_state_dict(ckpt["state_dict"])
@@ -667,9 +670,9 @@ class Evaluation:
 def evaluate(cfg: dict[str, Any], ckpt_path: Path, stage: str = "validate") -> Evaluation:
     """Evaluate a checkpoint on the ``validate`` or ``test`` split."""
     ckpt = load_checkpoint(ckpt_path)
-    dm, model = _restore(cfg, ckpt, ckpt_path)
+    dm, model = restore_run(cfg, ckpt, ckpt_path)
     trainer = _trainer(cfg, None, [])
-    with _data_errors():
+    with data_errors():
         if stage == "validate":
             trainer.validate(model, datamodule=dm, verbose=False)
         else:
@@ -681,11 +684,11 @@ def evaluate(cfg: dict[str, Any], ckpt_path: Path, stage: str = "validate") -> E
 def predict(cfg: dict[str, Any], ckpt_path: Path, out: Path) -> int:
     """Write ``<out>/<token>.npz`` (key ``pred``: ``(X, Y, Z)`` uint8 class ids) per sample; return the count."""
     ckpt = load_checkpoint(ckpt_path)
-    dm, model = _restore(cfg, ckpt, ckpt_path)
+    dm, model = restore_run(cfg, ckpt, ckpt_path)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     trainer = _trainer(cfg, None, [_NpzPredictionWriter(out)])
-    with _data_errors():
+    with data_errors():
         trainer.predict(model, datamodule=dm, return_predictions=False)
     return len(list(out.glob("*.npz")))
 

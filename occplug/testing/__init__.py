@@ -18,9 +18,13 @@ from .fixtures import (
     tiny_batch,
 )
 from .runs import run_config
+from .tools import check_tool_help, check_tool_main_guard, check_tools_import_quietly
 
 __all__ = [
     "check_component",
+    "check_tool_help",
+    "check_tool_main_guard",
+    "check_tools_import_quietly",
     "hand_batch",
     "isolated_registry",
     "label_batch",
