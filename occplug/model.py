@@ -181,7 +181,9 @@ class OccModel(OccupancyModel):
         super().__init__()
         history = [int(k) for k in (input_history or [])]
         if 0 in history or len(set(history)) != len(history):
-            raise ValueError(f"model.input_history: frame offsets other than 0, each once, got {list(input_history or [])}")
+            raise ValueError(
+                f"model.input_history: frame offsets other than 0, each once, got {list(input_history or [])}"
+            )
         self.input_history = history
         self.grid = GridSpec.from_config(grid)
         if isinstance(grid, GridSpec):  # hyper-parameters stay plain data (weights_only checkpoint loading)
@@ -216,6 +218,7 @@ class OccModel(OccupancyModel):
             in_channels=self.view_transform.out_channels,
             level_channels=list(self.encoder.level_channels),
             grid=run_grid,
+            num_classes=self.num_classes,
         )
         self.heads = nn.ModuleDict(
             {
@@ -239,7 +242,14 @@ class OccModel(OccupancyModel):
             )
         self.supervision = nn.ModuleDict(
             {
-                name: build_component("supervision", spec, free_label=free_label, ignore_label=ignore_label, grid=run_grid)
+                name: build_component(
+                    "supervision",
+                    spec,
+                    free_label=free_label,
+                    ignore_label=ignore_label,
+                    grid=run_grid,
+                    num_classes=self.num_classes,
+                )
                 for name, spec in supervision.items()
                 if spec is not None
             }

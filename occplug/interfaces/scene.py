@@ -122,7 +122,7 @@ class SceneRepresentation(nn.Module, ABC):
     """
 
     #: Constructor arguments the model fills in when the config leaves them out.
-    given: ClassVar[tuple[str, ...]] = ("in_channels", "level_channels", "grid")
+    given: ClassVar[tuple[str, ...]] = ("in_channels", "level_channels", "grid", "num_classes")
     #: Whether ``forward`` takes a third argument, the :class:`~occplug.interfaces.ModelOutputs` so far.
     reads_outputs: ClassVar[bool] = False
     #: Whether it carries state from frame to frame (a :class:`~occplug.streams.StreamState`); a stateful model

@@ -72,7 +72,7 @@ class SupervisionSource(nn.Module, ABC):
     """
 
     #: Constructor arguments the model fills in when the config leaves them out.
-    given: ClassVar[tuple[str, ...]] = ("free_label", "ignore_label", "grid")
+    given: ClassVar[tuple[str, ...]] = ("free_label", "ignore_label", "grid", "num_classes")
 
     @classmethod
     def check_conformance(cls, component: SupervisionSource, batch: Batch, grid: GridSpec, model: nn.Module) -> None:
