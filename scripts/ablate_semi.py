@@ -19,12 +19,10 @@ import argparse
 import json
 import math
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-from occplug.run.bench import mean_std
+from occplug.run.bench import fit_in_process, mean_std
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = {"full": ROOT / "configs/semi/baseline_100pct.yaml", "semi": ROOT / "configs/semi/baseline_10pct.yaml"}
@@ -49,11 +47,7 @@ def run(recipe: str, seed: int, args: argparse.Namespace) -> dict:
     overrides = [f"seed={seed}", "trainer.enable_progress_bar=false", f"data.preset={args.preset}"]
     for phase, epochs in phase_epochs(RECIPES[recipe]).items():
         overrides.append(f"phases.{phase}.trainer.max_epochs={max(1, round(epochs * args.epochs))}")
-    command = [sys.executable, "-m", "occplug.cli", "fit", "-c", str(RECIPES[recipe]), *overrides]
-    command += ["--resume", str(out)] if (out / "config.yaml").is_file() else ["--run-dir", str(out)]
-    start = time.monotonic()
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
-    print(f"{recipe} seed {seed}: {time.monotonic() - start:.0f} s", file=sys.stderr)
+    fit_in_process(str(RECIPES[recipe]), overrides, out, f"{recipe} seed {seed}")
     return json.loads((out / "metrics.json").read_text())
 
 

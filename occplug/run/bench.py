@@ -44,6 +44,7 @@ __all__ = [
     "Target",
     "code_commit",
     "environment",
+    "fit_in_process",
     "interleave",
     "mean_std",
     "read_accuracy",
@@ -85,6 +86,18 @@ def code_commit(path: Path | None = None) -> str | None:
     if commit is None:
         return None
     return commit + ("-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
+def fit_in_process(config: str, overrides: Sequence[str], out: Path, label: str) -> Path:
+    """Train ``config`` with ``overrides`` into the run directory ``out`` in an ``occplug fit`` process of its own
+    (continuing an interrupted run with ``--resume``), as the ablation and bench scripts train their rows; prints
+    ``<label>: trained in <s> s`` to stderr and returns ``out``."""
+    command = [sys.executable, "-m", "occplug.cli", "fit", "-c", config, *overrides]
+    command += ["--resume", str(out)] if (out / "config.yaml").is_file() else ["--run-dir", str(out)]
+    start = time.monotonic()
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+    print(f"{label}: trained in {time.monotonic() - start:.0f} s", file=sys.stderr)
+    return out
 
 
 def _program() -> str:

@@ -41,7 +41,7 @@ import sys
 import time
 from pathlib import Path
 
-from occplug.run.bench import mean_std, write_table_seeds
+from occplug.run.bench import fit_in_process, mean_std, write_table_seeds
 
 #: row -> (config stem trained, table label). ``full_gt_boxes`` evaluates ``full``'s runs.
 ROWS = {
@@ -95,12 +95,7 @@ def fit(config: str, seed: int, args: argparse.Namespace) -> Path:
             raise SystemExit(2)
     if (out / "metrics.json").is_file():
         return out
-    command = [sys.executable, "-m", "occplug.cli", "fit", "-c", f"duocc/{config}", *overrides]
-    command += ["--resume", str(out)] if (out / "config.yaml").is_file() else ["--run-dir", str(out)]
-    start = time.monotonic()
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
-    print(f"{config} seed {seed}: trained in {time.monotonic() - start:.0f} s", file=sys.stderr)
-    return out
+    return fit_in_process(f"duocc/{config}", overrides, out, f"{config} seed {seed}")
 
 
 def gt_metrics(run: Path) -> dict:

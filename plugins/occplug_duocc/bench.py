@@ -37,12 +37,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-from occplug.run.bench import mean_std
+from occplug.run.bench import fit_in_process, mean_std
 
 
 def rows(ks: list[int], full: bool = False) -> list[tuple[str, str, list[str]]]:
@@ -65,24 +64,14 @@ def train(name: str, config: str, overrides: list[str], seed: int, args: argpars
     out = Path(args.out) / f"{name}-seed{seed}"
     if (out / "metrics.json").is_file():
         return out
-    command = [
-        sys.executable,
-        "-m",
-        "occplug.cli",
-        "fit",
-        "-c",
-        config,
+    run_overrides = [
         f"seed={seed}",
         "trainer.enable_progress_bar=false",
         f"trainer.max_epochs={args.epochs}",
         *common(args),
         *overrides,
     ]
-    command += ["--resume", str(out)] if (out / "config.yaml").is_file() else ["--run-dir", str(out)]
-    start = time.monotonic()
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
-    print(f"{name}, seed {seed}: trained in {time.monotonic() - start:.0f} s", file=sys.stderr)
-    return out
+    return fit_in_process(config, run_overrides, out, f"{name}, seed {seed}")
 
 
 def main() -> None:

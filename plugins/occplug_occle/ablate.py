@@ -51,13 +51,12 @@ import math
 import os
 import shutil
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-from occplug.run.bench import mean_std, write_table_seeds
+from occplug.run.bench import fit_in_process, mean_std, write_table_seeds
 
 #: Row name (the config ``occle/<name>``) -> its label in the tables.
 ROWS = {
@@ -249,16 +248,12 @@ def run(name: str, seed: int, args: argparse.Namespace) -> dict:
         summary = json.loads((out / "metrics.json").read_text())
         if set(summary.get("phases", {})) == set(trained):
             return summary
-    start = time.monotonic()
     copied = 0 if (out / "config.yaml").is_file() else seed_from_donor(name, seed, args, out)
     if (out / "metrics.json").is_file():
         print(f"{name} seed {seed}: every phase copied from {DONOR}", file=sys.stderr)
         return json.loads((out / "metrics.json").read_text())
-    command = [sys.executable, "-m", "occplug.cli", "fit", "-c", f"occle/{name}", *overrides(name, seed, args)]
-    command += ["--resume", str(out)] if (out / "config.yaml").is_file() else ["--run-dir", str(out)]
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
     extra = f" ({copied} phase(s) copied from {DONOR})" if copied else ""
-    print(f"{name} seed {seed}: {time.monotonic() - start:.0f} s{extra}", file=sys.stderr)
+    fit_in_process(f"occle/{name}", overrides(name, seed, args), out, f"{name} seed {seed}{extra}")
     return json.loads((out / "metrics.json").read_text())
 
 

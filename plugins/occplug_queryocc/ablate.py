@@ -21,12 +21,10 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-from occplug.run.bench import mean_std, write_table_seeds
+from occplug.run.bench import fit_in_process, mean_std, write_table_seeds
 
 ROWS = {
     "base": "query (pseudo points, T = {-1, 0, 1})",
@@ -66,11 +64,7 @@ def run(name: str, seed: int, args: argparse.Namespace) -> dict:
         f"trainer.max_epochs={args.epochs}",
         *args.set,
     ]
-    command = [sys.executable, "-m", "occplug.cli", "fit", "-c", f"queryocc/{name}", *overrides]
-    command += ["--resume", str(out)] if (out / "config.yaml").is_file() else ["--run-dir", str(out)]
-    start = time.monotonic()
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
-    print(f"{name} seed {seed}: {time.monotonic() - start:.0f} s", file=sys.stderr)
+    fit_in_process(f"queryocc/{name}", overrides, out, f"{name} seed {seed}")
     return json.loads((out / "metrics.json").read_text())
 
 

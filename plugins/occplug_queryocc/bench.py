@@ -31,10 +31,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
+
+from occplug.run.bench import fit_in_process
 
 VARIANTS = ("contracted", "dense_near", "dense_full", "dense_fine")
 ACCURACY = ("RayIoU", "RayIoU_geometry", "mIoU", "IoU")
@@ -83,20 +84,7 @@ def train(variant: str, r: float, seed: int, args: argparse.Namespace) -> Path:
     out = Path(args.out) / f"{variant}-R{r:g}-seed{seed}"
     if (out / "metrics.json").is_file():
         return out
-    command = [
-        sys.executable,
-        "-m",
-        "occplug.cli",
-        "fit",
-        "-c",
-        "queryocc/base",
-        *overrides(variant, r, seed, args.epochs),
-    ]
-    command += ["--resume", str(out)] if (out / "config.yaml").is_file() else ["--run-dir", str(out)]
-    start = time.monotonic()
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
-    print(f"{out.name}: trained in {time.monotonic() - start:.0f} s", file=sys.stderr)
-    return out
+    return fit_in_process("queryocc/base", overrides(variant, r, seed, args.epochs), out, out.name)
 
 
 def main() -> None:
