@@ -11,6 +11,7 @@ from occplug.testing import check_tool_help, check_tool_main_guard, check_tools_
 TOOLS = [
     "occplug_queryocc.ablate",
     "occplug_queryocc.bench",
+    "occplug_queryocc.diagnose",
     "occplug_queryocc.window_coverage",
     "occplug_occle.ablate",
     "occplug_occle.bench",

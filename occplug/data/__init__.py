@@ -20,6 +20,7 @@ _LAZY = {
     "SemanticKITTIDataModule": "occplug.data.semantickitti.reader",
     "LabelCut": "occplug.data.label_fraction",
     "LabelledPoints": "occplug.data.labelled_points",
+    "free_pixel_rays": "occplug.data.labelled_points",
     "lidar_points": "occplug.data.labelled_points",
     "pseudo_depth_points": "occplug.data.labelled_points",
     "to_frame": "occplug.data.labelled_points",

@@ -12,6 +12,11 @@ from, its class and optionally a feature vector. Two ways to get them from a :cl
   into the cameras' ``pseudo_semantics`` (the first camera, in rig order, whose image holds it in
   front of the camera; ``ignore_label`` where none does) -- or by ``point_labels`` when asked.
 
+and one way to get the rays that end at no surface:
+
+* :func:`free_pixel_rays`: the pixels whose ``pseudo_semantics`` is the free class (a segmenter's ``sky``
+  mapped to ``free``): rays free of surfaces as far as the camera sees, with no depth of their own.
+
 Everything is in the ego frame of the batch the points come from; :func:`to_frame` moves a set
 into another frame of the same scene through the global poses.
 """
@@ -25,7 +30,7 @@ from torch import Tensor
 
 from occplug.geometry import invert_pose, project_to_image, transform_points, unproject_from_image
 
-__all__ = ["LabelledPoints", "lidar_points", "pseudo_depth_points", "to_frame"]
+__all__ = ["LabelledPoints", "free_pixel_rays", "lidar_points", "pseudo_depth_points", "to_frame"]
 
 
 @dataclass
@@ -113,6 +118,47 @@ def pseudo_depth_points(
             fh, fw = feats.shape[-2:]
             f = feats[i][cam, :, pix[:, 1] * fh // h, pix[:, 0] * fw // w].float()
         out.append(LabelledPoints(points.float(), origins, labels, f))
+    return out
+
+
+def free_pixel_rays(batch, free_label: int, stride: int = 1) -> list[LabelledPoints]:
+    """The rays of every ``stride``-th pixel (rows and columns) whose pseudo class is ``free_label``, per sample.
+
+    A pixel a segmenter calls sky (mapped to the free class) sees no surface: its ray is free as far as the
+    camera sees, whatever depth a depth model gives it. Each ray is returned as a labelled point one metre
+    along it, so ``points - origins`` is its unit direction and :func:`to_frame` moves rays as it moves points.
+
+    Args:
+        batch: with ``pseudo_semantics`` ``(B, N, H, W)``, ``intrinsics``, ``cam_to_ego`` and ``img_aug``.
+        free_label: the free class id (Occ3D ``free`` = 17).
+        stride: pixel subsampling (pixel centres ``(stride*c, stride*r)``).
+
+    Returns:
+        ``B`` :class:`LabelledPoints` in the ego frame: ``points`` one metre along each ray, ``origins``
+        the camera centres, ``labels`` all ``free_label``.
+    """
+    sem = batch.pseudo_semantics
+    if sem is None:
+        raise ValueError("free_pixel_rays: the batch has no pseudo_semantics (set data.pseudo_labels)")
+    b, n, h, w = sem.shape
+    rows = torch.arange(0, h, stride, device=sem.device)
+    cols = torch.arange(0, w, stride, device=sem.device)
+    vv, uu = torch.meshgrid(rows, cols, indexing="ij")
+    uv = torch.stack([uu, vv], -1).reshape(-1, 2).to(torch.float32)  # (Q, 2) pixel centres (u = col)
+    cam_z = torch.ones(b, n, uv.shape[0], device=sem.device)
+    ego = unproject_from_image(
+        uv.expand(b, n, -1, 2), cam_z, batch.intrinsics.float(), batch.cam_to_ego.float(), batch.img_aug.float()
+    )  # (B, N, Q, 3): the point at camera depth 1 on each pixel's ray
+    centres = batch.cam_to_ego[:, :, :3, 3].float()  # (B, N, 3)
+    unit = ego - centres[:, :, None]
+    unit = unit / unit.norm(dim=-1, keepdim=True)
+    free = sem[:, :, rows][:, :, :, cols].reshape(b, n, -1) == free_label  # (B, N, Q)
+    out = []
+    for i in range(b):
+        cam, q = torch.nonzero(free[i], as_tuple=True)
+        origins = centres[i][cam]
+        labels = torch.full((len(q),), free_label, dtype=torch.int64, device=sem.device)
+        out.append(LabelledPoints(origins + unit[i][cam, q], origins, labels))
     return out
 
 

@@ -52,6 +52,7 @@ __all__ = [
     "build_datamodule",
     "build_model",
     "build_run",
+    "config_from_checkpoint",
     "data_errors",
     "Evaluation",
     "evaluate",

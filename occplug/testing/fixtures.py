@@ -20,14 +20,18 @@ _TINY_CACHE: dict[tuple, Batch] = {}
 
 
 def make_tiny_batch(
-    batch_size: int = 2, split: str = "train", adjacent_offsets: Sequence[int] = (), pseudo_labels: str | None = None
+    batch_size: int = 2,
+    split: str = "train",
+    adjacent_offsets: Sequence[int] = (),
+    pseudo_labels: str | dict[str, Any] | None = None,
 ) -> Batch:
     """A batch of the first frames of the tiny synthetic world (seeded, CPU, cached per process).
 
-    ``pseudo_labels``: a synthetic realism (``perfect``, ``default``, ``noisy``) to fill ``pseudo_depth``,
-    ``pseudo_semantics`` and ``pseudo_features``; ``None``: none.
+    ``pseudo_labels``: a synthetic realism (``perfect``, ``default``, ``noisy``, or a knob mapping such as
+    ``{"preset": "default", "sky_as_free": True}``) to fill ``pseudo_depth``, ``pseudo_semantics`` and
+    ``pseudo_features``; ``None``: none.
     """
-    key = (batch_size, split, tuple(adjacent_offsets), pseudo_labels)
+    key = (batch_size, split, tuple(adjacent_offsets), repr(pseudo_labels))
     if key not in _TINY_CACHE:
         from occplug.data.synthetic import SyntheticDataModule
 

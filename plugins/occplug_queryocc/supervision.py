@@ -14,6 +14,12 @@ ego frame with the poses (the query keeps its own time ``t``):
 Negatives train the occupancy loss only; positives train occupancy, semantics and (with features)
 the L1 feature loss: ``L = l_occ BCE(o, occ) + l_sem CE(s, class) + l_vfm L1(v, feature)``.
 
+* **sky negatives** (``sky_rays > 0``; this project's reading, the paper is silent): a pixel whose pseudo
+  class is free (a segmenter's ``sky`` mapped to ``free``) has no point, so the two rules above give its
+  ray no query. Its ray is free as far as the camera sees: ``o + r d``, ``r ~ U(0, r_max)``, with ``r_max``
+  the smaller of ``sky_far`` and the distance at which the ray leaves the grid's height range, are
+  negatives too. Without them, the air cameras look through above the horizon gets no query at all.
+
 **``queryocc_render_points``**: QueryOcc's rendering-only baseline (the supervision ablation).
 
 The same queryable field ``queryocc_query_points`` trains, supervised in image space instead of in 3D: from the
@@ -30,6 +36,9 @@ Alpha blending over its answers ``(o_i, s_i)``:
 * semantics ``P(c) = sum_i w_i softmax(s_i)_c / sum_i w_i`` over the ``K - 1`` classes other than ``free``
   (computed in log space, so a nearly empty ray still gives a normalised distribution).
 
+With ``sky_rays > 0``, that many further rays per sample go through pixels whose pseudo class is free (sky),
+with ``d* = inf``: rendered free up to ``far``, the same information the query source gets.
+
 Losses: ``L = l_depth |D - min(d*, far)| / min(d*, far) + l_sem (-log P(c*))`` with the pixel's pseudo depth ``d*`` (camera
 z, as ``pseudo_depth`` stores it) and pseudo class ``c*``. A pixel deeper than ``far`` is a ray free up to
 ``far``: its depth target is ``far`` and it has no semantic term (nor does ``ignore_label``, nor ``free``).
@@ -37,6 +46,7 @@ z, as ``pseudo_depth`` stores it) and pseudo class ``c*``. A pixel deeper than `
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
@@ -45,8 +55,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from occplug.constraints import Length, NonNegative, Positive, Range
-from occplug.data import Batch, LabelledPoints, lidar_points, pseudo_depth_points, to_frame
-from occplug.geometry import invert_pose, transform_points, unproject_from_image
+from occplug.data import Batch, LabelledPoints, free_pixel_rays, lidar_points, pseudo_depth_points, to_frame
+from occplug.geometry import GridSpec, invert_pose, transform_points, unproject_from_image
 from occplug.interfaces import ModelOutputs, SupervisionSource
 
 __all__ = [
@@ -56,8 +66,11 @@ __all__ = [
     "RenderSupervision",
     "Rendered",
     "render_rays",
+    "in_current_frame",
     "sample_queries",
     "sample_rays",
+    "sample_sky_negatives",
+    "sky_rays",
     "supervision_points",
     "transmittance_weights",
 ]
@@ -80,6 +93,38 @@ def supervision_points(
             pseudo semantics) or ``union``.
         offsets: frame offsets (0: the current frame; others must be in ``batch.adjacent``).
     """
+
+    def frame_points(frame: Batch) -> list[LabelledPoints]:
+        sets: list[list[LabelledPoints]] = []
+        if source in ("pseudo", "union"):
+            sets.append(pseudo_depth_points(frame, pixel_stride, max_depth, ignore_label, with_features))
+        if source in ("lidar", "union"):
+            sets.append(lidar_points(frame, ignore_label))
+        out = []
+        for i in range(len(batch)):
+            parts = [s[i] for s in sets]
+            if with_features and source == "union":  # LiDAR points carry no features: drop them from the L1 term
+                parts = [p if p.features is not None else _zero_features(p, parts[0]) for p in parts]
+            out.append(LabelledPoints.cat(parts))
+        return out
+
+    return in_current_frame(batch, offsets, frame_points)
+
+
+def sky_rays(
+    batch: Batch, offsets: list[int], free_label: int, pixel_stride: int = 1
+) -> list[tuple[LabelledPoints, Tensor]]:
+    """Per sample: the rays of the pixels whose pseudo class is free (sky) in every frame offset of ``offsets``,
+    in the current ego frame (:func:`~occplug.data.free_pixel_rays`: a point one metre along each ray), with
+    ``(R,)`` times (seconds relative to the current frame)."""
+    return in_current_frame(batch, offsets, lambda frame: free_pixel_rays(frame, free_label, pixel_stride))
+
+
+def in_current_frame(
+    batch: Batch, offsets: list[int], make: Callable[[Batch], list[LabelledPoints]]
+) -> list[tuple[LabelledPoints, Tensor]]:
+    """Per sample: ``make(frame)``'s points of every frame offset in ``offsets``, moved into the current ego frame,
+    with ``(P,)`` times (seconds relative to the current frame)."""
     per_sample: list[list[tuple[LabelledPoints, Tensor]]] = [[] for _ in range(len(batch))]
     for k in offsets:
         frame = batch if k == 0 else batch.adjacent.get(k)
@@ -87,24 +132,12 @@ def supervision_points(
             raise ValueError(
                 f"queryocc_query_points: frame offset {k} is not loaded (set data.adjacent_offsets to include {k})"
             )
-        sets: list[list[LabelledPoints]] = []
-        if source in ("pseudo", "union"):
-            sets.append(pseudo_depth_points(frame, pixel_stride, max_depth, ignore_label, with_features))
-        if source in ("lidar", "union"):
-            sets.append(lidar_points(frame, ignore_label))
-        for i in range(len(batch)):
-            parts = [s[i] for s in sets]
-            if with_features and source == "union":  # LiDAR points carry no features: drop them from the L1 term
-                parts = [p if p.features is not None else _zero_features(p, parts[0]) for p in parts]
-            pts = LabelledPoints.cat(parts)
+        for i, pts in enumerate(make(frame)):
             if k != 0:
                 pts = to_frame(pts, frame.ego_to_global[i], batch.ego_to_global[i])
             dt = float(frame.timestamp[i] - batch.timestamp[i]) if k != 0 else 0.0
             per_sample[i].append((pts, torch.full((len(pts),), dt, device=pts.points.device)))
-    out = []
-    for parts in per_sample:
-        out.append((LabelledPoints.cat([p for p, _ in parts]), torch.cat([t for _, t in parts])))
-    return out
+    return [(LabelledPoints.cat([p for p, _ in parts]), torch.cat([t for _, t in parts])) for parts in per_sample]
 
 
 def _zero_features(points: LabelledPoints, like: LabelledPoints) -> LabelledPoints:
@@ -123,6 +156,27 @@ class QuerySet:
     ):
         self.points, self.times, self.occupied, self.labels, self.features = points, times, occupied, labels, features
         self.valid = valid
+
+    def cat(self, other: QuerySet) -> QuerySet:
+        """Both sets' queries per sample (``other`` after ``self``; features NaN where a set has none)."""
+        feats = None
+        if self.features is not None or other.features is not None:
+            like = self.features if self.features is not None else other.features
+            feats = torch.cat(
+                [_nan_features(q, like.shape[-1]) if q.features is None else q.features for q in (self, other)], 1
+            )
+        return QuerySet(
+            torch.cat([self.points, other.points], 1),
+            torch.cat([self.times, other.times], 1),
+            torch.cat([self.occupied, other.occupied], 1),
+            torch.cat([self.labels, other.labels], 1),
+            feats,
+            torch.cat([self.valid, other.valid], 1),
+        )
+
+
+def _nan_features(queries: QuerySet, dim: int) -> Tensor:
+    return torch.full((*queries.points.shape[:2], dim), float("nan"), device=queries.points.device)
 
 
 def sample_queries(
@@ -201,6 +255,55 @@ def sample_queries(
     )
 
 
+def sample_sky_negatives(
+    rays: list[tuple[LabelledPoints, Tensor]],
+    rays_per_sample: int,
+    negatives: int,
+    far: float,
+    heights: tuple[float, float],
+    ignore_label: int,
+    generator: torch.Generator | None = None,
+) -> QuerySet:
+    """Free queries along rays that end at no surface (:func:`sky_rays`): ``rays_per_sample`` rays per sample
+    (with replacement) and ``negatives`` points ``o + r d`` on each, ``r ~ U(0, r_max)``, where ``r_max`` is
+    ``far`` or, if sooner, where the ray leaves the height range ``heights = (z_min, z_max)`` (ego frame,
+    metres; the scored grid's: higher queries teach nothing the evaluation sees). A sample without such rays
+    gets placeholder queries with ``valid`` False.
+
+    Returns a :class:`QuerySet` of ``rays_per_sample * negatives`` free queries per sample (labels ``ignore``).
+    """
+    z_lo, z_hi = heights
+    qs, ts, valid = [], [], []
+    device = rays[0][0].points.device
+    for pts, times in rays:
+        n = len(pts)
+        valid.append(torch.full((rays_per_sample * negatives,), n > 0, device=device))
+        if n == 0:
+            qs.append(torch.zeros(rays_per_sample * negatives, 3, device=device))
+            ts.append(torch.zeros(rays_per_sample * negatives, device=device))
+            continue
+        pick = torch.randint(0, n, (rays_per_sample,), generator=generator).to(device)
+        o = pts.origins[pick]
+        d = pts.points[pick] - o  # unit directions
+        dz = d[:, 2]
+        up = (z_hi - o[:, 2]) / dz.clamp_min(1e-9)
+        down = (z_lo - o[:, 2]) / dz.clamp_max(-1e-9)
+        leave = torch.where(dz > 1e-9, up, torch.where(dz < -1e-9, down, torch.full_like(dz, far)))
+        r_max = leave.clamp(0.0, far)
+        r = torch.rand(rays_per_sample, negatives, generator=generator).to(device) * r_max[:, None]
+        qs.append((o[:, None] + r[..., None] * d[:, None]).reshape(-1, 3))
+        ts.append(times[pick].repeat_interleave(negatives))
+    b, q = len(rays), rays_per_sample * negatives
+    return QuerySet(
+        torch.stack(qs),
+        torch.stack(ts),
+        torch.zeros(b, q, dtype=torch.bool, device=device),
+        torch.full((b, q), ignore_label, dtype=torch.int64, device=device),
+        None,
+        torch.stack(valid),
+    )
+
+
 class QuerySupervision(SupervisionSource):
     """QueryOcc's query supervision over any queryable (temporal, for a window) head.
 
@@ -218,6 +321,12 @@ class QuerySupervision(SupervisionSource):
         max_depth: pseudo points deeper than this are dropped (metres).
         lambda_occ, lambda_sem, lambda_vfm: the loss weights; ``lambda_vfm > 0`` distils ``pseudo_features``
             into the head's ``features`` output.
+        sky_rays: rays per sample and step drawn from the pixels whose pseudo class is ``free_label`` (a
+            segmenter's ``sky`` mapped to ``free``; :func:`sky_rays`), each giving ``sky_negatives`` free queries
+            up to ``sky_far`` metres or where it leaves the grid's height range (:func:`sample_sky_negatives`);
+            0 (the default): none. This project's reading, not the paper's: without it no query tells the
+            field that the air cameras look through above the horizon is free.
+        grid: the evaluation grid (given); its height range bounds the sky negatives.
 
     Returns ``{"occ": BCE, "sem": CE, "vfm": L1}`` (``vfm`` only when distilling), already times their lambdas.
     """
@@ -241,10 +350,16 @@ class QuerySupervision(SupervisionSource):
         lambda_occ: Annotated[float, NonNegative] = 1.0,
         lambda_sem: Annotated[float, NonNegative] = 1.0,
         lambda_vfm: Annotated[float, NonNegative] = 0.0,
+        sky_rays: Annotated[int, NonNegative] = 0,
+        sky_negatives: Annotated[int, Positive] = 4,
+        sky_far: Annotated[float, Positive] = 80.0,
+        grid: dict | None = None,
         free_label: int | None = 17,
         ignore_label: int | None = 255,
     ) -> None:
         super().__init__()
+        if sky_rays > 0 and free_label is None:
+            raise ValueError("queryocc_query_points: sky_rays > 0 needs a free_label (the class sky pixels map to)")
         if points not in ("pseudo", "lidar", "union"):
             raise ValueError(f"queryocc_query_points points must be pseudo, lidar or union, got {points!r}")
         if negatives + positives == 0:
@@ -258,6 +373,9 @@ class QuerySupervision(SupervisionSource):
         self.lambda_occ, self.lambda_sem, self.lambda_vfm = float(lambda_occ), float(lambda_sem), float(lambda_vfm)
         self.ignore_label = 255 if ignore_label is None else int(ignore_label)
         self.free_label = free_label
+        self.sky_rays, self.sky_negatives, self.sky_far = int(sky_rays), int(sky_negatives), float(sky_far)
+        spec = GridSpec.from_config(grid) if grid is not None else None
+        self.heights = (spec.lower[2], spec.upper[2]) if spec is not None else (-float("inf"), float("inf"))
         needs = {"pseudo_semantics"}  # LiDAR points take their class from it too
         if points in ("pseudo", "union"):
             needs |= {"pseudo_depth"} | ({"pseudo_features"} if self.lambda_vfm > 0 else set())
@@ -301,9 +419,16 @@ class QuerySupervision(SupervisionSource):
                 for p, t in sets
                 for keep in [(p.points[:, :2].abs() <= self.near_range).all(-1)]
             ]
-        return sample_queries(
+        drawn = sample_queries(
             sets, self.points_per_sample, self.negatives, self.positives, self.zeta, self.ignore_label
         )
+        if self.sky_rays == 0:
+            return drawn
+        rays = sky_rays(batch, self.frame_offsets, self.free_label, self.pixel_stride)
+        sky = sample_sky_negatives(
+            rays, self.sky_rays, self.sky_negatives, self.sky_far, self.heights, self.ignore_label
+        )
+        return drawn.cat(sky)
 
     def forward(self, batch: Batch, outputs: ModelOutputs) -> dict[str, Tensor]:
         q = self.queries(batch)
@@ -404,6 +529,8 @@ def sample_rays(
     near_range: float | None = None,
     generator: torch.Generator | None = None,
     log_spacing: bool = True,
+    sky_rays: int = 0,
+    free_label: int | None = None,
 ) -> RaySet:
     """Draw ``rays_per_sample`` pixels per sample (with replacement, uniformly among every ``pixel_stride``-th
     pixel with a pseudo depth in ``(0, max_depth]`` of every camera of every frame offset in ``offsets``) and
@@ -415,7 +542,12 @@ def sample_rays(
         offsets: frame offsets (0: the current frame; others must be in ``batch.adjacent``).
         near_range: keep only pixels whose pseudo point lies within this half-extent in x and y (metres,
             current ego frame); ``None``: all.
+        sky_rays: further rays per sample drawn (the same way) among the pixels whose pseudo class is
+            ``free_label`` (sky), whatever their depth: rays that end at no surface, with target depth ``inf``
+            (rendered free up to ``far``) and label ``free_label``; they follow the ``rays_per_sample`` rays.
     """
+    if sky_rays > 0 and free_label is None:
+        raise ValueError("queryocc_render_points: sky_rays > 0 needs a free_label (the class sky pixels map to)")
     b, r, s = len(batch), rays_per_sample, samples_per_ray
     device = batch.images.device
     frames = []  # per frame offset: (offset, frame, strided rows, strided columns)
@@ -432,6 +564,10 @@ def sample_rays(
         cols = torch.arange(0, w, pixel_stride, device=device)
         frames.append((k, frame, rows, cols))
     pts, tms, deps, tgts, labs, vals = [], [], [], [], [], []
+    if log_spacing:  # bins of equal ratio (near -> far), one uniform sample in each: dense where surfaces are
+        edges = near * (far / near) ** (torch.arange(s + 1, device=device, dtype=torch.float32) / s)
+    else:
+        edges = near + torch.arange(s + 1, device=device, dtype=torch.float32) * ((far - near) / s)
     for i in range(b):
         cands = []  # (frame slot, cam, row, col, depth)
         for slot, (k, frame, rows, cols) in enumerate(frames):
@@ -455,14 +591,16 @@ def sample_rays(
         pick = torch.randint(0, n, (r,), generator=generator).to(device)
         slot, cam, row, col, target = slot[pick], cam[pick], row[pick], col[pick], zz[pick]
         jitter = torch.rand(r, s, generator=generator).to(device)
-        if log_spacing:  # bins of equal ratio (near -> far), one uniform sample in each: dense where surfaces are
-            edges = near * (far / near) ** (torch.arange(s + 1, device=device, dtype=torch.float32) / s)
-        else:
-            edges = near + torch.arange(s + 1, device=device, dtype=torch.float32) * ((far - near) / s)
+        if sky_rays > 0:
+            sky = _draw_sky(frames, i, free_label, sky_rays, generator)
+            slot, cam, row, col = (torch.cat([a, c]) for a, c in zip((slot, cam, row, col), sky[:4], strict=True))
+            target = torch.cat([target, torch.full((sky_rays,), float("inf"), device=device)])
+            jitter = torch.cat([jitter, torch.rand(sky_rays, s, generator=generator).to(device)])
+            valid = torch.cat([valid, sky[4]])
         depths = edges[:-1] + jitter * (edges[1:] - edges[:-1])  # (R, S) stratified
-        points = torch.empty(r, s, 3, device=device)
-        times = torch.zeros(r, device=device)
-        labels = torch.full((r,), ignore_label, dtype=torch.int64, device=device)
+        points = torch.empty(len(cam), s, 3, device=device)
+        times = torch.zeros(len(cam), device=device)
+        labels = torch.full((len(cam),), ignore_label, dtype=torch.int64, device=device)
         for f, (k, frame, _, _) in enumerate(frames):
             sel = slot == f
             if not bool(sel.any()):
@@ -483,6 +621,28 @@ def sample_rays(
     return RaySet(
         torch.stack(pts), torch.stack(tms), torch.stack(deps), torch.stack(tgts), torch.stack(labs), torch.stack(vals)
     )
+
+
+def _draw_sky(
+    frames: list, i: int, free_label: int, count: int, generator: torch.Generator | None
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """``count`` pixels of sample ``i`` drawn with replacement among the strided pixels of class ``free_label``
+    of every frame slot: ``(slot, cam, row, col, valid)``, each ``(count,)`` (valid False: no such pixel)."""
+    cands = []
+    for slot, (_, frame, rows, cols) in enumerate(frames):
+        if frame.pseudo_semantics is None:
+            raise ValueError("queryocc_render_points: sky_rays needs pseudo_semantics (set data.pseudo_labels)")
+        free = frame.pseudo_semantics[i][:, rows][:, :, cols] == free_label
+        cam, ri, ci = torch.nonzero(free, as_tuple=True)
+        cands.append((torch.full_like(cam, slot), cam, rows[ri], cols[ci]))
+    slot, cam, row, col = (torch.cat(c) for c in zip(*cands, strict=True))
+    n = len(cam)
+    valid = torch.full((count,), n > 0, dtype=torch.bool, device=cam.device)
+    if n == 0:
+        zero = torch.zeros(count, dtype=torch.int64, device=cam.device)
+        return zero, zero, zero, zero, valid
+    pick = torch.randint(0, n, (count,), generator=generator).to(cam.device)
+    return slot[pick], cam[pick], row[pick], col[pick], valid
 
 
 def _unproject(frame: Batch, i: int, cam: Tensor, row: Tensor, col: Tensor, depth: Tensor) -> Tensor:
@@ -524,6 +684,9 @@ class RenderSupervision(SupervisionSource):
         pixel_stride: subsampling of the pseudo depth maps before drawing.
         max_depth: pixels with a deeper pseudo depth are not drawn (metres).
         spacing: ``log`` (bins of equal depth ratio) or ``uniform`` stratified samples along each ray.
+        sky_rays: further rays per sample through pixels whose pseudo class is ``free_label`` (sky), rendered
+            against the far bound (free all the way, no semantic term): the same information the query source's
+            ``sky_rays`` gives it, so the comparison stays fair (0, the default: none).
         lambda_depth, lambda_sem: the loss weights (depth: relative L1 ``|D - d*| / d*`` of camera z, scale-free
             like the semantic term, so far pixels do not outweigh near ones; sem: negative log likelihood of the
             rendered class distribution).
@@ -549,10 +712,13 @@ class RenderSupervision(SupervisionSource):
         lambda_depth: Annotated[float, NonNegative] = 1.0,
         lambda_sem: Annotated[float, NonNegative] = 1.0,
         spacing: Literal["log", "uniform"] = "log",
+        sky_rays: Annotated[int, NonNegative] = 0,
         free_label: int | None = 17,
         ignore_label: int | None = 255,
     ) -> None:
         super().__init__()
+        if sky_rays > 0 and free_label is None:
+            raise ValueError("queryocc_render_points: sky_rays > 0 needs a free_label (the class sky pixels map to)")
         if spacing not in ("log", "uniform"):
             raise ValueError(f"queryocc_render_points spacing must be 'log' or 'uniform', got {spacing!r}")
         self.log_spacing = spacing == "log"
@@ -568,6 +734,7 @@ class RenderSupervision(SupervisionSource):
         self.lambda_depth, self.lambda_sem = float(lambda_depth), float(lambda_sem)
         self.ignore_label = 255 if ignore_label is None else int(ignore_label)
         self.free_label = free_label
+        self.sky_rays = int(sky_rays)
         self.requires = frozenset({"pseudo_depth", "pseudo_semantics"})
 
     @classmethod
@@ -590,6 +757,8 @@ class RenderSupervision(SupervisionSource):
             self.max_depth,
             None if self.long_range else self.near_range,
             log_spacing=self.log_spacing,
+            sky_rays=self.sky_rays,
+            free_label=self.free_label,
         )
 
     def forward(self, batch: Batch, outputs: ModelOutputs) -> dict[str, Tensor]:

@@ -179,7 +179,9 @@ def write_occ3d_nuscenes(
     if labeler is not None:
         lacks = labeler.realism.primary_lacks
         (out / "pseudo" / "semantics_mapping.yaml").write_text(
-            mapping_table("occ3d", labeler.realism.foreign_taxonomy, primary_lacks=lacks)
+            mapping_table(
+                "occ3d", labeler.realism.foreign_taxonomy, primary_lacks=lacks, sky_as_free=labeler.realism.sky_as_free
+            )
         )
         if labeler.has_auxiliary:
             (out / "pseudo" / "semantics_aux_mapping.yaml").write_text(

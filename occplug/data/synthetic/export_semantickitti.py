@@ -162,7 +162,12 @@ def write_semantickitti(
     if labeler is not None:
         lacks = labeler.realism.primary_lacks
         (out / "pseudo" / "semantics_mapping.yaml").write_text(
-            mapping_table("semantickitti", labeler.realism.foreign_taxonomy, primary_lacks=lacks)
+            mapping_table(
+                "semantickitti",
+                labeler.realism.foreign_taxonomy,
+                primary_lacks=lacks,
+                sky_as_free=labeler.realism.sky_as_free,
+            )
         )
         if labeler.has_auxiliary:
             (out / "pseudo" / "semantics_aux_mapping.yaml").write_text(

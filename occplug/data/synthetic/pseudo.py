@@ -129,6 +129,16 @@ _TO_TARGET: dict[str, dict[str, str | None]] = {
     },
 }  # fmt: skip
 _TAXONOMIES = {"occ3d": OCC3D_CLASSES, "semantickitti": SEMANTIC_KITTI_CLASSES}
+#: Each target taxonomy's free class, which the foreign ``sky`` maps to under ``sky_as_free``.
+_FREE_CLASS = {"occ3d": "free", "semantickitti": "empty"}
+
+
+def _target(taxonomy: str, name: str, sky_as_free: bool) -> str | None:
+    """The target class name of foreign class ``name`` (``None``: no target class)."""
+    if name == "sky" and sky_as_free:
+        return _FREE_CLASS[taxonomy]
+    return _TO_TARGET[taxonomy][name]
+
 
 #: The open-vocabulary auxiliary segmenter's prompts: id -> name.
 AUXILIARY_CLASSES: dict[int, str] = {
@@ -173,6 +183,10 @@ class PseudoRealism:
         feature_noise: std of the feature noise.
         feature_class_weight: weight of the class embedding against the (unit) group embedding.
         feature_position_weight: weight of the position embedding.
+        sky_as_free: map the foreign ``sky`` to the target's free class (Occ3D ``free``, SemanticKITTI
+            ``empty``) instead of leaving it unknown (255): a pixel that sees the sky is a ray free of
+            surfaces, which a source supervising along rays may use (QueryOcc's sky negatives). Changes
+            only the mapping, so the cached maps stay valid.
         primary_lacks: Occ3D class names (:data:`LACKABLE_CLASSES`) the primary segmenter has no class
             for, beyond the traffic cone it always lacks: their pixels are ``unlabeled`` in its maps, and
             so are the foreign classes mapping to them (``truck`` takes the construction vehicles with
@@ -198,6 +212,7 @@ class PseudoRealism:
     feature_class_weight: float = 0.4
     feature_position_weight: float = 0.9
     primary_lacks: tuple[str, ...] = ()
+    sky_as_free: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -211,6 +226,10 @@ class PseudoRealism:
                 )
         # one order (the taxonomy's), so equal sets give equal maps and cache keys
         object.__setattr__(self, "primary_lacks", tuple(n for n in LACKABLE_CLASSES if n in lacks))
+        if self.sky_as_free and not self.foreign_taxonomy:
+            raise ValueError(
+                "pseudo-label realism: sky_as_free needs foreign_taxonomy (maps written in target ids hold sky as 255)"
+            )
 
     def lacked_ids(self) -> tuple[int, ...]:
         """The Occ3D ids the primary segmenter has no class for in its foreign taxonomy: the cone and
@@ -282,18 +301,23 @@ def _auxiliary_targets(taxonomy: str, lacked: tuple[int, ...]) -> dict[str, str]
 
 
 def mapping_table(
-    taxonomy: str = "occ3d", foreign: bool = True, source: str = "primary", primary_lacks: Sequence[str] = ()
+    taxonomy: str = "occ3d",
+    foreign: bool = True,
+    source: str = "primary",
+    primary_lacks: Sequence[str] = (),
+    sky_as_free: bool = False,
 ) -> str:
     """The YAML class-mapping table (see :mod:`occplug.data.pseudo_labels`) from the synthetic
     segmenter's maps to ``taxonomy`` (``occ3d`` or ``semantickitti``); ``foreign=False`` gives the
     identity table of maps written in target ids; ``source="auxiliary"`` the auxiliary segmenter's
     table (only the prompts naming a class the primary lacks are mapped). ``primary_lacks``: as
-    :attr:`PseudoRealism.primary_lacks` (the primary's table leaves out the foreign classes it lacks)."""
+    :attr:`PseudoRealism.primary_lacks` (the primary's table leaves out the foreign classes it lacks);
+    ``sky_as_free``: as :attr:`PseudoRealism.sky_as_free` (``sky`` maps to the free class, not ``ignore``)."""
     if taxonomy not in _TAXONOMIES:
         raise ValueError(f"unknown target taxonomy '{taxonomy}' (valid: {', '.join(_TAXONOMIES)})")
     if source not in ("primary", "auxiliary"):
         raise ValueError(f"unknown semantic source '{source}' (valid: primary, auxiliary)")
-    checked = PseudoRealism(primary_lacks=primary_lacks)  # validates and orders the names
+    checked = PseudoRealism(primary_lacks=primary_lacks, sky_as_free=sky_as_free and foreign)  # validates the names
     lacks, lacked = checked.primary_lacks, checked.lacked_ids()
     if source == "auxiliary":
         mapped = _auxiliary_targets(taxonomy, lacked)
@@ -311,7 +335,11 @@ def mapping_table(
         missing = _foreign_lacked(lacks)
         data = {
             "classes": {i: n for i, n in sorted(FOREIGN_CLASSES.items()) if n not in missing},
-            "map": {name: (target or "ignore") for name, target in _TO_TARGET[taxonomy].items() if name not in missing},
+            "map": {
+                name: (_target(taxonomy, name, sky_as_free) or "ignore")
+                for name in _TO_TARGET[taxonomy]
+                if name not in missing
+            },
         }
         header = (
             f"# the synthetic segmenter's foreign taxonomy -> {taxonomy} (splits and merges as in OccLE's Table B.1)\n"
@@ -368,7 +396,7 @@ class SyntheticPseudoLabels:
         if self.realism.foreign_taxonomy:
             targets = {n: i for i, n in enumerate(_TAXONOMIES[taxonomy])}
             for fid, name in FOREIGN_CLASSES.items():
-                target = _TO_TARGET[taxonomy][name]
+                target = _target(taxonomy, name, self.realism.sky_as_free)
                 if target is not None:
                     lut[fid] = targets[target]
         else:
@@ -530,6 +558,7 @@ class SyntheticPseudoLabels:
         realism = asdict(self.realism)
         if not realism["primary_lacks"]:  # the knob's default leaves the maps and so the caches made before it
             del realism["primary_lacks"]
+        del realism["sky_as_free"]  # a mapping choice: the cached maps hold foreign ids
         text = repr((realism, self.kinds, self.taxonomy, PSEUDO_CODE_VERSION))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
