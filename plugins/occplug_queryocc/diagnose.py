@@ -19,7 +19,8 @@ the voxel labels and predicted occupied (any class). Each is tallied
   times per frame, as ``draws`` epochs would) came within one voxel of it (its 3 x 3 x 3 neighbourhood
   held one), split into negatives (free queries) and positives.
 
-It prints the shares and, with ``--json``, writes them.
+and, the other side of the occupancy IoU, the share of each class's scored occupied voxels that it predicts free
+(**false free**). It prints the shares and, with ``--json``, writes them.
 """
 
 from __future__ import annotations
@@ -137,6 +138,8 @@ class Tally:
         self.uncovered = 0
         self.no_negative = 0
         self.no_positive = 0
+        self.occupied: dict[str, int] = {}
+        self.missed: dict[str, int] = {}
 
     def add(
         self,
@@ -156,6 +159,12 @@ class Tally:
         wrong = free & (pred != free_label)
         self.scored_free += int(free.sum())
         self.false_occupied += int(wrong.sum())
+        occupied = mask & (labels != free_label) & (labels != 255)
+        for c in labels[occupied].unique().tolist():
+            name = class_names[c] if c < len(class_names) else str(c)
+            here = occupied & (labels == c)
+            self.occupied[name] = self.occupied.get(name, 0) + int(here.sum())
+            self.missed[name] = self.missed.get(name, 0) + int((here & (pred == free_label)).sum())
         voxels = torch.nonzero(wrong)
         if len(voxels) == 0:
             return
@@ -197,6 +206,11 @@ class Tally:
             "no_query_within_one_voxel_pct": pct(self.uncovered),
             "no_negative_within_one_voxel_pct": pct(self.no_negative),
             "no_positive_within_one_voxel_pct": pct(self.no_positive),
+            "scored_occupied_voxels": sum(self.occupied.values()),
+            "false_free_voxels": sum(self.missed.values()),
+            "false_free_pct_by_class": {
+                k: round(100.0 * self.missed[k] / n_k, 2) for k, n_k in sorted(self.occupied.items()) if n_k
+            },
         }
 
 

@@ -70,6 +70,7 @@ __all__ = [
     "sample_queries",
     "sample_rays",
     "sample_sky_negatives",
+    "sample_surface_negatives",
     "sky_rays",
     "supervision_points",
     "transmittance_weights",
@@ -255,6 +256,49 @@ def sample_queries(
     )
 
 
+def sample_surface_negatives(
+    sets: list[tuple[LabelledPoints, Tensor]],
+    points_per_sample: int,
+    negatives: int,
+    zeta: float,
+    ignore_label: int,
+    generator: torch.Generator | None = None,
+) -> QuerySet:
+    """Free queries just in front of the points: ``points_per_sample`` points per sample (with replacement, drawn
+    anew) and ``negatives`` queries ``p - r (p - o) / |p - o|``, ``r ~ U(0, min(zeta, |p - o|))`` on each: the
+    mirror of the positives' buffer behind the point, on the part of the ray the sensor saw through. A sample
+    without points gets placeholder queries with ``valid`` False.
+
+    Returns a :class:`QuerySet` of ``points_per_sample * negatives`` free queries per sample (labels ``ignore``).
+    """
+    qs, ts, valid = [], [], []
+    device = sets[0][0].points.device
+    count = points_per_sample * negatives
+    for pts, times in sets:
+        n = len(pts)
+        valid.append(torch.full((count,), n > 0, device=device))
+        if n == 0:
+            qs.append(torch.zeros(count, 3, device=device))
+            ts.append(torch.zeros(count, device=device))
+            continue
+        pick = torch.randint(0, n, (points_per_sample,), generator=generator).to(device)
+        p, o = pts.points[pick], pts.origins[pick]
+        length = (p - o).norm(dim=-1, keepdim=True)
+        unit = (p - o) / length.clamp_min(1e-6)
+        r = torch.rand(points_per_sample, negatives, generator=generator).to(device) * length.clamp_max(zeta)
+        qs.append((p[:, None] - r[..., None] * unit[:, None]).reshape(-1, 3))
+        ts.append(times[pick].repeat_interleave(negatives))
+    b = len(sets)
+    return QuerySet(
+        torch.stack(qs),
+        torch.stack(ts),
+        torch.zeros(b, count, dtype=torch.bool, device=device),
+        torch.full((b, count), ignore_label, dtype=torch.int64, device=device),
+        None,
+        torch.stack(valid),
+    )
+
+
 def sample_sky_negatives(
     rays: list[tuple[LabelledPoints, Tensor]],
     rays_per_sample: int,
@@ -321,6 +365,10 @@ class QuerySupervision(SupervisionSource):
         max_depth: pseudo points deeper than this are dropped (metres).
         lambda_occ, lambda_sem, lambda_vfm: the loss weights; ``lambda_vfm > 0`` distils ``pseudo_features``
             into the head's ``features`` output.
+        surface_negatives: further free queries per point within ``zeta`` in front of it
+            (:func:`sample_surface_negatives`; 0, the default: none). The paper draws negatives uniformly along
+            the whole segment; under a noisy depth a surface's positives then outnumber the negatives in front of
+            it, and the field grows towards the sensor. This option puts some on the segment's last ``zeta``.
         sky_rays: rays per sample and step drawn from the pixels whose pseudo class is ``free_label`` (a
             segmenter's ``sky`` mapped to ``free``; :func:`sky_rays`), each giving ``sky_negatives`` free queries
             up to ``sky_far`` metres or where it leaves the grid's height range (:func:`sample_sky_negatives`);
@@ -350,6 +398,7 @@ class QuerySupervision(SupervisionSource):
         lambda_occ: Annotated[float, NonNegative] = 1.0,
         lambda_sem: Annotated[float, NonNegative] = 1.0,
         lambda_vfm: Annotated[float, NonNegative] = 0.0,
+        surface_negatives: Annotated[int, NonNegative] = 0,
         sky_rays: Annotated[int, NonNegative] = 0,
         sky_negatives: Annotated[int, Positive] = 4,
         sky_far: Annotated[float, Positive] = 80.0,
@@ -373,6 +422,7 @@ class QuerySupervision(SupervisionSource):
         self.lambda_occ, self.lambda_sem, self.lambda_vfm = float(lambda_occ), float(lambda_sem), float(lambda_vfm)
         self.ignore_label = 255 if ignore_label is None else int(ignore_label)
         self.free_label = free_label
+        self.surface_negatives = int(surface_negatives)
         self.sky_rays, self.sky_negatives, self.sky_far = int(sky_rays), int(sky_negatives), float(sky_far)
         spec = GridSpec.from_config(grid) if grid is not None else None
         self.heights = (spec.lower[2], spec.upper[2]) if spec is not None else (-float("inf"), float("inf"))
@@ -422,13 +472,18 @@ class QuerySupervision(SupervisionSource):
         drawn = sample_queries(
             sets, self.points_per_sample, self.negatives, self.positives, self.zeta, self.ignore_label
         )
-        if self.sky_rays == 0:
-            return drawn
-        rays = sky_rays(batch, self.frame_offsets, self.free_label, self.pixel_stride)
-        sky = sample_sky_negatives(
-            rays, self.sky_rays, self.sky_negatives, self.sky_far, self.heights, self.ignore_label
-        )
-        return drawn.cat(sky)
+        if self.surface_negatives > 0:
+            near = sample_surface_negatives(
+                sets, self.points_per_sample, self.surface_negatives, self.zeta, self.ignore_label
+            )
+            drawn = drawn.cat(near)
+        if self.sky_rays > 0:
+            rays = sky_rays(batch, self.frame_offsets, self.free_label, self.pixel_stride)
+            sky = sample_sky_negatives(
+                rays, self.sky_rays, self.sky_negatives, self.sky_far, self.heights, self.ignore_label
+            )
+            drawn = drawn.cat(sky)
+        return drawn
 
     def forward(self, batch: Batch, outputs: ModelOutputs) -> dict[str, Tensor]:
         q = self.queries(batch)

@@ -13,7 +13,7 @@ from occplug.geometry import GridSpec, camera_rays
 from occplug.testing import hand_batch, make_tiny_batch
 from occplug_queryocc import QuerySupervision, RenderSupervision
 from occplug_queryocc.diagnose import Tally, covered, first_hit_classes, height_above_ground
-from occplug_queryocc.supervision import sample_sky_negatives
+from occplug_queryocc.supervision import sample_sky_negatives, sample_surface_negatives
 
 FREE = 17
 
@@ -133,7 +133,9 @@ def test_the_synthetic_mapping_marks_sky_free_only_when_asked():
     assert bool(sky.any())
     assert torch.equal(plain.pseudo_semantics[~sky], marked.pseudo_semantics[~sky])  # nothing else changes
     assert bool((plain.pseudo_semantics[sky] == 255).all())
-    assert float((plain.pseudo_depth[sky] == 0).float().mean()) > 0.9  # sky has no depth (1-pixel boundary errors aside)
+    assert (
+        float((plain.pseudo_depth[sky] == 0).float().mean()) > 0.9
+    )  # sky has no depth (1-pixel boundary errors aside)
 
 
 # ---------------------------------------------------------------- the diagnosis, on a hand-made field
@@ -202,3 +204,33 @@ def test_the_tally_gives_the_known_shares():
         "15": pytest.approx(100 / 3, abs=0.01),
     }
     assert math.isclose(sum(shares["by_distance_pct"].values()), 100.0, abs_tol=0.02)
+    # the other side: the road (8 x 4 scored voxels) all predicted; the wall's 4 voxels predicted too
+    assert shares["scored_occupied_voxels"] == 36 and shares["false_free_voxels"] == 0
+    pred[6, 1, 1] = FREE  # miss one wall voxel
+    tally = Tally()
+    tally.add(pred, labels, mask, GRID, FREE, cam[None], negatives, positives, [str(c) for c in range(18)])
+    assert tally.shares()["false_free_pct_by_class"] == {"11": 0.0, "15": 25.0}
+
+
+def test_surface_negatives_lie_on_the_seen_segment_within_zeta_in_front_of_the_point():
+    origin = torch.tensor([[0.0, 0.0, 1.5], [0.0, 0.0, 1.5]])
+    points = torch.tensor([[10.0, 0.0, 1.5], [0.0, 0.3, 1.5]])  # the second is nearer than zeta
+    sets = [(LabelledPoints(points, origin, torch.tensor([15, 11])), torch.zeros(2))]
+    torch.manual_seed(0)
+    q = sample_surface_negatives(sets, 200, 3, 0.5, 255)
+    assert q.points.shape == (1, 600, 3) and not bool(q.occupied.any()) and bool(q.valid.all())
+    on_x = q.points[0, :, 1].abs() < 1e-6  # on the first ray
+    assert bool(((q.points[0, on_x, 0] >= 9.5 - 1e-5) & (q.points[0, on_x, 0] <= 10.0)).all())
+    on_y = ~on_x
+    assert bool(((q.points[0, on_y, 1] >= -1e-6) & (q.points[0, on_y, 1] <= 0.3)).all())  # never behind the sensor
+    assert bool(on_x.any()) and bool(on_y.any())
+
+
+def test_surface_negatives_are_drawn_after_the_point_queries():
+    batch = make_tiny_batch(2, pseudo_labels="default")
+    torch.manual_seed(1)
+    a = QuerySupervision(points_per_sample=32).queries(batch)
+    torch.manual_seed(1)
+    b = QuerySupervision(points_per_sample=32, surface_negatives=2).queries(batch)
+    assert b.points.shape[1] == 32 * 8 + 32 * 2 and torch.equal(a.points, b.points[:, : 32 * 8])
+    assert not bool(b.occupied[:, 32 * 8 :].any())
