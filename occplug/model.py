@@ -18,6 +18,7 @@ from occplug.geometry import GridSpec, relative_pose
 from occplug.interfaces.encoder import feature_levels
 from occplug.interfaces.model import OccupancyModel
 from occplug.kinds import KINDS, given_arguments
+from occplug.metrics.base import EvalMask
 from occplug.plugins import get_registry
 from occplug.queries import check_query_support
 from occplug.run.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
@@ -153,11 +154,14 @@ class OccModel(OccupancyModel):
         occupancy_head: which head answers :meth:`predict_occupancy`.
         optimizer: the config's ``optimizer`` node.
         scheduler: the config's ``scheduler`` node.
-        metrics: the config's ``metrics`` list (registered names or nodes).
+        metrics: the config's ``metrics`` list (registered names or nodes); each is given, besides the grid and
+            the classes, ``mask = eval_mask`` when it takes one and its node leaves it out.
         input_history: frame offsets (e.g. ``[-1]``) of past frames whose cameras and LiDAR the model also
             encodes -- encoder, point encoders and view transform, with their sensors moved into the current ego
             frame (:func:`frame_in_current_ego`) -- into ``outputs.history[offset]``, for a scene that fuses
             frames; each must be loaded (``data.adjacent_offsets``). Empty: the current frame only.
+        eval_mask: the run's evaluation mask (filled by the runner from the top-level ``eval_mask``), given to the
+            metrics that take a ``mask``; None: each metric's own default.
     """
 
     def __init__(
@@ -177,6 +181,7 @@ class OccModel(OccupancyModel):
         metrics: list | None = None,
         point_encoders: Annotated[dict, Slot("point_encoder", mapping=True)] | None = None,
         input_history: list[int] | None = None,
+        eval_mask: EvalMask | None = None,
     ) -> None:
         super().__init__()
         history = [int(k) for k in (input_history or [])]
@@ -194,6 +199,7 @@ class OccModel(OccupancyModel):
         self.class_names = list(class_names) if class_names else []
         self.num_classes = len(self.class_names) or 18
         self.free_label = free_label
+        self.eval_mask = eval_mask
         self.occupancy_head = occupancy_head
         self.encoder = build_component("encoder", encoder)
         self.point_encoders = nn.ModuleDict(
@@ -219,6 +225,7 @@ class OccModel(OccupancyModel):
             level_channels=list(self.encoder.level_channels),
             grid=run_grid,
             num_classes=self.num_classes,
+            point_channels={name: int(enc.out_channels) for name, enc in self.point_encoders.items()},
         )
         self.heads = nn.ModuleDict(
             {
@@ -229,6 +236,7 @@ class OccModel(OccupancyModel):
                     num_classes=self.num_classes,
                     free_label=free_label,
                     grid=run_grid,
+                    image_channels=self.encoder.out_channels,
                 )
                 for name, spec in heads.items()
                 if spec is not None
@@ -249,6 +257,7 @@ class OccModel(OccupancyModel):
                     ignore_label=ignore_label,
                     grid=run_grid,
                     num_classes=self.num_classes,
+                    in_channels=self.scene.out_channels,
                 )
                 for name, spec in supervision.items()
                 if spec is not None
@@ -281,6 +290,7 @@ class OccModel(OccupancyModel):
                 free_label=self.free_label,
                 ignore_label=ignore_label,
                 grid=self.grid.to_dict(),
+                **({} if self.eval_mask is None else {"mask": self.eval_mask}),
             )
         return out
 

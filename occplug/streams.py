@@ -29,9 +29,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import lightning as L
 import torch
 from torch import Tensor, nn
 
@@ -288,12 +287,15 @@ def check_streaming(model: nn.Module, datamodule: Any) -> None:
         )
 
 
-class StreamStages(L.Callback):
+class _StreamStagesHooks:
     """Tells every :class:`StreamState` of the model which loop runs, and checkpoints the persistent ones.
 
     Each batch selects its loop's store (so a validation inside an epoch leaves the training state
     alone); an evaluation loop's store is emptied when the loop starts and ends. States created
     with ``persistent=True`` are saved under ``checkpoint["stream_states"]`` and restored.
+
+    A Lightning ``Callback`` (``StreamStages`` is this class and ``lightning.Callback``, built on first use by the
+    module's ``__getattr__``, so importing :mod:`occplug.streams` imports no Lightning).
     """
 
     KEY = "stream_states"
@@ -348,3 +350,25 @@ class StreamStages(L.Callback):
         for name, state in find_streams(pl_module):
             if state.persistent and name in saved:
                 state.load_state_dict(saved[name])
+
+
+if TYPE_CHECKING:  # the class __getattr__ builds, for type checkers
+    import lightning as L
+
+    class StreamStages(_StreamStagesHooks, L.Callback): ...
+
+
+def __getattr__(name: str) -> Any:
+    """``StreamStages``, the Lightning ``Callback`` of :class:`_StreamStagesHooks`: built (and Lightning imported) on
+    first use, then a plain module attribute (so it pickles and compares as one class)."""
+    if name == "StreamStages":
+        import lightning as L
+
+        cls = type(
+            "StreamStages",
+            (_StreamStagesHooks, L.Callback),
+            {"__module__": __name__, "__qualname__": "StreamStages", "__doc__": _StreamStagesHooks.__doc__},
+        )
+        globals()["StreamStages"] = cls
+        return cls
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -223,7 +223,8 @@ def test_the_plugin_api_is_documented():
 
 def test_import_occplug_does_not_import_lightning():
     code = (
-        "import sys, occplug, occplug.interfaces, occplug.geometry, occplug.data, occplug.constraints, occplug.nn; "
+        "import sys, occplug, occplug.interfaces, occplug.geometry, occplug.data, occplug.constraints, occplug.nn, "
+        "occplug.streams; "
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('lightning', 'pytorch_lightning', 'torchmetrics')))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()

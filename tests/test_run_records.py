@@ -43,6 +43,10 @@ def test_eval_mask_defaults_to_camera_and_a_conflicting_metric_mask_is_an_error(
         load_config([BASELINE], ["eval_mask=camera", "metrics=[{type: occ3d_miou, mask: lidar}]"])
     with pytest.raises(ConfigError, match=r"eval_mask: unknown mask 'camra'; did you mean 'camera'\?"):
         load_config([BASELINE], ["eval_mask=camra"])
+    # the model's eval_mask (which it gives its metrics) is the same one setting
+    assert load_config([BASELINE], ["model.eval_mask=none"])["eval_mask"] == "none"
+    with pytest.raises(ConfigError, match=r"model.eval_mask: 'none' differs from eval_mask='lidar'"):
+        load_config([BASELINE], ["eval_mask=lidar", "model.eval_mask=none"])
 
 
 # ----------------------------------------------------------------------------- checkpoints

@@ -27,7 +27,8 @@ class Head(nn.Module, ABC):
 
     Contract:
         given: ``in_channels`` (the scene's ``out_channels``), ``num_classes`` and ``free_label``
-        (the data set's).
+        (the data set's), and, to a head that takes it, ``image_channels`` (the image encoder's
+        ``out_channels``, the width of ``outputs.image_features``).
         declares: ``reads`` -- the config names of other heads whose outputs this head consumes.
         The model runs heads in an order where every head comes after the heads it reads (a
         cycle or an unknown name is a config error) and calls a head that reads anything, or
@@ -43,7 +44,7 @@ class Head(nn.Module, ABC):
     """
 
     #: Constructor arguments the model fills in when the config leaves them out.
-    given: ClassVar[tuple[str, ...]] = ("in_channels", "num_classes", "free_label", "grid")
+    given: ClassVar[tuple[str, ...]] = ("in_channels", "num_classes", "free_label", "grid", "image_channels")
     #: Config names of the heads whose outputs this head reads (an instance may set its own).
     reads: tuple[str, ...] = ()
     #: Whether ``forward`` takes a third argument, the :class:`~occplug.interfaces.ModelOutputs` so far.

@@ -25,8 +25,9 @@ class OccupancyModel(L.LightningModule, ABC):
     Contract:
         given: ``grid`` (the evaluation grid, a mapping), ``class_names``, ``free_label``,
         ``ignore_label`` (from the data module), ``optimizer``, ``scheduler`` and ``metrics`` (the
-        config's sections, metrics filled with the run's grid and evaluation mask). A subclass may
-        widen ``given``; config validation accepts a config that leaves any of them out.
+        config's sections) and ``eval_mask`` (the run's evaluation mask; the core model gives its metrics
+        the grid and, as ``mask``, the evaluation mask). A subclass may widen ``given``; config validation
+        accepts a config that leaves any of them out.
         declares: the attributes and methods below. Its ``__init__`` arguments are the config's
         ``model`` node; nested components are declared with ``Annotated[dict, Slot(kind)]`` so
         config validation checks them.
@@ -44,7 +45,7 @@ class OccupancyModel(L.LightningModule, ABC):
 
     #: Constructor arguments the runner fills in when the config's ``model`` node leaves them out.
     given: ClassVar[tuple[str, ...]] = (
-        "grid", "class_names", "free_label", "ignore_label", "optimizer", "scheduler", "metrics",
+        "grid", "class_names", "free_label", "ignore_label", "optimizer", "scheduler", "metrics", "eval_mask",
     )
 
     grid: GridSpec

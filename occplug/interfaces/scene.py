@@ -109,7 +109,8 @@ class SceneRepresentation(nn.Module, ABC):
     Contract:
         given: ``in_channels`` (the view transform's ``out_channels`` when the config leaves it out) and, to a
         representation that takes them, ``level_channels`` (the image encoder's levels' channels, finest first:
-        a scene that reads ``outputs.image_levels`` builds its layers for them).
+        a scene that reads ``outputs.image_levels`` builds its layers for them) and ``point_channels``
+        (``{point encoder name: its out_channels}``: the widths of ``outputs.encoded``).
         declares: ``out_channels``; ``reads_outputs = True`` to be called as
         ``forward(lifted, batch, outputs)`` with the model's outputs so far (e.g. a scene fusing
         the camera volume with a point encoder's volume from ``outputs.encoded``).
@@ -122,7 +123,7 @@ class SceneRepresentation(nn.Module, ABC):
     """
 
     #: Constructor arguments the model fills in when the config leaves them out.
-    given: ClassVar[tuple[str, ...]] = ("in_channels", "level_channels", "grid", "num_classes")
+    given: ClassVar[tuple[str, ...]] = ("in_channels", "level_channels", "grid", "num_classes", "point_channels")
     #: Whether ``forward`` takes a third argument, the :class:`~occplug.interfaces.ModelOutputs` so far.
     reads_outputs: ClassVar[bool] = False
     #: Whether it carries state from frame to frame (a :class:`~occplug.streams.StreamState`); a stateful model

@@ -64,7 +64,8 @@ class SupervisionSource(nn.Module, ABC):
     """A loss term family. ``weight`` scales every loss it returns.
 
     Contract:
-        given: ``free_label`` and ``ignore_label`` (the data set's).
+        given: ``free_label`` and ``ignore_label`` (the data set's), and, to a source that takes it (one that
+        owns layers reading the scene's features), ``in_channels`` (the scene's ``out_channels``).
         declares: ``weight``, ``training_mask``, ``requires`` (Frame fields it reads).
         conformance: trained on a small LSS model's outputs for a tiny-world batch.
 
@@ -72,7 +73,7 @@ class SupervisionSource(nn.Module, ABC):
     """
 
     #: Constructor arguments the model fills in when the config leaves them out.
-    given: ClassVar[tuple[str, ...]] = ("free_label", "ignore_label", "grid", "num_classes")
+    given: ClassVar[tuple[str, ...]] = ("free_label", "ignore_label", "grid", "num_classes", "in_channels")
 
     @classmethod
     def check_conformance(cls, component: SupervisionSource, batch: Batch, grid: GridSpec, model: nn.Module) -> None:

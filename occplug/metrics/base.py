@@ -31,9 +31,9 @@ class OccMetric(Metric):
     """
 
     full_state_update = False
-    #: Constructor arguments the model fills in when the config leaves them out (the run's ``grid`` among them;
-    #: the evaluation ``mask`` comes from the run's config: see ``occplug.run.runner.metric_nodes``).
-    given: ClassVar[tuple[str, ...]] = ("num_classes", "class_names", "free_label", "ignore_label", "grid")
+    #: Constructor arguments the model fills in when the config leaves them out (the run's ``grid`` among them, and
+    #: ``mask``: the run's evaluation mask, the top-level ``eval_mask``).
+    given: ClassVar[tuple[str, ...]] = ("num_classes", "class_names", "free_label", "ignore_label", "grid", "mask")
     #: Optional Frame fields the metric reads beyond the labels (see ``SupervisionSource.requires``).
     requires: frozenset[str] = frozenset()
 

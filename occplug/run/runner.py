@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
-import inspect
 import json
 import math
 import os
@@ -92,20 +91,25 @@ def load_config(refs: Sequence[str], overrides: Sequence[str] = (), saved: dict 
 
 
 def resolve_eval_mask(cfg: dict[str, Any]) -> str:
-    """The run's one evaluation mask: ``eval_mask``, else a ``mask`` set on a metric node, else ``camera``.
+    """The run's one evaluation mask: ``eval_mask``, else ``model.eval_mask`` or a ``mask`` set on a metric node,
+    else ``camera``. The model gives it to every metric that takes a ``mask`` (``given``).
 
     Raises:
-        ConfigError: metric nodes set a ``mask`` that differs from ``eval_mask`` (or from each other).
+        ConfigError: ``model.eval_mask`` or metric nodes set a mask that differs from ``eval_mask`` (or from each
+            other).
     """
     chosen = cfg.get("eval_mask")
     source = "eval_mask"
-    for i, spec in enumerate(cfg.get("metrics") or []):
-        if isinstance(spec, dict) and spec.get("mask") is not None:
+    model = cfg.get("model")
+    named = [("model.eval_mask", model.get("eval_mask"))] if isinstance(model, dict) else []
+    named += [(f"metrics.{i}.mask", s.get("mask")) for i, s in enumerate(cfg.get("metrics") or []) if isinstance(s, dict)]
+    for where, mask in named:
+        if mask is not None:
             if chosen is None:
-                chosen, source = spec["mask"], f"metrics.{i}.mask"
-            elif spec["mask"] != chosen:
+                chosen, source = mask, where
+            elif mask != chosen:
                 raise ConfigError(
-                    f"metrics.{i}.mask: {spec['mask']!r} differs from {source}={chosen!r}; set the evaluation mask "
+                    f"{where}: {mask!r} differs from {source}={chosen!r}; set the evaluation mask "
                     "once, with the top-level eval_mask"
                 )
     return str(chosen if chosen is not None else DEFAULT_EVAL_MASK)
@@ -126,7 +130,8 @@ def build_datamodule(cfg: dict[str, Any]) -> OccDataModule:
 
 
 def build_model(cfg: dict[str, Any], dm: OccDataModule) -> OccupancyModel:
-    """The model of ``cfg['model']``, given the data module's classes and the config's grid.
+    """The model of ``cfg['model']``, given the data module's classes, the config's grid and its evaluation mask
+    (``eval_mask``, which the model gives its metrics that take a ``mask``).
 
     The runner reads a model only through :class:`~occplug.interfaces.model.OccupancyModel`, so a
     plugin's own model class (kind ``model``) fits, validates, predicts and checkpoints the same way.
@@ -143,25 +148,11 @@ def build_model(cfg: dict[str, Any], dm: OccDataModule) -> OccupancyModel:
         ignore_label=dm.ignore_label,
         optimizer=cfg.get("optimizer"),
         scheduler=cfg.get("scheduler"),
-        metrics=metric_nodes(cfg.get("metrics"), cfg.get("eval_mask") or DEFAULT_EVAL_MASK),
+        metrics=cfg.get("metrics"),
+        eval_mask=cfg.get("eval_mask") or DEFAULT_EVAL_MASK,
     )
     model.run_config = cfg  # stored in every checkpoint (self-contained checkpoints)
     return model
-
-
-def metric_nodes(specs: list | None, eval_mask: str = DEFAULT_EVAL_MASK) -> list | None:
-    """The config's ``metrics`` as nodes, with the run's ``eval_mask`` filled into the metrics that take it
-    (``mask``: e.g. ``occ3d_miou``). The grid reaches them from the model, as every component's does (``given``)."""
-    if specs is None:
-        return None
-    out = []
-    for spec in specs:
-        node = {"type": spec} if isinstance(spec, str) else dict(spec)
-        params = inspect.signature(get_registry().get("metric", node["type"]).factory).parameters
-        if "mask" in params:
-            node["mask"] = eval_mask
-        out.append(node)
-    return out
 
 
 def mask_settings(cfg: dict[str, Any], model: OccupancyModel) -> dict[str, Any]:

@@ -305,7 +305,7 @@ class DuOccMask(_AuxLoss):
 
     Args:
         grid: the label (evaluation) grid, ego frame (the run's, given by the model).
-        in_channels: ``C`` of ``V_fin`` (configs: ``${model.scene.channels}``).
+        in_channels: ``C`` of ``V_fin`` (the scene's ``out_channels``, given by the model).
         downsample: the scene's ``downsample`` (``V_fin`` lies on ``grid`` at that factor of its voxel size).
         num_queries: ``Q`` per group (code: 100).
         num_groups: ``G`` (code: 6); None: ``1 + len(group_split)``; a smaller ``G`` uses the first ``G - 1``
@@ -486,8 +486,9 @@ class DuOccMask(_AuxLoss):
 
     @classmethod
     def conformance_outputs(cls, batch: Batch, grid: Any, channels: int) -> ModelOutputs:
-        """A random ``V_fin`` (32 channels, the default ``in_channels``; requires grad) on ``grid`` at twice its voxel size."""
+        """A random ``V_fin`` (``channels`` channels, the ``in_channels`` the check gives; requires grad) on ``grid``
+        at twice its voxel size."""
         coarse = coarse_grid(grid, 2)
         gen = torch.Generator().manual_seed(0)
-        volume = torch.randn(len(batch), 32, *coarse.shape, generator=gen).requires_grad_(True)
+        volume = torch.randn(len(batch), channels, *coarse.shape, generator=gen).requires_grad_(True)
         return ModelOutputs(None, None, StreamVoxelScene(volume, coarse, grid), {}, lambda *a, **k: None)

@@ -178,8 +178,7 @@ class ImageSemanticHead(Head):
 
     Args:
         num_classes: ``K``.
-        image_channels: ``C`` of the image features (the encoder's ``out_channels``;
-            ``${model.encoder.out_channels}`` in a config).
+        image_channels: ``C`` of the image features (the encoder's ``out_channels``, given by the model).
         base_channels: width of the UNet's first level; depth: its downsamplings (0: one block).
 
     Forward: ``(scene, batch, outputs)`` with ``outputs.image_features`` ``(B, N, C, h, w)`` ->

@@ -40,6 +40,9 @@ from .mamba import DualMambaUNet
 
 __all__ = ["OccleGrids", "OccleScene", "conformance_scene"]
 
+#: ``lidar_channels`` of a scene built without the model's ``point_channels`` (and of the conformance LiDAR grid).
+_DEFAULT_LIDAR_CHANNELS = 32
+
 
 class OccleGrids(DenseVoxelScene):
     """The scene OccLE's heads read: the fused grid plus the branch grids, all ``(B, C, X, Y, Z)`` on ``grid``.
@@ -96,8 +99,10 @@ class OccleScene(SceneRepresentation):
     Args:
         in_channels: ``C_img`` of the lifted image grid (the view transform's ``out_channels``).
         grid: the grid every input and output lies on (the evaluation grid, ego frame).
-        lidar_channels: ``C_lidar`` of the point encoder's volume.
+        lidar_channels: ``C_lidar`` of the point encoder's volume; None (default): the ``lidar_encoder`` entry's
+            ``out_channels`` in ``point_channels`` (32 where the scene is built without them).
         lidar_encoder: which ``model.point_encoders`` entry is the LiDAR grid.
+        point_channels: ``{point encoder name: out_channels}`` (given by the model).
         channels: ``C`` of every branch grid and of the fused grid (so every head gets ``in_channels = C``).
         semantic, geometric, projection: Tab. 4(b)'s switches (see the module docstring).
         geometry: ``cross_plane`` (§3.3.1) or ``conv3d`` (Tab. 4(a)'s Conv3D + 3D deformable attention baseline).
@@ -125,8 +130,9 @@ class OccleScene(SceneRepresentation):
         self,
         in_channels: Annotated[int, Positive],
         grid: GridSpec | dict,
-        lidar_channels: Annotated[int, Positive] = 32,
+        lidar_channels: Annotated[int, Positive] | None = None,
         lidar_encoder: str = "lidar",
+        point_channels: dict[str, int] | None = None,
         channels: Annotated[int, Positive] = 32,
         semantic: bool = True,
         geometric: bool = True,
@@ -147,7 +153,15 @@ class OccleScene(SceneRepresentation):
         if fusion not in ("dual_mamba", "conv"):
             raise ValueError(f"occle_scene fusion must be 'dual_mamba' or 'conv', got {fusion!r}")
         self.grid = GridSpec.from_config(grid)
-        self.in_channels, self.lidar_channels = int(in_channels), int(lidar_channels)
+        if lidar_channels is None and point_channels is not None:
+            if lidar_encoder not in point_channels:
+                raise ValueError(
+                    f"occle_scene reads point encoder '{lidar_encoder}', but the model's point encoders are: "
+                    f"{', '.join(point_channels) or '(none)'}"
+                )
+            lidar_channels = point_channels[lidar_encoder]
+        self.in_channels = int(in_channels)
+        self.lidar_channels = int(_DEFAULT_LIDAR_CHANNELS if lidar_channels is None else lidar_channels)
         self.lidar_encoder = lidar_encoder
         self.out_channels = c = int(channels)
         self.semantic, self.geometric, self.projection = bool(semantic), bool(geometric), bool(projection)
@@ -243,7 +257,7 @@ class OccleScene(SceneRepresentation):
         ``lidar_channels``) under ``outputs.encoded["lidar"]``."""
         gen = torch.Generator().manual_seed(0)
         image = torch.randn(len(batch), channels, *grid.shape, generator=gen)
-        lidar = torch.randn(len(batch), 32, *grid.shape, generator=gen).relu()
+        lidar = torch.randn(len(batch), _DEFAULT_LIDAR_CHANNELS, *grid.shape, generator=gen).relu()
         outputs = ModelOutputs(image_features=None, lifted=None, scene=None, heads={}, query=_no_query)
         outputs.encoded["lidar"] = lidar
         return (Lifted(volume=image, grid=grid), batch, outputs)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 from occplug.geometry import GridSpec
 from occplug.metrics import Occ3DMIoU, RayIoU
-from occplug.run.runner import metric_nodes
+from occplug.run import runner
 from occplug.testing import run_config
 
 BASELINE = str(Path(__file__).resolve().parents[2] / "configs" / "baseline.yaml")
@@ -30,18 +30,35 @@ def test_ssc_run_reports_completion_and_semantic_scores(tmp_path, capsys):
     assert "SemanticKITTI SSC (semantic-kitti-api scorer; empty = free (17)" in capsys.readouterr().out
 
 
-def test_the_mask_is_filled_only_into_metrics_that_take_it():
-    grid = {"range": [-8.0, -8.0, -1.0, 8.0, 8.0, 2.2], "voxel_size": 0.8}
-    own = {"range": [0, 0, 0, 4, 4, 4], "voxel_size": 1.0}
-    nodes = metric_nodes(["occ3d_miou", "rayiou", {"type": "rayiou", "grid": own}, "ssc"], "lidar")
-    assert nodes == [
-        {"type": "occ3d_miou", "mask": "lidar"},
-        {"type": "rayiou"},
-        {"type": "rayiou", "grid": own},
-        {"type": "ssc"},
-    ]
-    assert metric_nodes(None) is None
-    assert isinstance(Occ3DMIoU(), Occ3DMIoU) and RayIoU(grid=grid).grid == GridSpec.from_config(grid)
+def _small_model(**kwargs):
+    from occplug.model import OccModel
+
+    return OccModel(
+        encoder={"type": "small_cnn", "out_channels": 8, "width": 8, "stride": 4},
+        view_transform={"type": "lss", "out_channels": 8, "hidden": 0, "depth_bins": [1.0, 41.0, 2.0]},
+        scene={"type": "dense_voxels", "out_channels": 8, "num_blocks": 0},
+        heads={"occupancy": {"type": "voxel_classifier", "hidden": 8}},
+        supervision={},
+        grid={"range": [-8.0, -8.0, -1.0, 8.0, 8.0, 2.2], "voxel_size": 0.8},
+        **kwargs,
+    )
+
+
+def test_the_model_gives_the_eval_mask_to_metrics_that_take_one():
+    metrics = ["occ3d_miou", "rayiou", {"type": "occ3d_miou", "mask": "none"}, "ssc"]
+    miou, rayiou, own, ssc = _small_model(metrics=metrics, eval_mask="lidar").val_metrics.values()
+    assert (miou.mask, own.mask) == ("lidar", "none")  # a node's own mask stays
+    assert isinstance(rayiou, RayIoU) and not hasattr(ssc, "mask")
+    assert _small_model(metrics=["occ3d_miou"]).val_metrics["occ3d_miou"].mask == "camera"  # none given: its default
+    assert isinstance(Occ3DMIoU(), Occ3DMIoU)
+
+
+def test_the_runner_gives_the_run_eval_mask_to_the_model():
+    cfg = runner.load_config([BASELINE, "occplug/trainer/debug"], ["eval_mask=lidar", "metrics=[occ3d_miou, rayiou]"])
+    dm = runner.build_datamodule(cfg)
+    model = runner.build_model(cfg, dm)
+    assert model.eval_mask == "lidar" and model.val_metrics["occ3d_miou"].mask == "lidar"
+    assert model.test_metrics["occ3d_miou"].mask == "lidar"
 
 
 def test_the_model_gives_its_grid_to_metrics_that_leave_it_out():
@@ -56,7 +73,7 @@ def test_the_model_gives_its_grid_to_metrics_that_leave_it_out():
         heads={"occupancy": {"type": "voxel_classifier", "hidden": 8}},
         supervision={},
         grid=grid,
-        metrics=metric_nodes(["rayiou", {"type": "rayiou", "grid": own}]),
+        metrics=["rayiou", {"type": "rayiou", "grid": own}],
     )
     first, second = model.val_metrics.values()
     assert first.grid == GridSpec.from_config(grid) and second.grid == GridSpec.from_config(own)

@@ -179,7 +179,7 @@ def test_every_kind_names_an_interface_and_its_given_arguments():
     }
     for kind in KINDS.values():
         assert isinstance(kind.interface(), type)
-    assert given_arguments("head") == {"in_channels", "num_classes", "free_label", "grid"}
+    assert given_arguments("head") == {"in_channels", "num_classes", "free_label", "grid", "image_channels"}
     assert given_arguments("view_transform") == {"in_channels", "image_stride", "level_channels", "level_strides", "grid"}
     assert "grid" in given_arguments("model") and "metrics" in given_arguments("model")
 
