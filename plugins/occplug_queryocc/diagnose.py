@@ -14,10 +14,12 @@ the voxel labels and predicted occupied (any class). Each is tallied
 * by **distance** from the ego origin in ``x, y``;
 * by the class of the **first hit along the camera ray** through it: the first occupied voxel of the labels
   on the ray from the camera that sees it (the one whose optical axis is nearest its direction) through its
-  centre, ``sky`` when that ray leaves the grid without one;
-* by **query coverage**: whether a training query (the run's own ``queryocc_query_points``, drawn ``draws``
-  times per frame, as ``draws`` epochs would) came within one voxel of it (its 3 x 3 x 3 neighbourhood
-  held one), split into negatives (free queries) and positives.
+  centre, ``nothing in the grid`` when that ray leaves the grid without one (it sees the sky, or something
+  beyond the grid);
+* by **query coverage**: whether a query of the run's own ``queryocc_query_points`` came within one voxel of it
+  (its 3 x 3 x 3 neighbourhood held one), split into negatives (free queries) and positives. The queries are
+  drawn on the diagnosed (validation) frames themselves, ``draws`` times each (the default 4: what 4 epochs of
+  training draw from a frame); training draws the same way from its own frames, which are not scored.
 
 and, the other side of the occupancy IoU, the share of each class's scored occupied voxels that it predicts free
 (**false free**). It prints the shares and, with ``--json``, writes them.
@@ -35,6 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from occplug import UserError
 from occplug.geometry import GridSpec, first_hit
 
 __all__ = [
@@ -53,8 +56,8 @@ GROUND_CLASSES = (11, 12, 13, 14)
 #: Bin edges (metres) of the height above the ground and of the distance from the ego origin.
 HEIGHT_EDGES = (0.0, 1.0, 2.0, 4.0)
 DISTANCE_EDGES = (0.0, 8.0, 16.0, 24.0)
-#: The first-hit key of a ray that leaves the grid without hitting anything.
-SKY = "sky"
+#: The first-hit key of a ray that leaves the grid without hitting anything (it sees the sky or what lies beyond).
+NO_HIT = "nothing in the grid"
 
 
 def height_above_ground(labels: Tensor, grid: GridSpec, ground: Sequence[int] = GROUND_CLASSES) -> Tensor:
@@ -105,7 +108,8 @@ def first_hit_classes(
         voxels: ``(V, 3)`` int64 voxel indices.
 
     Returns:
-        per voxel, the class id hit, or ``"sky"`` when the ray leaves the grid without a hit.
+        per voxel, the class id hit, or :data:`NO_HIT` when the ray leaves the grid without a hit (the sky, or
+        something beyond the grid).
     """
     if len(voxels) == 0:
         return []
@@ -122,7 +126,7 @@ def first_hit_classes(
     index, _ = first_hit(occupied, grid, o, d, float("inf"))
     out: list[str | int] = []
     for i, j, k in index.tolist():
-        out.append(SKY if i < 0 else int(labels[i, j, k]))
+        out.append(NO_HIT if i < 0 else int(labels[i, j, k]))
     return out
 
 
@@ -194,7 +198,8 @@ class Tally:
             return round(100.0 * c / n, 2)
 
         def labels(edges: Sequence[float]) -> list[str]:
-            return [f"{a:g}-{b:g} m" for a, b in zip(edges, edges[1:], strict=False)] + [f">= {edges[-1]:g} m"]
+            inner = [f"{a:g}-{b:g} m" for a, b in zip(edges[1:], edges[2:], strict=False)]
+            return [f"< {edges[1]:g} m", *inner, f">= {edges[-1]:g} m"]
 
         return {
             "scored_free_voxels": self.scored_free,
@@ -224,26 +229,44 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="python -m occplug_queryocc.diagnose", description=__doc__, formatter_class=argparse.RawTextHelpFormatter
     )
     parser.add_argument("run", type=Path, help="a run directory (its checkpoints/last.ckpt) or a checkpoint file")
-    parser.add_argument("--batches", type=int, default=8, help="validation samples to diagnose (default 8)")
-    parser.add_argument("--draws", type=int, default=4, help="query draws per sample (the epochs; default 4)")
+    parser.add_argument("--batches", type=_positive, default=8, help="validation samples to diagnose (default 8)")
+    parser.add_argument("--draws", type=_positive, default=4, help="query draws per sample (the epochs; default 4)")
     parser.add_argument("--supervision", default="queries", help="the query supervision's name (default queries)")
     parser.add_argument("--json", type=Path, default=None, help="also write the shares here")
     args = parser.parse_args(argv)
 
-    from occplug.run.runner import RunError, config_from_checkpoint, load_checkpoint, restore_run
+    from occplug.run.runner import RunError, config_from_checkpoint, data_errors, load_checkpoint, restore_run
 
+    path = _checkpoint(args.run)
     try:
-        path = _checkpoint(args.run)
         ckpt = load_checkpoint(path)
         cfg = config_from_checkpoint(ckpt, path)
         dm, model = restore_run(cfg, ckpt, path)
-    except RunError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        with data_errors():
+            shares = _diagnose(cfg, dm, model, args)
+    except (RunError, UserError, LookupError) as exc:  # LookupError: a component no installed plugin registers
+        print(f"error: {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}", file=sys.stderr)
         return 2
+    shares.update(checkpoint=str(path), samples=shares.pop("_samples"), draws=args.draws)
+    print(json.dumps(shares, indent=2))
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(shares, indent=2) + "\n")
+    return 0
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+    return value
+
+
+def _diagnose(cfg: dict, dm, model, args: argparse.Namespace) -> dict:
+    """The tally's shares over the first ``args.batches`` validation samples (plus ``_samples``, their count)."""
     source = model.supervision[args.supervision] if args.supervision in model.supervision else None
     if source is None or not hasattr(source, "queries"):
-        print(f"error: {path}: model.supervision has no query source '{args.supervision}'", file=sys.stderr)
-        return 2
+        raise UserError(f"model.supervision has no query source '{args.supervision}' (--supervision)")
     torch.manual_seed(0)
     grid = GridSpec.from_config(cfg["grid"])
     free_label, names = model.free_label, dm.class_names
@@ -271,13 +294,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             torch.cat(positives),
             names,
         )
-    shares = tally.shares()
-    shares.update(checkpoint=str(path), samples=min(args.batches, len(dataset)), draws=args.draws)
-    print(json.dumps(shares, indent=2))
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(shares, indent=2) + "\n")
-    return 0
+    return {**tally.shares(), "_samples": min(args.batches, len(dataset))}
 
 
 if __name__ == "__main__":

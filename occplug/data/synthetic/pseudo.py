@@ -191,7 +191,8 @@ class PseudoRealism:
             for, beyond the traffic cone it always lacks: their pixels are ``unlabeled`` in its maps, and
             so are the foreign classes mapping to them (``truck`` takes the construction vehicles with
             it); its noise never draws them. The auxiliary fills those its prompts name (its over-reaching
-            masks spill onto sky, which has no voxel, as onto every pixel the primary leaves unknown).
+            masks spill onto sky, which has no voxel, as onto every pixel the primary leaves unknown; under
+            ``sky_as_free`` the primary names the sky, so they do not).
             Without the foreign taxonomy there is no auxiliary: the lacked pixels are only unknown (255).
             Makes worlds where OccLE's label alignment (Tab. 3) has classes to supply.
         seed: seed of the noise and of the fixed embeddings.

@@ -3,8 +3,6 @@ use of them, the synthetic mapping that marks them, and the diagnosis script's t
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 
@@ -12,7 +10,7 @@ from occplug.data import LabelledPoints, free_pixel_rays
 from occplug.geometry import GridSpec, camera_rays
 from occplug.testing import hand_batch, make_tiny_batch
 from occplug_queryocc import QuerySupervision, RenderSupervision
-from occplug_queryocc.diagnose import Tally, covered, first_hit_classes, height_above_ground
+from occplug_queryocc.diagnose import NO_HIT, Tally, covered, first_hit_classes, height_above_ground, main
 from occplug_queryocc.supervision import sample_sky_negatives, sample_surface_negatives
 
 FREE = 17
@@ -168,7 +166,7 @@ def test_first_hit_classes_find_the_wall_or_the_sky():
     cam[:3, :3] = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # looks along +x
     cam[:3, 3] = torch.tensor([0.1, 0.0, 1.5])
     voxels = torch.tensor([[3, 2, 1], [5, 2, 3]])  # in front of the wall at its height; above it
-    assert first_hit_classes(_field(), GRID, FREE, cam[None], voxels) == [15, "sky"]
+    assert first_hit_classes(_field(), GRID, FREE, cam[None], voxels) == [15, NO_HIT]
 
 
 def test_the_tally_gives_the_known_shares():
@@ -183,14 +181,14 @@ def test_the_tally_gives_the_known_shares():
     cam[:3, :3] = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
     cam[:3, 3] = torch.tensor([0.1, 0.0, 1.5])
     negatives = torch.tensor([[3.5, 0.5, 1.5]])  # within one voxel of (3, 2, 1) only
-    positives = torch.tensor([[5.5, 0.5, 3.5]])  # within one voxel of (5, 2, 2) only
+    positives = torch.tensor([[5.5, 0.5, 3.5]])  # in voxel (5, 2, 3): within one voxel of it only
     tally = Tally()
     tally.add(pred, labels, mask, GRID, FREE, cam[None], negatives, positives, [str(c) for c in range(18)])
     scored_free = int((mask & (labels == FREE)).sum())
     shares = tally.shares()
     assert shares["false_occupied_voxels"] == 3 and shares["scored_free_voxels"] == scored_free
     assert shares["by_height_above_ground_pct"] == {
-        "0-1 m": pytest.approx(100 / 3, abs=0.01),
+        "< 1 m": pytest.approx(100 / 3, abs=0.01),
         "1-2 m": pytest.approx(100 / 3, abs=0.01),
         "2-4 m": pytest.approx(100 / 3, abs=0.01),
         ">= 4 m": 0.0,
@@ -200,10 +198,10 @@ def test_the_tally_gives_the_known_shares():
     assert shares["no_positive_within_one_voxel_pct"] == pytest.approx(200 / 3, abs=0.01)
     # (3, 2, 1) sees the wall behind it; (1, 0, 2) looks past it, (5, 2, 3) over it (the wall's top is z = 3)
     assert shares["by_first_hit_pct"] == {
-        "sky": pytest.approx(200 / 3, abs=0.01),
+        NO_HIT: pytest.approx(200 / 3, abs=0.01),
         "15": pytest.approx(100 / 3, abs=0.01),
     }
-    assert math.isclose(sum(shares["by_distance_pct"].values()), 100.0, abs_tol=0.02)
+    assert shares["by_distance_pct"] == {"< 8 m": 100.0, "8-16 m": 0.0, "16-24 m": 0.0, ">= 24 m": 0.0}
     # the other side: the road (8 x 4 scored voxels) all predicted; the wall's 4 voxels predicted too
     assert shares["scored_occupied_voxels"] == 36 and shares["false_free_voxels"] == 0
     pred[6, 1, 1] = FREE  # miss one wall voxel
@@ -234,3 +232,15 @@ def test_surface_negatives_are_drawn_after_the_point_queries():
     b = QuerySupervision(points_per_sample=32, surface_negatives=2).queries(batch)
     assert b.points.shape[1] == 32 * 8 + 32 * 2 and torch.equal(a.points, b.points[:, : 32 * 8])
     assert not bool(b.occupied[:, 32 * 8 :].any())
+
+
+def test_the_diagnosis_names_a_bad_input_in_one_line_and_exits_2(tmp_path, capsys):
+    assert main([str(tmp_path / "missing.ckpt")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "missing.ckpt" in err and "Traceback" not in err
+    (tmp_path / "junk.ckpt").write_bytes(b"not a checkpoint")
+    assert main([str(tmp_path / "junk.ckpt")]) == 2
+    assert "junk.ckpt" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        main([str(tmp_path / "junk.ckpt"), "--draws", "0"])
+    assert exc.value.code == 2
