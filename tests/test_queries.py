@@ -213,6 +213,42 @@ def test_chunked_default_with_an_occupancy_logit_head() -> None:
         head.occupancy_logits(scene, GRID)
 
 
+class SlabHead(OccupancyHead):
+    """A queryable field occupied (class 0) below ``z = top`` and free above: a ground whose surface a voxel may only
+    clip."""
+
+    queryable = True
+
+    def __init__(self, top: float) -> None:
+        super().__init__()
+        self.num_classes, self.free_label, self.top = 2, 1, top
+
+    def forward(self, scene: Scene, batch: occplug.Batch) -> dict[str, Tensor]:
+        return {"logits": self.occupancy_logits(scene, scene.grid)}
+
+    def query(self, scene: Scene, points: Tensor, times: Tensor | None = None) -> QueryResult:
+        self.check_query(points, times)
+        occ = torch.where(points[..., 2] < self.top, 5.0, -5.0)
+        classes = torch.stack([points[..., 0], torch.zeros_like(occ)], -1)  # class 0's logit: x, for the gather check
+        return QueryResult(class_logits=classes, occupancy_logit=occ)
+
+
+def test_voxel_samples_mark_a_voxel_the_surface_only_clips_and_one_sample_is_the_centre() -> None:
+    grid = GridSpec(range=(0.0, 0.0, 0.0, 0.8, 0.4, 0.8), voxel_size=0.4)  # (2, 1, 2); z voxels [0, .4), [.4, .8)
+    head = SlabHead(top=0.15)  # below the first voxel's centre (z = 0.2): the centre is free
+    scene = DenseVoxelScene(torch.zeros(1, 1, *grid.shape), grid)
+    centre = head.occupancy_logits(scene, grid).argmax(1)[0]
+    assert centre.tolist() == [[[1, 1]], [[1, 1]]]  # every voxel free at its centre
+    head.voxel_samples = 2  # sub-cell centres at z = 0.1 and 0.3 in the first layer: 0.1 lies in the slab
+    sub = head.occupancy_logits(scene, grid, chunk_size=3)
+    assert sub.argmax(1)[0].tolist() == [[[0, 1]], [[0, 1]]]
+    # the occupied voxel takes its most occupied sub-cell's answer: class 0's logit x at a sub-cell centre
+    assert float(sub[0, 0, 0, 0, 0]) in (pytest.approx(0.1), pytest.approx(0.3))
+    head.voxel_samples = 1
+    head.top = 0.25  # above the centre: one sample finds it
+    assert head.occupancy_logits(scene, grid).argmax(1)[0].tolist() == [[[0, 1]], [[0, 1]]]
+
+
 def test_occ3d_size_default_is_chunked_with_bounded_memory() -> None:
     """640k centres: one query per chunk, each at most chunk_size points, memory beyond the output bounded by
     the chunk (measured: every tensor made during the call), and equal to the dense fast path."""

@@ -90,7 +90,9 @@ class Head(nn.Module, ABC):
         if isinstance(head, OccupancyHead) and not reads:  # a reading head is evaluated from its forward logits
             head.eval()
             logits = head.occupancy_logits(scene, grid)
-            assert logits.shape == (len(batch), head.num_classes, *grid.shape), f"occupancy_logits {tuple(logits.shape)}"
+            assert logits.shape == (len(batch), head.num_classes, *grid.shape), (
+                f"occupancy_logits {tuple(logits.shape)}"
+            )
             assert torch.allclose(logits, head(*inputs)["logits"], atol=1e-5), "occupancy_logits != forward logits"
             if head.queryable:  # queries at voxel centres agree with the voxel logits; t != 0 only for temporal heads
                 idx = torch.tensor([[1, 2, 3], [5, 0, 1]])
@@ -141,6 +143,11 @@ class OccupancyHead(Head):
     #: Occupancy probability below which a query with an occupancy logit predicts ``free``
     #: (:meth:`QueryResult.logits`); a head may take it as a constructor argument.
     occupancy_threshold: float = 0.5
+    #: Points per axis at which :meth:`occupancy_logits` queries each voxel: 1, the centre; ``s > 1``, the centres of
+    #: its ``s x s x s`` sub-cells, the voxel taking the answer of the most occupied one (a voxel label marks a voxel
+    #: occupied when any surface lies in it; a continuous field can be free at the centre of a voxel its surface
+    #: only clips). Needs an occupancy logit; a head may take it as a constructor argument.
+    voxel_samples: int = 1
 
     def query(self, scene: Scene, points: Tensor, times: Tensor | None = None) -> QueryResult:
         """The head's answer at continuous 4D points.
@@ -179,7 +186,9 @@ class OccupancyHead(Head):
     def occupancy_logits(self, scene: Scene, grid: GridSpec, chunk_size: int = DEFAULT_QUERY_CHUNK) -> Tensor:
         """``(B, K, X, Y, Z)`` logits at the centres of ``grid``'s voxels (the evaluation grid).
 
-        The default queries the centres at ``t = 0``, ``chunk_size`` points at a time, and writes each
+        The default queries the centres at ``t = 0`` (or :attr:`voxel_samples` ``> 1`` sub-cell centres per voxel
+        axis, the voxel taking the answer with the largest occupancy logit), ``chunk_size`` points at a time, and
+        writes each
         chunk's :meth:`QueryResult.logits` (``free``'s logit from the occupancy logit and
         :attr:`occupancy_threshold` where the head returns one) into the output, so the memory beyond
         the output is bounded by the chunk, not the grid. ``argmax`` over ``K`` gives the class ids (:meth:`OccModel.predict_occupancy`).
@@ -196,14 +205,35 @@ class OccupancyHead(Head):
         b, device = scene.batch_size, scene.device
         nx, ny, nz = grid.shape
         n = nx * ny * nz
+        s = int(self.voxel_samples)
+        sub = _sub_offsets(grid, s).to(device)  # (S, 3) metres from the voxel centre, S = s^3
+        chunk_size = max(1, chunk_size // len(sub))
         out: Tensor | None = None
         for start in range(0, n, chunk_size):
             flat = torch.arange(start, min(start + chunk_size, n), device=device)
             index = torch.stack((flat // (ny * nz), flat // nz % ny, flat % nz), dim=-1)
-            points = grid.index_to_coord(index).to(device).unsqueeze(0).expand(b, -1, -1)
-            logits = self.query(scene, points).logits(self.free_label, self.occupancy_threshold)  # (B, p, K)
+            centres = grid.index_to_coord(index).to(device)  # (p, 3)
+            points = (centres[:, None] + sub).reshape(-1, 3).unsqueeze(0).expand(b, -1, -1)  # (B, p * S, 3)
+            result = self.query(scene, points)
+            logits = result.logits(self.free_label, self.occupancy_threshold)  # (B, p * S, K)
+            if len(sub) > 1:
+                if result.occupancy_logit is None:
+                    raise ValueError(f"{type(self).__name__}: voxel_samples > 1 needs a query occupancy logit")
+                most = result.occupancy_logit.view(b, len(flat), len(sub)).argmax(-1)  # (B, p)
+                logits = logits.view(b, len(flat), len(sub), -1)
+                logits = logits.gather(2, most[..., None, None].expand(-1, -1, 1, logits.shape[-1])).squeeze(2)
             if out is None:
                 out = logits.new_empty(b, logits.shape[-1], n)
             out[:, :, start : start + len(flat)] = logits.transpose(1, 2)
         assert out is not None  # a grid has at least one voxel
         return out.view(b, -1, nx, ny, nz)
+
+
+def _sub_offsets(grid: GridSpec, samples: int) -> Tensor:
+    """``(samples^3, 3)`` offsets (metres) from a voxel's centre to the centres of its ``samples^3`` equal sub-cells."""
+    if samples < 1:
+        raise ValueError(f"voxel_samples must be >= 1, got {samples}")
+    steps = (torch.arange(samples, dtype=torch.float32) + 0.5) / samples - 0.5  # (s,) in (-0.5, 0.5)
+    size = torch.tensor(grid.voxel_size, dtype=torch.float32)
+    ox, oy, oz = torch.meshgrid(steps * size[0], steps * size[1], steps * size[2], indexing="ij")
+    return torch.stack([ox, oy, oz], -1).reshape(-1, 3)

@@ -52,6 +52,9 @@ class QueryDecoder(OccupancyHead):
         feature_dim: size of the distilled feature ``v`` (0: none).
         time_scale: seconds that map to 1 in the query encoding (adjacent keyframes are 0.5 s apart).
         occupancy_threshold: ``sigmoid(o)`` below which a point is predicted ``free`` (default 0.5).
+        voxel_samples: points per axis at which each evaluation voxel is queried (1, the paper's: its centre;
+            ``s > 1``: the most occupied of its ``s^3`` sub-cell centres; the core's
+            :attr:`~occplug.interfaces.OccupancyHead.voxel_samples`). Evaluation only: training is unchanged.
 
     Forward returns ``{"logits": (B, K, X, Y, Z)}`` at the centres of the scene's own grid's cells (a BEV
     grid has few z cells: this is cheap); the model evaluates through :meth:`occupancy_logits` at the
@@ -73,12 +76,14 @@ class QueryDecoder(OccupancyHead):
         feature_dim: Annotated[int, NonNegative] = 0,
         time_scale: Annotated[float, Positive] = 0.5,
         occupancy_threshold: Annotated[float, OpenUnit] = 0.5,
+        voxel_samples: Annotated[int, Positive] = 1,
     ) -> None:
         super().__init__()
         if not 0.0 < occupancy_threshold < 1.0:
             raise ValueError(f"queryocc_decoder occupancy_threshold must lie in (0, 1), got {occupancy_threshold}")
         self.num_classes, self.free_label = int(num_classes), free_label
         self.occupancy_threshold = float(occupancy_threshold)
+        self.voxel_samples = int(voxel_samples)
         self.num_offsets, self.offset_range, self.time_scale = int(offsets), float(offset_range), float(time_scale)
         self.encode_query = nn.Sequential(nn.Linear(4, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, hidden))
         self.read = nn.Linear(in_channels, hidden)
