@@ -69,6 +69,15 @@ class LabelledPoints:
         )
 
 
+def _strided_pixels(h: int, w: int, stride: int, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    """Every ``stride``-th row and column of an ``(h, w)`` image, and their ``(Q, 2)`` float32 pixel centres
+    ``(u, v) = (col, row)`` in row-major order."""
+    rows = torch.arange(0, h, stride, device=device)
+    cols = torch.arange(0, w, stride, device=device)
+    vv, uu = torch.meshgrid(rows, cols, indexing="ij")
+    return rows, cols, torch.stack([uu, vv], -1).reshape(-1, 2).to(torch.float32)
+
+
 def pseudo_depth_points(
     batch, stride: int = 1, max_depth: float = float("inf"), ignore_label: int = 255, with_features: bool = False
 ) -> list[LabelledPoints]:
@@ -90,10 +99,7 @@ def pseudo_depth_points(
     if depth is None:
         raise ValueError("pseudo_depth_points: the batch has no pseudo_depth (set data.pseudo_labels)")
     b, n, h, w = depth.shape
-    rows = torch.arange(0, h, stride, device=depth.device)
-    cols = torch.arange(0, w, stride, device=depth.device)
-    vv, uu = torch.meshgrid(rows, cols, indexing="ij")
-    uv = torch.stack([uu, vv], -1).reshape(-1, 2).to(torch.float32)  # (Q, 2) pixel centres (u = col)
+    rows, cols, uv = _strided_pixels(h, w, stride, depth.device)
     z = depth[:, :, rows][:, :, :, cols].reshape(b, n, -1)  # (B, N, Q)
     ego = unproject_from_image(
         uv.expand(b, n, -1, 2), z, batch.intrinsics.float(), batch.cam_to_ego.float(), batch.img_aug.float()
@@ -141,10 +147,7 @@ def free_pixel_rays(batch, free_label: int, stride: int = 1) -> list[LabelledPoi
     if sem is None:
         raise ValueError("free_pixel_rays: the batch has no pseudo_semantics (set data.pseudo_labels)")
     b, n, h, w = sem.shape
-    rows = torch.arange(0, h, stride, device=sem.device)
-    cols = torch.arange(0, w, stride, device=sem.device)
-    vv, uu = torch.meshgrid(rows, cols, indexing="ij")
-    uv = torch.stack([uu, vv], -1).reshape(-1, 2).to(torch.float32)  # (Q, 2) pixel centres (u = col)
+    rows, cols, uv = _strided_pixels(h, w, stride, sem.device)
     cam_z = torch.ones(b, n, uv.shape[0], device=sem.device)
     ego = unproject_from_image(
         uv.expand(b, n, -1, 2), cam_z, batch.intrinsics.float(), batch.cam_to_ego.float(), batch.img_aug.float()

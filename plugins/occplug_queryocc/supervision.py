@@ -271,23 +271,35 @@ def sample_surface_negatives(
 
     Returns a :class:`QuerySet` of ``points_per_sample * negatives`` free queries per sample (labels ``ignore``).
     """
-    qs, ts, valid = [], [], []
-    device = sets[0][0].points.device
-    count = points_per_sample * negatives
-    for pts, times in sets:
-        n = len(pts)
-        valid.append(torch.full((count,), n > 0, device=device))
-        if n == 0:
-            qs.append(torch.zeros(count, 3, device=device))
-            ts.append(torch.zeros(count, device=device))
-            continue
-        pick = torch.randint(0, n, (points_per_sample,), generator=generator).to(device)
+
+    def draw(pts: LabelledPoints, times: Tensor) -> tuple[Tensor, Tensor]:
+        pick = torch.randint(0, len(pts), (points_per_sample,), generator=generator).to(pts.points.device)
         p, o = pts.points[pick], pts.origins[pick]
         length = (p - o).norm(dim=-1, keepdim=True)
         unit = (p - o) / length.clamp_min(1e-6)
-        r = torch.rand(points_per_sample, negatives, generator=generator).to(device) * length.clamp_max(zeta)
-        qs.append((p[:, None] - r[..., None] * unit[:, None]).reshape(-1, 3))
-        ts.append(times[pick].repeat_interleave(negatives))
+        r = torch.rand(points_per_sample, negatives, generator=generator).to(p.device) * length.clamp_max(zeta)
+        return (p[:, None] - r[..., None] * unit[:, None]).reshape(-1, 3), times[pick].repeat_interleave(negatives)
+
+    return _free_queries(sets, points_per_sample * negatives, draw, ignore_label)
+
+
+def _free_queries(
+    sets: list[tuple[LabelledPoints, Tensor]],
+    count: int,
+    draw: Callable[[LabelledPoints, Tensor], tuple[Tensor, Tensor]],
+    ignore_label: int,
+) -> QuerySet:
+    """A :class:`QuerySet` of ``count`` free queries per sample, ``draw(points, times)`` giving each non-empty
+    sample's ``(count, 3)`` queries and ``(count,)`` times; an empty sample gets placeholders (``valid`` False)."""
+    qs, ts, valid = [], [], []
+    device = sets[0][0].points.device
+    for pts, times in sets:
+        valid.append(torch.full((count,), len(pts) > 0, device=device))
+        q, t = (
+            draw(pts, times) if len(pts) else (torch.zeros(count, 3, device=device), torch.zeros(count, device=device))
+        )
+        qs.append(q)
+        ts.append(t)
     b = len(sets)
     return QuerySet(
         torch.stack(qs),
@@ -317,16 +329,10 @@ def sample_sky_negatives(
     Returns a :class:`QuerySet` of ``rays_per_sample * negatives`` free queries per sample (labels ``ignore``).
     """
     z_lo, z_hi = heights
-    qs, ts, valid = [], [], []
-    device = rays[0][0].points.device
-    for pts, times in rays:
-        n = len(pts)
-        valid.append(torch.full((rays_per_sample * negatives,), n > 0, device=device))
-        if n == 0:
-            qs.append(torch.zeros(rays_per_sample * negatives, 3, device=device))
-            ts.append(torch.zeros(rays_per_sample * negatives, device=device))
-            continue
-        pick = torch.randint(0, n, (rays_per_sample,), generator=generator).to(device)
+
+    def draw(pts: LabelledPoints, times: Tensor) -> tuple[Tensor, Tensor]:
+        device = pts.points.device
+        pick = torch.randint(0, len(pts), (rays_per_sample,), generator=generator).to(device)
         o = pts.origins[pick]
         d = pts.points[pick] - o  # unit directions
         dz = d[:, 2]
@@ -335,17 +341,9 @@ def sample_sky_negatives(
         leave = torch.where(dz > 1e-9, up, torch.where(dz < -1e-9, down, torch.full_like(dz, far)))
         r_max = leave.clamp(0.0, far)
         r = torch.rand(rays_per_sample, negatives, generator=generator).to(device) * r_max[:, None]
-        qs.append((o[:, None] + r[..., None] * d[:, None]).reshape(-1, 3))
-        ts.append(times[pick].repeat_interleave(negatives))
-    b, q = len(rays), rays_per_sample * negatives
-    return QuerySet(
-        torch.stack(qs),
-        torch.stack(ts),
-        torch.zeros(b, q, dtype=torch.bool, device=device),
-        torch.full((b, q), ignore_label, dtype=torch.int64, device=device),
-        None,
-        torch.stack(valid),
-    )
+        return (o[:, None] + r[..., None] * d[:, None]).reshape(-1, 3), times[pick].repeat_interleave(negatives)
+
+    return _free_queries(rays, rays_per_sample * negatives, draw, ignore_label)
 
 
 class QuerySupervision(SupervisionSource):
