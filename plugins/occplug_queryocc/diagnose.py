@@ -16,6 +16,9 @@ the voxel labels and predicted occupied (any class). Each is tallied
   on the ray from the camera that sees it (the one whose optical axis is nearest its direction) through its
   centre, ``nothing in the grid`` when that ray leaves the grid without one (it sees the sky, or something
   beyond the grid);
+* by **how many voxels lie between it and that first hit** (Chebyshev distance of the voxel indices; 1: the
+  hit is its neighbour, so the field runs one voxel in front of a surface), or ``hit before it`` when that ray
+  meets something before the voxel's centre (another camera sees it);
 * by **query coverage**: whether a query of the run's own ``queryocc_query_points`` came within one voxel of it
   (its 3 x 3 x 3 neighbourhood held one), split into negatives (free queries) and positives. The queries are
   drawn on the diagnosed (validation) frames themselves, ``draws`` times each (the default 4: what 4 epochs of
@@ -47,6 +50,7 @@ __all__ = [
     "Tally",
     "covered",
     "first_hit_classes",
+    "first_hits_from_camera",
     "height_above_ground",
     "main",
 ]
@@ -56,6 +60,8 @@ GROUND_CLASSES = (11, 12, 13, 14)
 #: Bin edges (metres) of the height above the ground and of the distance from the ego origin.
 HEIGHT_EDGES = (0.0, 1.0, 2.0, 4.0)
 DISTANCE_EDGES = (0.0, 8.0, 16.0, 24.0)
+#: Bin edges (voxels) of the gap from a false-occupied voxel to the first hit behind it: 1, 2, 3-4, >= 5.
+GAP_EDGES = (1, 2, 3, 5)
 #: The first-hit key of a ray that leaves the grid without hitting anything (it sees the sky or what lies beyond).
 NO_HIT = "nothing in the grid"
 
@@ -111,8 +117,21 @@ def first_hit_classes(
         per voxel, the class id hit, or :data:`NO_HIT` when the ray leaves the grid without a hit (the sky, or
         something beyond the grid).
     """
+    return first_hits_from_camera(labels, grid, free_label, cam_to_ego, voxels)[0]
+
+
+def first_hits_from_camera(
+    labels: Tensor, grid: GridSpec, free_label: int, cam_to_ego: Tensor, voxels: Tensor
+) -> tuple[list[str | int], list[int | None]]:
+    """:func:`first_hit_classes` and, per voxel, how many voxels lie between it and that first hit.
+
+    Returns:
+        ``classes`` as :func:`first_hit_classes`; ``gaps``: per voxel the Chebyshev distance in voxel indices
+        from it to the voxel hit (1: the hit is its neighbour), ``0`` when the ray hits before reaching the
+        voxel's centre (another camera sees it), ``None`` without a hit.
+    """
     if len(voxels) == 0:
-        return []
+        return [], []
     lower = torch.tensor(grid.lower, dtype=torch.float64)
     size = torch.tensor(grid.voxel_size, dtype=torch.float64)
     centres = lower + (voxels.double() + 0.5) * size  # (V, 3)
@@ -123,11 +142,17 @@ def first_hit_classes(
     o = origins[cam]
     d = to_voxel[torch.arange(len(voxels)), cam]
     occupied = labels != free_label
-    index, _ = first_hit(occupied, grid, o, d, float("inf"))
-    out: list[str | int] = []
-    for i, j, k in index.tolist():
-        out.append(NO_HIT if i < 0 else int(labels[i, j, k]))
-    return out
+    index, distance = first_hit(occupied, grid, o, d, float("inf"))
+    reach = (centres - o).norm(dim=-1)
+    steps = (index - voxels).abs().amax(dim=-1)
+    classes: list[str | int] = []
+    gaps: list[int | None] = []
+    for (i, j, k), gap, before in zip(
+        index.tolist(), steps.tolist(), (distance.double() < reach).tolist(), strict=True
+    ):
+        classes.append(NO_HIT if i < 0 else int(labels[i, j, k]))
+        gaps.append(None if i < 0 else (0 if before else int(gap)))
+    return classes, gaps
 
 
 class Tally:
@@ -139,6 +164,7 @@ class Tally:
         self.height = [0] * len(HEIGHT_EDGES)
         self.distance = [0] * len(DISTANCE_EDGES)
         self.first_hit: dict[str, int] = {}
+        self.gap = [0] * (len(GAP_EDGES) + 2)  # GAP_EDGES bins, then the hit before it, then no hit
         self.uncovered = 0
         self.no_negative = 0
         self.no_positive = 0
@@ -181,9 +207,16 @@ class Tally:
         dist = xy.norm(dim=-1)
         for b in torch.bucketize(dist, torch.tensor(DISTANCE_EDGES[1:], dtype=torch.float64), right=True).tolist():
             self.distance[b] += 1
-        for hit in first_hit_classes(labels, grid, free_label, cam_to_ego, voxels):
+        hits, gaps = first_hits_from_camera(labels, grid, free_label, cam_to_ego, voxels)
+        for hit, gap in zip(hits, gaps, strict=True):
             key = hit if isinstance(hit, str) else (class_names[hit] if hit < len(class_names) else str(hit))
             self.first_hit[key] = self.first_hit.get(key, 0) + 1
+            if gap is None:
+                self.gap[-1] += 1
+            elif gap == 0:
+                self.gap[-2] += 1
+            else:
+                self.gap[sum(gap >= e for e in GAP_EDGES[1:])] += 1
         near_neg = covered(negatives, grid)[wrong]
         near_pos = covered(positives, grid)[wrong]
         self.uncovered += int((~near_neg & ~near_pos).sum())
@@ -208,6 +241,9 @@ class Tally:
             "by_height_above_ground_pct": dict(zip(labels(HEIGHT_EDGES), map(pct, self.height), strict=True)),
             "by_distance_pct": dict(zip(labels(DISTANCE_EDGES), map(pct, self.distance), strict=True)),
             "by_first_hit_pct": {k: pct(v) for k, v in sorted(self.first_hit.items(), key=lambda kv: -kv[1])},
+            "by_voxels_to_first_hit_pct": dict(
+                zip(["1", "2", "3-4", ">= 5", "hit before it", NO_HIT], map(pct, self.gap), strict=True)
+            ),
             "no_query_within_one_voxel_pct": pct(self.uncovered),
             "no_negative_within_one_voxel_pct": pct(self.no_negative),
             "no_positive_within_one_voxel_pct": pct(self.no_positive),

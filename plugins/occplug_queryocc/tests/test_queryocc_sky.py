@@ -10,7 +10,15 @@ from occplug.data import LabelledPoints, free_pixel_rays
 from occplug.geometry import GridSpec, camera_rays
 from occplug.testing import hand_batch, make_tiny_batch
 from occplug_queryocc import QuerySupervision, RenderSupervision
-from occplug_queryocc.diagnose import NO_HIT, Tally, covered, first_hit_classes, height_above_ground, main
+from occplug_queryocc.diagnose import (
+    NO_HIT,
+    Tally,
+    covered,
+    first_hit_classes,
+    first_hits_from_camera,
+    height_above_ground,
+    main,
+)
 from occplug_queryocc.supervision import sample_sky_negatives, sample_surface_negatives
 
 FREE = 17
@@ -167,6 +175,10 @@ def test_first_hit_classes_find_the_wall_or_the_sky():
     cam[:3, 3] = torch.tensor([0.1, 0.0, 1.5])
     voxels = torch.tensor([[3, 2, 1], [5, 2, 3]])  # in front of the wall at its height; above it
     assert first_hit_classes(_field(), GRID, FREE, cam[None], voxels) == [15, NO_HIT]
+    # the wall is voxel (6, 2, 1): 3 voxels from (3, 2, 1), 1 from (5, 2, 1); behind (7, 2, 1) the ray meets it first
+    voxels = torch.tensor([[3, 2, 1], [5, 2, 1], [7, 2, 1], [5, 2, 3]])
+    classes, gaps = first_hits_from_camera(_field(), GRID, FREE, cam[None], voxels)
+    assert classes == [15, 15, 15, NO_HIT] and gaps == [3, 1, 0, None]
 
 
 def test_the_tally_gives_the_known_shares():
@@ -200,6 +212,14 @@ def test_the_tally_gives_the_known_shares():
     assert shares["by_first_hit_pct"] == {
         NO_HIT: pytest.approx(200 / 3, abs=0.01),
         "15": pytest.approx(100 / 3, abs=0.01),
+    }
+    assert shares["by_voxels_to_first_hit_pct"] == {
+        "1": 0.0,
+        "2": 0.0,
+        "3-4": pytest.approx(100 / 3, abs=0.01),  # (3, 2, 1): the wall's voxel (6, 2, 1) is 3 away
+        ">= 5": 0.0,
+        "hit before it": 0.0,
+        NO_HIT: pytest.approx(200 / 3, abs=0.01),
     }
     assert shares["by_distance_pct"] == {"< 8 m": 100.0, "8-16 m": 0.0, "16-24 m": 0.0, ">= 24 m": 0.0}
     # the other side: the road (8 x 4 scored voxels) all predicted; the wall's 4 voxels predicted too
