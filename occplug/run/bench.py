@@ -17,6 +17,7 @@ hold. Protocol: the parent writes the job (one JSON line), then one command per 
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import json
 import os
@@ -44,6 +45,7 @@ __all__ = [
     "Target",
     "code_commit",
     "environment",
+    "evaluate_in_process",
     "fit_in_process",
     "interleave",
     "mean_std",
@@ -98,6 +100,28 @@ def fit_in_process(config: str, overrides: Sequence[str], out: Path, label: str)
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
     print(f"{label}: trained in {time.monotonic() - start:.0f} s", file=sys.stderr)
     return out
+
+
+def evaluate_in_process(run: Path, split: str = "val", overrides: Sequence[str] = (), name: str | None = None) -> dict:
+    """The metrics of ``run``'s ``checkpoints/last.ckpt`` on ``split`` (``val`` or ``test``) with the evaluation-only
+    ``overrides``, scored by an ``occplug validate`` / ``occplug test`` process of its own (as the ablation scripts
+    re-score a trained run without retraining) and cached as ``run/<name>.json``: by default
+    ``metrics_<split>.json``, with overrides ``metrics_<split>_<hash of the overrides>.json``. The cached record
+    carries the overrides under ``_eval_set``."""
+    if split not in ("val", "test"):
+        raise ValueError(f"evaluate_in_process: split must be 'val' or 'test', got {split!r}")
+    if name is None:
+        tag = hashlib.sha1(" ".join(overrides).encode()).hexdigest()[:8] if overrides else ""
+        name = f"metrics_{split}_{tag}" if tag else f"metrics_{split}"
+    path = Path(run) / f"{name}.json"
+    if not path.is_file():
+        command = "validate" if split == "val" else "test"
+        ckpt = Path(run) / "checkpoints" / "last.ckpt"
+        cli = [sys.executable, "-m", "occplug.cli", command, "--ckpt", str(ckpt), "--json", str(path), *overrides]
+        subprocess.run(cli, check=True, stdout=subprocess.DEVNULL)
+        record = json.loads(path.read_text())
+        path.write_text(json.dumps({**record, "_eval_set": list(overrides)}, indent=2) + "\n")
+    return json.loads(path.read_text())
 
 
 def _program() -> str:

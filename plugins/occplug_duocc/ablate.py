@@ -29,6 +29,8 @@ tuned for::
 Results go to ``--out`` (default ``runs/duocc_ablate``): one run directory per row and seed, and ``table.json``.
 A finished run directory (its ``metrics.json``) is reused, so an interrupted ablation continues where it stopped;
 one whose saved config differs from what the recipe and ``--set`` compose now stops the ablation (a fresh ``--out``).
+``--eval-set`` re-scores every trained run with evaluation-only overrides (e.g. a score-threshold sweep of the
+selection DQA uses: ``--eval-set model.scene.query_agg.score_threshold=0.5``), cached beside each run.
 """
 
 from __future__ import annotations
@@ -36,12 +38,11 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-from occplug.run.bench import fit_in_process, mean_std, write_table_seeds
+from occplug.run.bench import evaluate_in_process, fit_in_process, mean_std, write_table_seeds
 
 #: row -> (config stem trained, table label). ``full_gt_boxes`` evaluates ``full``'s runs.
 ROWS = {
@@ -100,11 +101,7 @@ def fit(config: str, seed: int, args: argparse.Namespace) -> Path:
 
 def gt_metrics(run: Path) -> dict:
     """Metrics of ``run``'s checkpoint validated with ground-truth boxes in DQA (cached beside the run)."""
-    path = run / "metrics_gt_boxes.json"
-    if not path.is_file():
-        command = [sys.executable, "-m", "occplug.cli", "validate", "--ckpt", str(checkpoint(run)), GT_OVERRIDE]
-        subprocess.run([*command, "--json", str(path)], check=True, stdout=subprocess.DEVNULL)
-    return json.loads(path.read_text())
+    return evaluate_in_process(run, "val", [GT_OVERRIDE], name="metrics_gt_boxes")
 
 
 def checkpoint(run: Path) -> Path:
@@ -159,6 +156,13 @@ def main() -> None:
     parser.add_argument("--no-bench", action="store_true", help="skip latency and memory")
     parser.add_argument("--out", default="runs/duocc_ablate")
     parser.add_argument(
+        "--eval-set",
+        nargs="*",
+        default=[],
+        help="evaluation-only key=value overrides, e.g. model.scene.query_agg.score_threshold=0.5: each trained run "
+        "is re-scored on the validation split (cached beside it), nothing is retrained",
+    )
+    parser.add_argument(
         "--results", help="also write each row's numbers per seed as small JSONs here (commit them beside RESULTS.md)"
     )
     args = parser.parse_args()
@@ -171,7 +175,13 @@ def main() -> None:
         for seed in args.seeds:
             run = fit(config, seed, args)
             runs.setdefault(row, run)
-            metrics = gt_metrics(run) if row == "full_gt_boxes" else json.loads((run / "metrics.json").read_text())
+            if args.eval_set:  # re-scored with evaluation-only overrides (cached beside the run)
+                gt = [GT_OVERRIDE] if row == "full_gt_boxes" else []
+                metrics = evaluate_in_process(run, "val", [*gt, *args.eval_set])
+            elif row == "full_gt_boxes":
+                metrics = gt_metrics(run)
+            else:
+                metrics = json.loads((run / "metrics.json").read_text())
             for column, key in COLUMNS.items():
                 value = metrics.get(key)  # None: a class absent from both ground truth and prediction
                 cells[column].append(float("nan") if value is None else float(value))
@@ -233,9 +243,10 @@ def main() -> None:
         json.dumps({"args": vars(args), "rows": table, "bench": bench}, indent=2) + "\n"
     )
     if args.results:
-        write_table_seeds(
-            args.results, table, args.seeds, {"epochs": args.epochs, "preset": args.preset, "set": args.set}
-        )
+        settings = {"epochs": args.epochs, "preset": args.preset, "set": args.set}
+        if args.eval_set:
+            settings["eval_set"] = args.eval_set
+        write_table_seeds(args.results, table, args.seeds, settings)
 
 
 if __name__ == "__main__":

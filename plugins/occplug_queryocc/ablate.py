@@ -27,15 +27,12 @@ the test split and then reported on the validation split, so no choice is tuned 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-from occplug.run.bench import fit_in_process, mean_std, write_seed_result, write_table_seeds
+from occplug.run.bench import evaluate_in_process, fit_in_process, mean_std, write_seed_result, write_table_seeds
 
 ROWS = {
     "base": "query (pseudo points, T = {-1, 0, 1})",
@@ -73,22 +70,7 @@ def run(name: str, seed: int, args: argparse.Namespace) -> dict:
         train(name, seed, args, out)
     if args.split == "val" and not args.eval_set:
         return json.loads((out / "metrics.json").read_text())
-    return evaluate(out, args.split, args.eval_set)
-
-
-def evaluate(out: Path, split: str, eval_set: list[str]) -> dict:
-    """Metrics of ``out``'s last checkpoint on ``split`` with the evaluation-only overrides ``eval_set``, cached in
-    ``out/metrics_<split>[_<hash>].json``."""
-    tag = hashlib.sha1(" ".join(eval_set).encode()).hexdigest()[:8] if eval_set else ""
-    path = out / (f"metrics_{split}_{tag}.json" if tag else f"metrics_{split}.json")
-    if not path.is_file():
-        command = "validate" if split == "val" else "test"
-        ckpt = out / "checkpoints" / "last.ckpt"
-        cli = [sys.executable, "-m", "occplug.cli", command, "--ckpt", str(ckpt), "--json", str(path), *eval_set]
-        subprocess.run(cli, check=True, stdout=subprocess.DEVNULL)
-        record = json.loads(path.read_text())
-        path.write_text(json.dumps({**record, "_eval_set": eval_set}, indent=2) + "\n")
-    return json.loads(path.read_text())
+    return evaluate_in_process(out, args.split, args.eval_set)
 
 
 def train(name: str, seed: int, args: argparse.Namespace, out: Path) -> None:

@@ -2,6 +2,7 @@
 
 import json
 
+from occplug.run import bench
 from occplug_queryocc import ablate
 
 TINY = ["--seeds", "0", "--rows", "base", "--preset", "tiny", "--epochs", "1"]
@@ -27,5 +28,5 @@ def test_a_rescored_run_equals_its_own_validation_and_is_cached(tmp_path, capsys
     def no_process(*args, **kwargs):
         raise AssertionError("re-scored although cached")
 
-    monkeypatch.setattr(ablate.subprocess, "run", no_process)
+    monkeypatch.setattr(bench.subprocess, "run", no_process)
     ablate.main([*TINY, *SET, "--out", str(out), "--split", "test"])
