@@ -144,6 +144,10 @@ class QueryAggSettings:
         dqa_heads, coverage, positional: DQA's heads, which voxels a box covers (``center``: the voxel centre
             inside the rotated box, Eq. 10; ``aabb``: the public code) and its positional encoding.
         ffn_hidden: the voxel FFN's hidden width (None: 4 x the scene's channels).
+        write: what DQA writes into a selected box's voxels: ``instance``, the query's features (after V2Q; the
+            paper), or ``class``, a learned embedding of the box's class (the ground truth's with ``gt_boxes``, else
+            the detector's top class) with V2Q off: a footprint input that carries no instance features, the
+            control of the ground-truth-box oracle (the difference between the two is what instance features add).
     """
 
     v2q: bool = True
@@ -164,6 +168,7 @@ class QueryAggSettings:
     coverage: Literal["center", "aabb"] = "center"
     positional: bool = True
     ffn_hidden: Annotated[int, Positive] | None = None
+    write: Literal["instance", "class"] = "instance"
 
 
 def detection_targets(batch: Batch, classes: Sequence[int], who: str) -> tuple[list[Tensor], list[Tensor]]:
@@ -276,6 +281,12 @@ class QueryAggregation(nn.Module):
             if self.v2q_on
             else None
         )
+        self.write = cfg.write
+        if self.write == "class" and not self.dqa_on:
+            raise ValueError("duocc_stream query_agg.write: class is what DQA writes: it needs dqa: true")
+        if self.write == "class":  # a footprint of the box's class: no instance features, so no V2Q either
+            self.v2q = None
+        self.class_embed = nn.Embedding(len(self.classes), q) if self.write == "class" else None
         self.dqa = None
         self.ffn = None
         if self.dqa_on:
@@ -304,10 +315,13 @@ class QueryAggregation(nn.Module):
         }
 
     # ------------------------------------------------------------------ selection
-    def _select(self, det: DetectorOutput, batch: Batch) -> tuple[Tensor, Tensor]:
-        """``(selected (B, Q) bool, boxes (B, Q, 9))`` for V2Q / DQA (module docstring, step 2)."""
+    def _select(self, det: DetectorOutput, batch: Batch) -> tuple[Tensor, Tensor, Tensor]:
+        """``(selected (B, Q) bool, boxes (B, Q, 9), classes (B, Q) int64)`` for V2Q / DQA (module docstring, step
+        2); ``classes``: each query's detection class (the matched ground truth's with ``gt_boxes``, else its top
+        class)."""
         logits, boxes = det.cls_logits[-1], det.boxes[-1]
         scores = logits.detach().sigmoid().amax(-1)
+        classes = logits.detach().argmax(-1)
         has_gt = batch.boxes is not None and batch.box_labels is not None
         if self.gt_boxes:
             if not has_gt:
@@ -316,7 +330,9 @@ class QueryAggregation(nn.Module):
             matches = hungarian_match(logits, det.encoded_boxes[-1], labels, [encode_boxes(g.to(boxes)) for g in gts])
             selected = torch.zeros_like(scores, dtype=torch.bool)
             boxes = boxes.detach().clone()
+            classes = classes.clone()
             for b, (qi, gi) in enumerate(matches):
+                classes[b, qi] = labels[b][gi].to(classes)
                 box = gts[b][gi].to(boxes)
                 if self.gt_box_noise > 0:
                     box[:, :2] = box[:, :2] + self.gt_box_noise * torch.randn(box.shape[0], 2).to(box)
@@ -325,7 +341,7 @@ class QueryAggregation(nn.Module):
                     qi, box = qi[keep.to(qi.device)], box[keep.to(box.device)]
                 selected[b, qi] = True
                 boxes[b, qi] = box
-            return selected, boxes
+            return selected, boxes, classes
         if self.training and self.select_with_gt and has_gt:
             _, gts = detection_targets(batch, self.classes, "duocc_stream query_agg")
             selected = select_queries(
@@ -340,7 +356,7 @@ class QueryAggregation(nn.Module):
             selected = select_queries(
                 scores, boxes.detach(), score_threshold=self.score_threshold, max_queries=self.max_queries
             )
-        return selected, boxes
+        return selected, boxes, classes
 
     # ------------------------------------------------------------------ forward
     def forward(
@@ -414,8 +430,8 @@ class QueryAggregation(nn.Module):
         if not self.dqa_on and not self.v2q_on:  # Tab. 4 C: the detector only
             none = torch.zeros(det.features.shape[:2], dtype=torch.bool, device=volume.device)
             return QueryAggOutput(volume, None, det, none, det.boxes[-1], new_state)
-        selected, boxes = self._select(det, batch)
-        queries = det.features
+        selected, boxes, classes = self._select(det, batch)
+        queries = det.features if self.class_embed is None else self.class_embed(classes)
         if self.v2q is not None:
             queries = self.v2q(volume, queries, boxes, det.anchor_embed)
         assert self.dqa is not None and self.ffn is not None

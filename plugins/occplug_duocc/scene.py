@@ -225,7 +225,9 @@ class DuOccStream(_DuOccVoxels):
         self.query_agg: QueryAggregation | None = None
         if query_agg is not None:
             if not level_channels:
-                raise ValueError("duocc_stream query_agg needs level_channels, the image encoder's (the model gives them)")
+                raise ValueError(
+                    "duocc_stream query_agg needs level_channels, the image encoder's (the model gives them)"
+                )
             self.query_agg = QueryAggregation(self.out_channels, self.coarse, level_channels, query_agg)
 
     def forward(self, lifted: Lifted, batch: Batch, outputs: ModelOutputs | None = None) -> StreamVoxelScene:

@@ -1,5 +1,7 @@
 """DuOcc as an occplug model (Tab. 4 A and B, the Tab. 5 rows, the stacking baseline) on the tiny world."""
 
+import dataclasses
+
 import lightning as L
 import pytest
 import torch
@@ -7,7 +9,8 @@ import torch
 from occplug.cli import main
 from occplug.config import ConfigError
 from occplug.run import runner
-from occplug.streams import set_stream_stage
+from occplug.streams import find_streams, set_stream_stage
+from occplug_duocc.queryagg import detection_targets
 
 # 20 x 20 x 8 label voxels (V_curr 10 x 10 x 4): the recipes' 60 x 60 x 8 shrunk for test speed
 SMALL = ["grid.range=[-8.0,-8.0,-1.0,8.0,8.0,5.4]", "model.encoder.out_channels=16", "model.encoder.width=16"]
@@ -376,3 +379,44 @@ def test_validation_of_the_full_model_over_a_whole_sequence_gives_the_same_metri
     second = _validate(model, dm)
     assert "mIoU" in first and first.keys() == second.keys()
     assert all(first[k] == second[k] or (first[k] != first[k] and second[k] != second[k]) for k in first)
+
+
+def test_the_oracles_control_writes_class_footprints_and_no_instance_features():
+    """duocc/footprint_gt_boxes: DQA gets the ground-truth boxes and, as queries, the embedding of each box's class;
+    the detector's features never reach it (no V2Q), so changing them changes nothing in the voxels."""
+    torch.manual_seed(0)
+    model, dm = _model_and_dm("footprint_gt_boxes")
+    qa = model.scene.query_agg
+    assert qa.v2q is None and qa.class_embed is not None
+    batch = _batch(dm, [0, 3])
+    dqa = _capture(qa.dqa)
+    model.eval()
+    set_stream_stage(model, "val")
+
+    def fresh_forward():
+        for _, state in find_streams(model):
+            state.clear("val")
+        return model(batch).scene.features
+
+    with torch.no_grad():
+        first = fresh_forward()
+        qa.detector.register_forward_hook(lambda m, i, out: dataclasses.replace(out, features=out.features + 1.0))
+        second = fresh_forward()
+    assert torch.equal(first, second)
+    (_, queries, boxes, sel), _ = dqa[-1]
+    labels, _ = detection_targets(batch, qa.classes, "test")
+    for b in range(2):
+        expected = _detection_class_boxes(batch, b)
+        assert int(sel[b].sum()) == expected.shape[0] > 0
+        # each selected query is its box's class embedding
+        embedded = qa.class_embed.weight[labels[b]]
+        got = queries[b, sel[b]]
+        order = lambda t: t[t.sum(-1).argsort()]  # noqa: E731
+        assert torch.equal(order(got), order(embedded))
+    with pytest.raises(runner.RunError, match="write: class is what DQA writes: it needs dqa: true"):
+        _model_and_dm(
+            "full",
+            "model.scene.query_agg.write=class",
+            "model.scene.query_agg.dqa=false",
+            "model.scene.query_agg.v2q=false",
+        )
