@@ -27,6 +27,7 @@ def occplug_register_components(registry: Registry) -> None:
     from .data.teacher_labels import TeacherPseudoLabels
     from .metrics import Occ3DMIoU, RayIoU, SSCMetrics
     from .model import OccModel
+    from .run.ema import EMAWeights
     from .viz.callback import BevPanelLogger
 
     registry.add("encoder", "small_cnn", c.SmallCNN)
@@ -49,6 +50,7 @@ def occplug_register_components(registry: Registry) -> None:
     registry.add("metric", "ssc", SSCMetrics)
     registry.add("model", "occ_model", OccModel)
     registry.add("callback", "bev_panel_logger", BevPanelLogger)
+    registry.add("callback", "ema", EMAWeights)
     registry.add("label_source", "teacher_pseudo_labels", TeacherPseudoLabels)
 
 

@@ -28,7 +28,7 @@ __all__ = ["RUN_CONSTRAINTS", "OPTIMIZERS", "SCHEDULERS", "UsedComponent", "chec
 #: Optimizer names a config may use (``optimizer.type``); never an import path.
 OPTIMIZERS = ("adamw", "adam", "sgd")
 #: Learning-rate schedules (``scheduler.type``).
-SCHEDULERS = ("none", "cosine", "step")
+SCHEDULERS = ("none", "cosine", "constant", "step")
 
 
 def _describe(value: Any) -> str:
@@ -217,6 +217,7 @@ RUN_CONSTRAINTS: dict[str, Any] = {
     "optimizer.betas": UnitInterval,  # each of the two
     "scheduler.warmup_steps": NonNegative,
     "scheduler.min_lr_ratio": UnitInterval,
+    "scheduler.warmup_start": UnitInterval,
     "scheduler.step_size": Positive,
     "scheduler.gamma": Positive,
     "trainer.max_epochs": Range(low=-1),

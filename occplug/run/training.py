@@ -55,6 +55,20 @@ def cosine_schedule(
     return LambdaLR(optimizer, factor)
 
 
+def constant_schedule(
+    optimizer: Optimizer, total_steps: int, warmup_steps: int = 0, warmup_start: float = 1.0 / 3.0
+) -> LRScheduler:
+    """Linear warm-up from ``warmup_start * lr`` to ``lr`` over ``warmup_steps`` optimizer steps, then constant (the
+    mmcv-style schedule whose decay steps a run never reaches, as DuOcc's public code trains)."""
+
+    def factor(step: int) -> float:
+        if step < warmup_steps:
+            return warmup_start + (1.0 - warmup_start) * step / warmup_steps
+        return 1.0
+
+    return LambdaLR(optimizer, factor)
+
+
 def step_schedule(optimizer: Optimizer, total_steps: int, step_size: int = 1000, gamma: float = 0.1) -> LRScheduler:
     """Multiply the learning rate by ``gamma`` every ``step_size`` optimizer steps."""
     return StepLR(optimizer, step_size=step_size, gamma=gamma)
@@ -63,12 +77,13 @@ def step_schedule(optimizer: Optimizer, total_steps: int, step_size: int = 1000,
 _SCHEDULERS: dict[str, Callable[..., LRScheduler | None]] = {
     "none": no_schedule,
     "cosine": cosine_schedule,
+    "constant": constant_schedule,
     "step": step_schedule,
 }
 
 
 def scheduler_factory(name: str) -> Callable[..., LRScheduler | None]:
-    """The schedule function behind a config name (``none``, ``cosine``, ``step``)."""
+    """The schedule function behind a config name (``none``, ``cosine``, ``constant``, ``step``)."""
     return _SCHEDULERS[name]
 
 

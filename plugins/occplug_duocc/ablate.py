@@ -54,6 +54,7 @@ ROWS = {
     "full_gt_boxes": ("full", "D with GT boxes (eval only)"),
     "full_gt_trained": ("full_gt_trained", "D trained and evaluated with GT boxes"),
     "footprint_gt_boxes": ("footprint_gt_boxes", "B + GT-box class footprints (the oracle's control)"),
+    "code_recipe": ("code_recipe", "D, the public code's recipe (concat, aabb, EMA, constant lr, its loss weights)"),
     "full_mask": ("full_mask", "D + mask decoder (training only)"),
     # Tab. 5: StreamAgg's components, one at a time (the last row, + occupied mask, is B)
     "stream_warp_only": ("stream_warp_only", "Tab. 5: warping only"),
@@ -70,7 +71,15 @@ COLUMNS = {
     "car": "IoU_car",  # the most frequent dynamic class
     "ped.": "IoU_pedestrian",
 }
-DETECTOR_ROWS = ("det_only", "full", "full_gt_boxes", "full_mask", "full_gt_trained", "footprint_gt_boxes")
+DETECTOR_ROWS = (
+    "det_only",
+    "full",
+    "full_gt_boxes",
+    "full_mask",
+    "full_gt_trained",
+    "footprint_gt_boxes",
+    "code_recipe",
+)
 GT_OVERRIDE = "model.scene.query_agg.gt_boxes=true"
 
 
