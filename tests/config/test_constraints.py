@@ -115,6 +115,7 @@ _CONTEXT = {
     "optimizer.dampening": ["optimizer={type: sgd, lr: 0.1}"],
     "scheduler.step_size": ["scheduler={type: step}"],
     "scheduler.gamma": ["scheduler={type: step}"],
+    "scheduler.warmup_start": ["scheduler={type: constant}"],
 }
 
 
