@@ -5,20 +5,9 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from occplug.run import runner
 from occplug_duocc.detection_eval import stream_detection_map
 from occplug_duocc.queryagg import detection_targets
 from occplug_duocc.scene import DETECTION_CLASSES_KEY, DETECTION_KEY
-
-SMALL = ["grid.range=[-8.0,-8.0,-1.0,8.0,8.0,5.4]", "model.encoder.out_channels=16", "model.encoder.width=16"]
-
-
-@pytest.fixture(scope="module")
-def model_dm():
-    torch.manual_seed(0)
-    cfg = runner.load_config(["duocc/full", "occplug/trainer/debug"], ["data.preset=tiny", *SMALL])
-    dm, model = runner.build_run(cfg)
-    return model, dm
 
 
 def _frames(dm, split="val"):

@@ -1,12 +1,8 @@
 """occplug_duocc.selection: what QueryAgg's selection hands DQA, on hand-made frames and on the tiny world."""
 
-import pytest
 import torch
 
-from occplug.run import runner
 from occplug_duocc.selection import SelectionTally, main, near_a_box, stream_selection_report
-
-SMALL = ["grid.range=[-8.0,-8.0,-1.0,8.0,8.0,5.4]", "model.encoder.out_channels=16", "model.encoder.width=16"]
 
 
 def test_near_a_box_is_an_xy_radius_both_ways():
@@ -37,14 +33,6 @@ def test_the_tally_gives_the_known_counts():
         "voxels_written_per_frame": 1.5,
         "written_inside_a_true_box_pct": 66.67,
     }
-
-
-@pytest.fixture(scope="module")
-def model_dm():
-    torch.manual_seed(0)
-    cfg = runner.load_config(["duocc/full", "occplug/trainer/debug"], ["data.preset=tiny", *SMALL])
-    dm, model = runner.build_run(cfg)
-    return model, dm
 
 
 def test_the_model_selects_at_evaluation_what_its_score_threshold_takes(model_dm):
