@@ -13,7 +13,7 @@ from typing import Annotated, Any
 import torch
 from torch import Tensor
 
-from occplug.constraints import NonNegative
+from occplug.constraints import NonNegative, UnitInterval
 from occplug.data import Batch
 from occplug.interfaces import ModelOutputs, SupervisionSource
 
@@ -175,6 +175,7 @@ class DuOccDetection(SupervisionSource):
         weight: ``lambda_det`` (paper and code: 0.2).
         cls_weight, box_weight: Sparse4D's focal and L1 weights (2.0, 0.25), in the loss and the matching.
         max_distance: the ground-truth radius, metres, or None.
+        reg_score_threshold: regress only the matches whose score exceeds this (the code: 0.05; None: all).
         free_label, ignore_label: unused (the model fills them in).
 
     Returns ``{"det_cls": scalar, "det_box": scalar}`` (summed over layers; with the detector's denoising groups
@@ -190,6 +191,7 @@ class DuOccDetection(SupervisionSource):
         cls_weight: Annotated[float, NonNegative] = 2.0,
         box_weight: Annotated[float, NonNegative] = 0.25,
         max_distance: Annotated[float, NonNegative] | None = None,
+        reg_score_threshold: Annotated[float, UnitInterval] | None = 0.05,
         free_label: int = 17,
         ignore_label: int | None = 255,
     ) -> None:
@@ -197,6 +199,7 @@ class DuOccDetection(SupervisionSource):
         self.weight = float(weight)
         self.cls_weight, self.box_weight = float(cls_weight), float(box_weight)
         self.max_distance = None if max_distance is None else float(max_distance)
+        self.reg_score_threshold = None if reg_score_threshold is None else float(reg_score_threshold)
 
     def forward(self, batch: Batch, outputs: ModelOutputs) -> dict[str, Tensor]:
         """``{"det_cls", "det_box"}`` (see the class docstring)."""
@@ -221,6 +224,7 @@ class DuOccDetection(SupervisionSource):
             [b.to(device) for b in boxes],
             cls_weight=self.cls_weight,
             box_weight=self.box_weight,
+            reg_score_threshold=self.reg_score_threshold,
         )
 
     @classmethod

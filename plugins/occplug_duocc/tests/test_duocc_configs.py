@@ -110,3 +110,16 @@ def test_the_detector_settings_default_to_the_detectors_own_defaults():
         if field.name != "anchor_range":
             default = params[field.name].default
             assert field.default == (tuple(default) if isinstance(default, list) else default), field.name
+
+
+def test_the_detector_pretraining_phase_trains_detection_alone_and_hands_its_detector_on():
+    from occplug.config import phase_specs
+    from occplug.run import runner
+
+    detector, full = phase_specs(runner.load_config(["duocc/detector_pretrain"], []))
+    assert (detector.name, full.name) == ("detector", "full")
+    assert set(detector.config["model"]["supervision"]) == {"detection"}
+    assert detector.config["model"]["supervision"]["detection"]["weight"] == 1.0
+    assert set(full.config["model"]["supervision"]) >= {"detection", "occupancy", "depth", "forecast", "occupied"}
+    (source,) = full.init_from
+    assert source.phase == "detector" and set(source.prefixes) == {"model.encoder", "model.scene.query_agg.detector"}

@@ -77,3 +77,18 @@ def test_each_pass_starts_from_a_cleared_stream(model_dm, monkeypatch):
     (boxes_a, scores_a, _), (boxes_b, scores_b, _) = seen[0][0][0], seen[2][0][0]
     assert torch.equal(boxes_a, boxes_b) and torch.equal(scores_a, scores_b)
     assert stream_detection_map(model, [])["classes"] == []
+
+
+def test_the_regression_gate_is_a_config_value(model_dm):
+    """duocc_detection's reg_score_threshold reaches the loss: at 1 no match is regressed, with None every one is."""
+    from occplug_duocc.supervision import DuOccDetection
+
+    model, dm = model_dm
+    data = dm.dataset("train")
+    batch = dm.collate([data[0], data[3]])
+    model.train()
+    out = model(batch)
+    gated = DuOccDetection(reg_score_threshold=1.0).train()(batch, out)
+    open_gate = DuOccDetection(reg_score_threshold=None).train()(batch, out)
+    assert float(gated["det_box"]) == 0.0 < float(open_gate["det_box"])
+    assert torch.equal(gated["det_cls"], open_gate["det_cls"])  # the gate touches the box term only
