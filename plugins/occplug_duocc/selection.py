@@ -12,6 +12,8 @@ Per frame it counts, for the learned detector's last layer:
   sigmoid, as :func:`~occplug_duocc.dqa.select_queries` without ground truth), and their **precision**: the share
   whose box centre lies within ``--radius`` (1 m) in ``x, y`` of a ground-truth box centre of a detection class;
   and the ground-truth boxes' **recall**: the share with a taken query within that radius;
+* for every ground-truth box, the distance (x, y) to the nearest query centre of any score (its mean: how close
+  the detector's boxes come to the objects at all);
 * the queries the model itself selected (``duocc_stream/dqa_selected``: at evaluation the score rule at the
   run's ``score_threshold``), their precision, and what DQA wrote: the voxels its boxes cover under the run's
   coverage rule (:meth:`~occplug_duocc.dqa.DynamicQueryAggregation.edges`), and the share of those that the same
@@ -66,6 +68,7 @@ class SelectionTally:
         self.true = [0] * len(self.thresholds)
         self.found = [0] * len(self.thresholds)
         self.selected = self.selected_true = self.written = self.written_in_box = 0
+        self.nearest = 0.0  # summed over true boxes: metres (x, y) to the nearest query centre, any score
 
     def add(
         self,
@@ -83,6 +86,8 @@ class SelectionTally:
         self.frames += 1
         self.boxes += len(gt_boxes)
         real, _ = near_a_box(centres, gt_boxes, radius)
+        if len(gt_boxes) and len(centres):
+            self.nearest += float(torch.cdist(gt_boxes[:, :2].double(), centres.double()).amin(1).sum())
         for i, t in enumerate(self.thresholds):
             take = scores > t
             self.taken[i] += int(take.sum())
@@ -106,6 +111,7 @@ class SelectionTally:
         return {
             "frames": self.frames,
             "true_boxes_per_frame": round(self.boxes / n, 2),
+            "nearest_query_to_a_true_box_m": round(self.nearest / self.boxes, 3) if self.boxes else None,
             "by_score_threshold": {
                 f"{t:g}": {
                     "queries_per_frame": round(self.taken[i] / n, 2),

@@ -1,5 +1,6 @@
 """occplug_duocc.selection: what QueryAgg's selection hands DQA, on hand-made frames and on the tiny world."""
 
+import pytest
 import torch
 
 from occplug_duocc.selection import SelectionTally, main, near_a_box, stream_selection_report
@@ -23,6 +24,7 @@ def test_the_tally_gives_the_known_counts():
     tally.add(scores[:0], centres[:0], gt[:0], selected[:0], None, None, 1.0)  # a frame with nothing
     r = tally.report()
     assert r["frames"] == 2 and r["true_boxes_per_frame"] == 1.0
+    assert r["nearest_query_to_a_true_box_m"] == pytest.approx((0.3 + 0.3) / 2)  # (0.3, 0) to (0, 0); (4, .3) to (4, 0)
     # > 0.2: queries 0, 1, 2 (0 and 2 real; both boxes found); > 0.5: query 0 only (one box found)
     assert r["by_score_threshold"]["0.2"] == {"queries_per_frame": 1.5, "precision_pct": 66.67, "recall_pct": 100.0}
     assert r["by_score_threshold"]["0.5"] == {"queries_per_frame": 0.5, "precision_pct": 100.0, "recall_pct": 50.0}
