@@ -54,6 +54,7 @@ ROWS = {
     "full_gt_boxes": ("full", "D with GT boxes (eval only)"),
     "full_gt_trained": ("full_gt_trained", "D trained and evaluated with GT boxes"),
     "footprint_gt_boxes": ("footprint_gt_boxes", "B + GT-box class footprints (the oracle's control)"),
+    "detector_pretrain": ("detector_pretrain", "D from a detection-only phase (its encoder and detector)"),
     "code_recipe": ("code_recipe", "D, the public code's recipe (concat, aabb, EMA, constant lr, its loss weights)"),
     "full_mask": ("full_mask", "D + mask decoder (training only)"),
     # Tab. 5: StreamAgg's components, one at a time (the last row, + occupied mask, is B)
@@ -78,6 +79,7 @@ DETECTOR_ROWS = (
     "full_mask",
     "full_gt_trained",
     "footprint_gt_boxes",
+    "detector_pretrain",
     "code_recipe",
 )
 GT_OVERRIDE = "model.scene.query_agg.gt_boxes=true"
@@ -112,10 +114,21 @@ def fit(config: str, seed: int, args: argparse.Namespace) -> Path:
 
 def gt_metrics(run: Path) -> dict:
     """Metrics of ``run``'s checkpoint validated with ground-truth boxes in DQA (cached beside the run)."""
-    return evaluate_in_process(run, "val", [GT_OVERRIDE], name="metrics_gt_boxes")
+    return evaluate_in_process(final_run(run), "val", [GT_OVERRIDE], name="metrics_gt_boxes")
+
+
+def final_run(run: Path) -> Path:
+    """``run``, or for a run of phases its last phase's folder (the model the row evaluates)."""
+    if not (run / "checkpoints").is_dir() and (run / "metrics.json").is_file():
+        phases = list(json.loads((run / "metrics.json").read_text()).get("phases") or [])
+        if phases:
+            return run / phases[-1]
+    return run
 
 
 def checkpoint(run: Path) -> Path:
+    """The run's last checkpoint (a run of phases: its last phase's)."""
+    run = final_run(run)
     last = run / "checkpoints" / "last.ckpt"
     if last.is_file():
         return last
@@ -136,7 +149,7 @@ def detection_map_of(run: Path, gt_boxes: bool) -> float:
 
     from .detection_eval import stream_detection_map
 
-    saved = yaml.safe_load((run / "config.yaml").read_text())
+    saved = yaml.safe_load((final_run(run) / "config.yaml").read_text())
     cfg = runner.load_config([], [GT_OVERRIDE] if gt_boxes else [], saved=saved)
     dm, model = runner.build_run(cfg)
     model.load_state_dict(runner.load_checkpoint(checkpoint(run))["state_dict"])
@@ -188,7 +201,7 @@ def main() -> None:
             runs.setdefault(row, run)
             if args.eval_set:  # re-scored with evaluation-only overrides (cached beside the run)
                 gt = [GT_OVERRIDE] if row == "full_gt_boxes" else []
-                metrics = evaluate_in_process(run, "val", [*gt, *args.eval_set])
+                metrics = evaluate_in_process(final_run(run), "val", [*gt, *args.eval_set])
             elif row == "full_gt_boxes":
                 metrics = gt_metrics(run)
             else:
