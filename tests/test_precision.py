@@ -56,3 +56,30 @@ def test_bf16_autocast_forward_keeps_the_volume_and_metrics_in_float32() -> None
     assert metric.confmat.dtype == torch.int64
     assert all(v.dtype == torch.float32 for v in values.values())
     assert math.isfinite(float(values["IoU"]))
+
+
+def test_a_bf16_recipe_on_a_machine_without_a_gpu_trains_at_32_true_with_one_notice(monkeypatch) -> None:
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
+    notice = runner.cpu_precision_notice({"precision": "bf16-mixed"})
+    assert notice is not None and notice.startswith("notice: trainer.precision=bf16-mixed") and "\n" not in notice
+    assert runner.cpu_precision_notice({"precision": "bf16-mixed", "accelerator": "auto"}) == notice
+    # the user's explicit choices are kept: a named CPU, full precision, bf16 weights without autocast
+    assert runner.cpu_precision_notice({"precision": "bf16-mixed", "accelerator": "cpu"}) is None
+    assert runner.cpu_precision_notice({"precision": "32-true"}) is None
+    assert runner.cpu_precision_notice({"precision": "bf16-true"}) is None
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert runner.cpu_precision_notice({"precision": "bf16-mixed"}) is None
+
+
+def test_fit_of_a_bf16_recipe_without_a_gpu_says_so_and_runs_in_float32(tmp_path: Path, monkeypatch, capsys) -> None:
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
+    run = tmp_path / "auto"
+    overrides = ["data.preset=tiny", "trainer.precision=bf16-mixed", "trainer.accelerator=auto"]
+    run_config(BASELINE, run_dir=run, overrides=overrides)  # the debug trainer's step limits, not its CPU
+    err = capsys.readouterr().err
+    assert sum(line.startswith("notice: trainer.precision=bf16-mixed") for line in err.splitlines()) == 1
+    assert json.loads((run / "metrics.json").read_text())["global_step"] == 2
+    trainer = runner._trainer({"trainer": {"precision": "bf16-mixed"}}, None, [])
+    assert trainer.precision == "32-true"
