@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import lightning as L
 import torch
 
 from occplug.config import ConfigError
@@ -274,8 +275,16 @@ def _state(path: Path) -> dict[str, torch.Tensor]:
 def test_three_phase_run_layout_freezing_and_pseudo_labels(tmp_path):
     cfg = runner.load_config([SEMI], SMALL)
     run = tmp_path / "run"
-    results = fit_phases(cfg, run)
+
+    class Seen(L.Callback):  # a caller's callback joins every phase's trainer
+        folders: list[str] = []
+
+        def on_fit_start(self, trainer, pl_module) -> None:
+            self.folders.append(Path(trainer.default_root_dir).name)
+
+    results = fit_phases(cfg, run, callbacks=[Seen()])
     assert "mIoU" in results
+    assert Seen.folders == ["teacher", "student", "finetune"]
     for phase in ("teacher", "student", "finetune"):
         assert (run / phase / "DONE").is_file() and (run / phase / "checkpoints" / "last.ckpt").is_file()
     summary = json.loads((run / "metrics.json").read_text())

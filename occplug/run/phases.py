@@ -241,8 +241,13 @@ def check_phases(specs: Sequence[PhaseSpec]) -> None:
             raise runner.RunError(f"{where}: {exc}") from None
 
 
-def fit_phases(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict[str, float]:
-    """Run the phases of ``cfg`` in order into ``run_dir``; return the final phase's validation metrics."""
+def fit_phases(
+    cfg: dict[str, Any], run_dir: Path, resume: bool = False, callbacks: Sequence[Callback] = ()
+) -> dict[str, float]:
+    """Run the phases of ``cfg`` in order into ``run_dir``; return the final phase's validation metrics.
+
+    ``callbacks`` join every phase's trainer (as :func:`occplug.run.runner.fit`'s do; e.g. a probe timing steps).
+    """
     specs = phase_specs(cfg)
     by_name = {s.name: s for s in specs}
     if runner.is_rank_zero() and not resume and run_dir.exists() and any(run_dir.iterdir()):
@@ -276,11 +281,15 @@ def fit_phases(cfg: dict[str, Any], run_dir: Path, resume: bool = False) -> dict
             shutil.rmtree(phase_dir)  # killed before its first checkpoint: start it again
         setup, frozen = _setup(spec, run_dir, fresh=not has_checkpoint)
         print(f"phase {spec.name} ({len(results) + 1}/{len(specs)})")
-        final = runner.fit(config, phase_dir, resume=has_checkpoint, setup=setup, callbacks=[FrozenModulesEval(frozen)])
+        final = runner.fit(
+            config, phase_dir, resume=has_checkpoint, setup=setup, callbacks=[FrozenModulesEval(frozen), *callbacks]
+        )
         if runner.is_rank_zero():
             results[spec.name] = json.loads((phase_dir / "metrics.json").read_text())
             runner.write_text_atomic(phase_dir / DONE, "finished\n")
-            runner.write_json(run_dir / "metrics.json", {**results[spec.name], "final_phase": spec.name, "phases": results})
+            runner.write_json(
+                run_dir / "metrics.json", {**results[spec.name], "final_phase": spec.name, "phases": results}
+            )
     if final is None:  # every phase had finished before: the final phase's recorded metrics
         recorded = results.get(specs[-1].name, {})
         final = {k: v for k, v in recorded.items() if k not in RUN_RECORD and isinstance(v, (int, float))}
