@@ -6,9 +6,9 @@ import json
 import re
 from pathlib import Path
 
+import lightning as L
 import numpy as np
 import pytest
-import lightning as L
 import torch
 
 from occplug.config import ConfigError

@@ -1,9 +1,9 @@
 """Where a training step's memory goes: the tensors autograd saves for the backward pass, per module.
 
 A training step's peak is mostly the activations kept for the backward pass. :class:`SavedTensorProfile` counts
-them: while it is active, every tensor autograd saves (other than the model's parameters and buffers) is charged to the innermost module whose ``forward`` is
-running (``torch.autograd.graph.saved_tensors_hooks`` and module forward hooks), each storage once (a view of a
-tensor already counted adds nothing). Use it around one forward + loss::
+them: while it is active, every tensor autograd saves (other than the model's parameters and buffers) is charged to
+the innermost module whose ``forward`` is running (``torch.autograd.graph.saved_tensors_hooks`` and module forward
+hooks), each storage once (a view of a tensor already counted adds nothing). Use it around one forward + loss::
 
     with SavedTensorProfile(model) as profile:
         loss = model.training_step(batch, 0)
