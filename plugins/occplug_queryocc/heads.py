@@ -16,6 +16,7 @@ from typing import Annotated
 
 import torch
 from torch import Tensor, nn
+from torch.utils.checkpoint import checkpoint
 
 from occplug.constraints import NonNegative, Positive, Range
 from occplug.data import Batch
@@ -55,6 +56,11 @@ class QueryDecoder(OccupancyHead):
         voxel_samples: points per axis at which each evaluation voxel is queried (1, the paper's: its centre;
             ``s > 1``: the most occupied of its ``s^3`` sub-cell centres; the core's
             :attr:`~occplug.interfaces.OccupancyHead.voxel_samples`). Evaluation only: training is unchanged.
+        checkpoint_queries: with gradients on, decode the queries in chunks of this many per sample and keep
+            none of a chunk's activations for the backward pass (``torch.utils.checkpoint``: each chunk's forward
+            runs again in the backward). The values and gradients are those of one pass (tested); the memory of
+            the decoder's activations stops growing with the query count (at the paper's 800k queries per sample
+            they are about 10 GB). 0: off.
 
     Forward returns ``{"logits": (B, K, X, Y, Z)}`` at the centres of the scene's own grid's cells (a BEV
     grid has few z cells: this is cheap); the model evaluates through :meth:`occupancy_logits` at the
@@ -77,6 +83,7 @@ class QueryDecoder(OccupancyHead):
         time_scale: Annotated[float, Positive] = 0.5,
         occupancy_threshold: Annotated[float, OpenUnit] = 0.5,
         voxel_samples: Annotated[int, Positive] = 1,
+        checkpoint_queries: Annotated[int, NonNegative] = 0,
     ) -> None:
         super().__init__()
         if not 0.0 < occupancy_threshold < 1.0:
@@ -84,6 +91,7 @@ class QueryDecoder(OccupancyHead):
         self.num_classes, self.free_label = int(num_classes), free_label
         self.occupancy_threshold = float(occupancy_threshold)
         self.voxel_samples = int(voxel_samples)
+        self.checkpoint_queries = int(checkpoint_queries)
         self.num_offsets, self.offset_range, self.time_scale = int(offsets), float(offset_range), float(time_scale)
         self.encode_query = nn.Sequential(nn.Linear(4, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, hidden))
         self.read = nn.Linear(in_channels, hidden)
@@ -105,6 +113,22 @@ class QueryDecoder(OccupancyHead):
         """Occupancy logit ``(B, P)``, class logits ``(B, P, K)`` (and features ``(B, P, F)``) at ``(B, P, 3)``
         ego-frame points of the current frame, at ``(B, P)`` seconds relative to it."""
         self.check_query(points, times)
+        chunk = self.checkpoint_queries
+        if chunk and torch.is_grad_enabled() and points.shape[1] > chunk:
+            parts = [
+                checkpoint(self._decode, scene, points[:, i : i + chunk], None if times is None else times[:, i : i + chunk],
+                           use_reentrant=False)
+                for i in range(0, points.shape[1], chunk)
+            ]  # fmt: skip
+            return QueryResult(
+                class_logits=torch.cat([r.class_logits for r in parts], 1),
+                occupancy_logit=torch.cat([r.occupancy_logit for r in parts], 1),
+                features=None if self.features is None else torch.cat([r.features for r in parts], 1),
+            )
+        return self._decode(scene, points, times)
+
+    def _decode(self, scene: Scene, points: Tensor, times: Tensor | None) -> QueryResult:
+        """:meth:`query` in one pass."""
         b, p = points.shape[:2]
         grid = scene.grid
         norm = grid.normalize(points.float())  # (B, P, 3) in [-1, 1] (x, y contracted on a contracted grid)

@@ -243,3 +243,29 @@ def test_the_contraction_ablations_lay_a_metric_plane_of_the_same_cells(name, ha
     if grid.contraction is None:  # metric: a point at 0.9 of the half-range lies in the cell that range says
         index = grid.coord_to_index(torch.tensor([[0.9 * half, 0.0, 0.0]]))
         assert int(index[0, 0]) == int(0.95 * cells)
+
+
+def test_checkpointed_query_chunks_give_the_values_and_gradients_of_one_pass():
+    torch.manual_seed(0)
+    bev = GridSpec((-20, -20, -1, 20, 20, 5.4), (1.0, 1.0, 6.4), contraction={"near": 16.0, "kappa": 0.8})
+    plain = QueryDecoder(8, hidden=16, offsets=3, num_blocks=2, feature_dim=5)
+    chunked = QueryDecoder(8, hidden=16, offsets=3, num_blocks=2, feature_dim=5, checkpoint_queries=7)
+    chunked.load_state_dict(plain.state_dict())
+    points = torch.rand(2, 30, 3) * torch.tensor([40.0, 40.0, 6.4]) - torch.tensor([20.0, 20.0, 1.0])
+    times = torch.tensor([-0.5, 0.0, 0.5]).repeat(2, 10)
+    results, grads = [], []
+    for head in (plain, chunked):
+        plane = torch.randn(2, 8, *bev.shape[:2], generator=torch.Generator().manual_seed(1)).requires_grad_()
+        res = head.query(BevScene(plane, bev), points, times)
+        loss = res.occupancy_logit.square().sum() + res.class_logits.sin().sum() + res.features.cos().sum()
+        loss.backward()
+        results.append(res)
+        grads.append([plane.grad, *(p.grad for p in head.parameters())])
+    for a, b in zip((results[0].occupancy_logit, results[0].class_logits, results[0].features),
+                    (results[1].occupancy_logit, results[1].class_logits, results[1].features), strict=True):  # fmt: skip
+        assert a.shape == b.shape and torch.allclose(a, b, rtol=1e-5, atol=1e-6)
+    for a, b in zip(*grads, strict=True):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-6)
+    with torch.no_grad():  # without gradients: one pass whatever the setting
+        assert torch.equal(chunked.query(BevScene(plane, bev), points, times).occupancy_logit,
+                           plain.query(BevScene(plane, bev), points, times).occupancy_logit)  # fmt: skip
