@@ -130,6 +130,7 @@ class _DecoderLayer(nn.Module):
         groups: int,
         dropout: float,
         interaction: bool,
+        checkpoint: bool = False,
     ) -> None:
         super().__init__()
         self.interaction = interaction
@@ -137,7 +138,9 @@ class _DecoderLayer(nn.Module):
             self.temporal_attn = nn.MultiheadAttention(channels, heads, dropout=dropout, batch_first=True)
             self.self_attn = nn.MultiheadAttention(channels, heads, dropout=dropout, batch_first=True)
             self.norm_attn = nn.LayerNorm(channels)
-        self.deformable = DeformableImageAggregation(channels, level_channels, num_learnable_points, groups, dropout)
+        self.deformable = DeformableImageAggregation(
+            channels, level_channels, num_learnable_points, groups, dropout, checkpoint=checkpoint
+        )
         self.ffn = AsymmetricFFN(2 * channels, channels, 4 * channels, dropout)
         self.norm_ffn = nn.LayerNorm(channels)
         self.refine = nn.Sequential(_mlp_block(channels, channels), nn.Linear(channels, BOX_DIM))
@@ -318,6 +321,9 @@ class SparseDetector(nn.Module):
         dn_noise_scale: their noise per encoded box dimension (code ``[2.0] * 3 + [0.5] * 7``).
         max_dn_gt: ground truths per sample that get denoising queries (code 32).
         dn_negatives: add a negative (1 to 2 noise scales away) per ground truth (code: on).
+        checkpoint_aggregation: recompute each layer's image samples in the backward pass instead of keeping
+            them (:class:`~.image_aggregation.DeformableImageAggregation` ``checkpoint``; same values and
+            gradients, less training memory).
 
     Forward: :meth:`forward` (tensors) or :meth:`forward_batch` (a :class:`~occplug.Batch`).
     """
@@ -345,6 +351,7 @@ class SparseDetector(nn.Module):
         dn_noise_scale: Sequence[float] = DN_NOISE_SCALE,
         max_dn_gt: Annotated[int, Positive] = 32,
         dn_negatives: bool = True,
+        checkpoint_aggregation: bool = False,
     ) -> None:
         super().__init__()
         if len(dn_noise_scale) != BOX_DIM:
@@ -383,7 +390,15 @@ class SparseDetector(nn.Module):
         self.anchor_encoder = AnchorEncoder(channels)
         self.layers = nn.ModuleList(
             _DecoderLayer(
-                channels, num_classes, level_channels, heads, num_learnable_points, groups, dropout, interaction=i > 0
+                channels,
+                num_classes,
+                level_channels,
+                heads,
+                num_learnable_points,
+                groups,
+                dropout,
+                interaction=i > 0,
+                checkpoint=checkpoint_aggregation,
             )
             for i in range(num_layers)
         )

@@ -121,6 +121,7 @@ class DetectorSettings:
     dn_noise_scale: Annotated[tuple[Annotated[float, NonNegative], ...], Length(exact=10)] = DN_NOISE_SCALE
     max_dn_gt: Annotated[int, Positive] = 32
     dn_negatives: bool = True
+    checkpoint_aggregation: bool = False
 
 
 @settings

@@ -88,6 +88,28 @@ def test_detector_output_shapes_and_state_over_two_frames():
     torch.testing.assert_close(encode_boxes(nxt.boxes[-1]), torch.cat([enc[..., :6], unit, enc[..., 8:]], -1))
 
 
+def test_checkpointed_aggregation_gives_the_values_and_gradients_of_the_plain_one():
+    torch.manual_seed(0)
+    plain, chunked = _detector(), _detector(checkpoint_aggregation=True)
+    chunked.load_state_dict(plain.state_dict())
+    k, c2e, a = _cameras(b=2, n=2)
+    results = []
+    for det in (plain, chunked):
+        levels = [t.requires_grad_() for t in _levels(2, 2)]
+        out = det(levels, (H, W), k, c2e, a, ego_to_global=_pose(b=2), timestamp=torch.zeros(2, dtype=torch.float64))
+        loss = sum(t.square().sum() for t in out.cls_logits) + out.features.sin().sum() + out.boxes[-1].sum()
+        loss.backward()
+        results.append((out.cls_logits[-1], out.features, [t.grad for t in levels], [p.grad for p in det.parameters()]))
+    (cls0, f0, lg0, pg0), (cls1, f1, lg1, pg1) = results
+    torch.testing.assert_close(cls0, cls1)
+    torch.testing.assert_close(f0, f1)
+    for g0, g1 in zip([*lg0, *pg0], [*lg1, *pg1], strict=True):
+        assert (g0 is None) == (g1 is None)
+        if g0 is not None:
+            torch.testing.assert_close(g0, g1, rtol=1e-4, atol=1e-6)
+    assert any(g is not None and g.abs().sum() > 0 for g in lg1)  # the image levels get gradients through it
+
+
 def test_a_state_reset_everywhere_gives_the_stateless_output_on_the_masked_path(monkeypatch):
     """Eager skips an all-invalid state; an exported graph cannot branch and runs the masked path: the same result."""
     torch.manual_seed(0)
