@@ -39,6 +39,7 @@ TOP_LEVEL: dict[str, Slot | str] = {
     "eval_mask": "none|camera|lidar|camera_and_lidar: voxels every masked metric evaluates (default: the data set's)",
     "checkpoint": "mapping of lightning ModelCheckpoint arguments",
     "callbacks": Slot("callback", mapping=True),
+    "init_from": "list of {file, map, strict}: weights loaded from state-dict files before fit; occplug.run.weights",
     "phases": "mapping phase name -> overlay of this config (+ freeze, init_from, pseudo_labels_from); occplug.config.phases",
 }
 

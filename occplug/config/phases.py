@@ -23,7 +23,9 @@ mappings merge key by key, anything else replaces, and a key written ``~name`` r
   them stay in eval mode (BatchNorm statistics untouched).
 * ``init_from``: ``[{phase, prefixes}]``: before the phase trains, copy the weights under ``prefixes``
   from an earlier phase's last checkpoint (later entries win; parts the earlier phase lacks keep their
-  initialisation).
+  initialisation). An entry may instead read a state-dict file, ``{file, map, strict}``, as the
+  top-level ``init_from`` does (:func:`parse_init_from`); a top-level ``init_from`` applies to every
+  phase that starts afresh, before the phase's own entries (``~init_from: null`` in an overlay drops it).
 * ``pseudo_labels_from``: ``{phase, head, subset, confidence_threshold}``: the earlier phase's model
   predicts the named head's classes and confidence once, offline, on un-augmented frames of the
   training ``subset`` (default ``unlabelled``); the phase trains on them where a frame has no real
@@ -39,7 +41,16 @@ from typing import Any
 
 from occplug.errors import ConfigError
 
-__all__ = ["PHASE_KEYS", "InitFrom", "PhaseSpec", "PseudoLabelsFrom", "merge_overlay", "phase_specs"]
+__all__ = [
+    "PHASE_KEYS",
+    "InitFrom",
+    "PhaseSpec",
+    "PseudoLabelsFrom",
+    "merge_overlay",
+    "parse_init_from",
+    "phase_specs",
+    "state_prefix",
+]
 
 #: Keys of a phase overlay that are not run-config keys.
 PHASE_KEYS = ("freeze", "init_from", "pseudo_labels_from")
@@ -52,10 +63,21 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]*$")
 
 @dataclass(frozen=True)
 class InitFrom:
-    """Copy the weights under ``prefixes`` from phase ``phase``'s last checkpoint."""
+    """Weights copied into a freshly built model before it trains (:func:`occplug.run.weights.init_from`).
 
-    phase: str
-    prefixes: tuple[str, ...]
+    From an earlier phase: ``phase`` names it and ``prefixes`` (``model`` or ``model.<attribute path>``)
+    the weights copied from its last checkpoint. From a state-dict file: ``phase`` is None, ``file`` is
+    the path and ``map`` the key map, ``(foreign key prefix, state-dict prefix or None)`` pairs, longest
+    foreign prefix first; the state-dict prefix is the target without ``model.`` (``encoder.backbone.``),
+    None drops the keys. ``strict``: every mapped key must name a tensor of the model, and every tensor
+    under a mapped target must be loaded.
+    """
+
+    phase: str | None
+    prefixes: tuple[str, ...] = ("model",)
+    file: str | None = None
+    map: tuple[tuple[str, str | None], ...] = ()
+    strict: bool = True
 
 
 @dataclass(frozen=True)
@@ -123,20 +145,96 @@ def _earlier(name: Any, before: list[str], where: str) -> str:
     return name
 
 
-def _init_from(value: Any, before: list[str], where: str) -> tuple[InitFrom, ...]:
+def state_prefix(prefix: str) -> str:
+    """``model.encoder`` -> ``encoder`` (state-dict keys have no ``model.``); ``model`` / ``model.`` -> ``""``."""
+    return "" if prefix in ("model", "model.") else prefix[len("model.") :]
+
+
+def _key_map(value: Any, where: str) -> tuple[tuple[str, str | None], ...]:
+    """A file entry's ``map`` (foreign prefix -> ``model...`` prefix or null) as state-dict pairs, longest first."""
+    if value is None:
+        return (("", ""),)
+    if not isinstance(value, dict) or not value:
+        raise ConfigError(
+            f"{where}: expected a mapping of foreign key prefix -> model prefix or null "
+            f"(e.g. {{'img_backbone.': model.encoder.backbone.}}), got {value!r}"
+        )
+    pairs: list[tuple[str, str | None]] = []
+    for source, target in value.items():
+        at = f"{where}.{source}"
+        if not isinstance(source, str):
+            raise ConfigError(f"{at}: a foreign key prefix is a string, got {source!r}")
+        if target is None:
+            pairs.append((source, None))
+            continue
+        if not isinstance(target, str) or not (target == "model" or target.startswith("model.")):
+            raise ConfigError(
+                f"{at}: expected a prefix of the model's weights starting with 'model.' "
+                f"(e.g. model.encoder.backbone.) or null to drop these keys, got {target!r}"
+            )
+        into = state_prefix(target)
+        if into and source and source.endswith(".") != into.endswith("."):
+            raise ConfigError(
+                f"{at}: {source!r} -> {target!r}: a prefix ending in '.' maps onto one ending in '.' (and a whole key "
+                "onto a whole key)"
+            )
+        if (not into and source and not source.endswith(".")) or (not source and into and not into.endswith(".")):
+            raise ConfigError(f"{at}: {source!r} -> {target!r}: every key moves under a prefix ending in '.'")
+        pairs.append((source, into))
+    return tuple(sorted(pairs, key=lambda pair: -len(pair[0])))
+
+
+def parse_init_from(value: Any, before: list[str] | None, where: str) -> tuple[InitFrom, ...]:
+    """Read an ``init_from`` list: ``{phase, prefixes}`` and ``{file, map, strict}`` entries.
+
+    Args:
+        value: the list as written.
+        before: the earlier phases (a phase overlay), or None at the top level, where only file
+            entries are allowed.
+        where: the config key, for messages.
+
+    A file entry ``{file: PATH, map: {FOREIGN_PREFIX: model.PREFIX | null, ...}, strict: true}`` renames
+    each key of the file's state dict by the longest foreign prefix it starts with (``map`` absent: the
+    file's keys are the model's own, as in an occplug checkpoint); keys no prefix matches, or mapped to
+    null, are not loaded.
+
+    Raises:
+        ConfigError: one line naming the entry's key.
+    """
     if not isinstance(value, list):
-        raise ConfigError(f"{where}: expected a list of {{phase, prefixes}}, got {value!r}")
+        shape = "{file, map, strict}" if before is None else "{phase, prefixes} or {file, map, strict}"
+        raise ConfigError(f"{where}: expected a list of {shape}, got {value!r}")
     out = []
     for i, item in enumerate(value):
         at = f"{where}[{i}]"
-        if not isinstance(item, dict) or set(item) - {"phase", "prefixes"} or "phase" not in item:
-            raise ConfigError(f"{at}: expected {{phase: NAME, prefixes: [model...]}}, got {item!r}")
-        out.append(
-            InitFrom(
-                _earlier(item["phase"], before, f"{at}.phase"),
-                _prefixes(item.get("prefixes", ["model"]), f"{at}.prefixes"),
+        if isinstance(item, dict) and "file" in item and not set(item) - {"file", "map", "strict"}:
+            if not isinstance(item["file"], str) or not item["file"]:
+                raise ConfigError(f"{at}.file: expected the path of a state-dict file, got {item['file']!r}")
+            strict = item.get("strict", True)
+            if not isinstance(strict, bool):
+                raise ConfigError(f"{at}.strict: expected true or false, got {strict!r}")
+            out.append(InitFrom(None, file=item["file"], map=_key_map(item.get("map"), f"{at}.map"), strict=strict))
+        elif before is None:
+            raise ConfigError(
+                f"{at}: expected {{file: PATH, map: {{FOREIGN_PREFIX: model.PREFIX}}, strict: true}}, got {item!r}"
+                + (
+                    " ({phase, prefixes} entries belong in a phase's overlay)"
+                    if isinstance(item, dict) and "phase" in item
+                    else ""
+                )
             )
-        )
+        elif not isinstance(item, dict) or set(item) - {"phase", "prefixes"} or "phase" not in item:
+            raise ConfigError(
+                f"{at}: expected {{phase: NAME, prefixes: [model...]}} or {{file: PATH, map: {{...}}, strict: true}}, "
+                f"got {item!r}"
+            )
+        else:
+            out.append(
+                InitFrom(
+                    _earlier(item["phase"], before, f"{at}.phase"),
+                    _prefixes(item.get("prefixes", ["model"]), f"{at}.prefixes"),
+                )
+            )
     return tuple(out)
 
 
@@ -194,7 +292,7 @@ def phase_specs(config: dict[str, Any]) -> list[PhaseSpec]:
         if "freeze" in overlay:
             spec.freeze = _prefixes(overlay["freeze"], f"{where}.freeze")
         if "init_from" in overlay:
-            spec.init_from = _init_from(overlay["init_from"], before, f"{where}.init_from")
+            spec.init_from = parse_init_from(overlay["init_from"], before, f"{where}.init_from")
         if overlay.get("pseudo_labels_from") is not None:
             spec.pseudo_labels_from = _pseudo(
                 overlay["pseudo_labels_from"], before, specs, f"{where}.pseudo_labels_from"

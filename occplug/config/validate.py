@@ -23,7 +23,15 @@ from occplug.slots import TOP_LEVEL, Slot, component_params, slot_of
 
 from .errors import ConfigError
 
-__all__ = ["RUN_CONSTRAINTS", "OPTIMIZERS", "SCHEDULERS", "UsedComponent", "check_type", "validate", "validate_component"]
+__all__ = [
+    "RUN_CONSTRAINTS",
+    "OPTIMIZERS",
+    "SCHEDULERS",
+    "UsedComponent",
+    "check_type",
+    "validate",
+    "validate_component",
+]
 
 #: Optimizer names a config may use (``optimizer.type``); never an import path.
 OPTIMIZERS = ("adamw", "adam", "sgd")
@@ -325,6 +333,10 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
         raise ConfigError(f"seed: expected int, got {_describe(config['seed'])}")
     if "grid" in config:
         _validate_grid(config["grid"])
+    if config.get("init_from") is not None:
+        from .phases import parse_init_from
+
+        parse_init_from(config["init_from"], None, "init_from")
     for section, slot in TOP_LEVEL.items():
         if isinstance(slot, Slot) and section in config:
             v.slot(config[section], slot, section)

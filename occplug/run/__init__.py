@@ -4,6 +4,8 @@
   checkpoints; the run directory and its records;
 * :mod:`.training`: the optimiser, the learning-rate schedule and the effective batch a config asks for;
 * :mod:`.phases`: a config with ``phases:`` (each phase a fit, with ``init_from``, ``freeze``, pseudo labels);
+* :mod:`.weights`: ``init_from``: weights from an earlier phase, or from a state-dict file with a key map;
+* :mod:`.checkpoints`: ``RunError`` and the safe checkpoint reader (both also in :mod:`.runner`);
 * :mod:`.loggers`: the loggers a config names (CSV always, TensorBoard, MLflow, W&B);
 * :mod:`.bench`: the cost / accuracy benchmark (``occplug bench``) and the ablation scripts' helpers.
 

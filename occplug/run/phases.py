@@ -16,7 +16,8 @@ uninterrupted one does.
 
 Everything that can be checked before training is checked first, for every phase: each phase's data
 module and model are built, ``freeze`` and ``init_from`` prefixes must name parameters of the models
-involved, a phase must train something, and one batch runs through it (``runner.first_batch_check``).
+involved (``init_from`` files are read and fitted: :mod:`occplug.run.weights`), a phase must train
+something, and one batch runs through it (``runner.first_batch_check``).
 """
 
 from __future__ import annotations
@@ -32,10 +33,11 @@ import torch
 import yaml
 from lightning.pytorch.callbacks import Callback
 
-from occplug.config.phases import InitFrom, PhaseSpec, PseudoLabelsFrom, phase_specs
+from occplug.config.phases import PhaseSpec, PseudoLabelsFrom, phase_specs
 from occplug.data.teacher_labels import DONE, META, write_teacher_file
 from occplug.interfaces.model import OccupancyModel
 from occplug.run import runner
+from occplug.run.weights import init_from, init_from_config, matching
 from occplug.streams import find_streams
 
 __all__ = ["FrozenModulesEval", "fit_phases", "freeze", "init_from", "matching", "write_teacher_labels"]
@@ -45,17 +47,6 @@ __all__ = ["FrozenModulesEval", "fit_phases", "freeze", "init_from", "matching",
 RUN_RECORD = frozenset(
     {"global_step", "epoch", "effective_batch", "effective_batch_parts", "lr", "label_fraction", "subset", "eval_mask"}
 )
-
-
-def _state_prefix(prefix: str) -> str:
-    """``model.encoder`` -> ``encoder`` (state-dict keys have no ``model.``); ``model`` -> ``""``."""
-    return "" if prefix == "model" else prefix[len("model.") :]
-
-
-def matching(names: Sequence[str], prefix: str) -> list[str]:
-    """The parameter / state-dict names under ``prefix`` (``model`` or ``model.<attribute path>``)."""
-    p = _state_prefix(prefix)
-    return [n for n in names if not p or n == p or n.startswith(p + ".")]
 
 
 def freeze(model: OccupancyModel, prefixes: Sequence[str], where: str) -> list[str]:
@@ -101,33 +92,6 @@ class FrozenModulesEval(Callback):
 
 def _last_checkpoint(run_dir: Path, phase: str) -> Path:
     return run_dir / phase / "checkpoints" / "last.ckpt"
-
-
-def init_from(model: OccupancyModel, entries: Sequence[InitFrom], run_dir: Path, where: str) -> None:
-    """Copy the weights under each entry's prefixes from its phase's last checkpoint (later entries win).
-
-    Parts of ``model`` the earlier phase lacks keep their initialisation (non-strict); a prefix that
-    names nothing in either model, or a tensor whose shape differs, is a one-line error.
-    """
-    own = model.state_dict()
-    for i, entry in enumerate(entries):
-        path = _last_checkpoint(run_dir, entry.phase)
-        state = runner.load_checkpoint(path)["state_dict"]
-        chosen: dict[str, torch.Tensor] = {}
-        for prefix in entry.prefixes:
-            keys = [k for k in matching(list(state), prefix) if k in own]
-            if not keys:
-                raise runner.RunError(
-                    f"{where}[{i}]: {prefix!r} names nothing that phase '{entry.phase}' and this phase share"
-                )
-            for key in keys:
-                if state[key].shape != own[key].shape:
-                    raise runner.RunError(
-                        f"{where}[{i}]: {key} is {tuple(state[key].shape)} in phase '{entry.phase}' but "
-                        f"{tuple(own[key].shape)} here"
-                    )
-                chosen[key] = state[key]
-        model.load_state_dict(chosen, strict=False)
 
 
 def write_teacher_labels(teacher: PhaseSpec, consumer: PhaseSpec, source: PseudoLabelsFrom, run_dir: Path) -> Path:
@@ -209,7 +173,9 @@ def _setup(spec: PhaseSpec, run_dir: Path, fresh: bool) -> tuple[Any, list[str]]
 
     def setup(model: OccupancyModel) -> None:
         if fresh and spec.init_from:
-            init_from(model, spec.init_from, run_dir, f"phases.{spec.name}.init_from")
+            lines = init_from(model, spec.init_from, run_dir, f"phases.{spec.name}.init_from")
+            if runner.is_rank_zero():
+                print("\n".join(lines))
         if spec.freeze:
             frozen[:] = freeze(model, spec.freeze, f"phases.{spec.name}.freeze")
 
@@ -227,7 +193,11 @@ def check_phases(specs: Sequence[PhaseSpec]) -> None:
         except runner.RunError as exc:
             raise runner.RunError(f"{where}: {exc}") from None
         keys[spec.name] = list(model.state_dict())
+        init_from_config(model, spec.config)  # the files: present, readable, fitting (the phases' checkpoints: below)
+        init_from(model, spec.init_from, Path(), f"{where}.init_from", files_only=True)
         for i, entry in enumerate(spec.init_from):
+            if entry.phase is None:
+                continue
             for prefix in entry.prefixes:
                 if not set(matching(keys[entry.phase], prefix)) & set(keys[spec.name]):
                     raise runner.RunError(

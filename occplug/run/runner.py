@@ -43,7 +43,9 @@ from occplug.data.formats import FormatError
 from occplug.errors import UserError
 from occplug.interfaces.model import OccupancyModel
 from occplug.plugins import get_registry, plugin_reports
+from occplug.run.checkpoints import RunError, load_checkpoint
 from occplug.run.loggers import build_loggers, quiet_lightning_tips
+from occplug.run.weights import init_from_config
 from occplug.streams import check_streaming
 
 __all__ = [
@@ -68,10 +70,6 @@ __all__ = [
 ]
 
 CHECKPOINT_KEY = "occplug"
-
-
-class RunError(Exception):
-    """A user-facing problem with a run (exit code 2 from the CLI)."""
 
 
 #: The evaluation mask when a config names none (the Occ3D-nuScenes convention).
@@ -431,8 +429,9 @@ def fit(
         cfg: the resolved config.
         run_dir: the run directory.
         resume: continue from ``run_dir/checkpoints/last.ckpt``.
-        setup: called with the built model before anything runs (a phase loads earlier weights and
-            freezes parameters here).
+        setup: called with the built model before anything runs, after the config's ``init_from``
+            (:mod:`occplug.run.weights`; not on resume): a phase loads earlier weights and freezes
+            parameters here.
         callbacks: further Lightning callbacks.
     """
     if cfg.get("phases") is not None:
@@ -451,6 +450,10 @@ def fit(
     L.seed_everything(int(cfg.get("seed", 0)), workers=True, verbose=False)
     dm, model = build_run(cfg)
     check_trainable(model)
+    if not resume:  # the top-level init_from (state-dict files); a resumed run's weights come from its checkpoint
+        for line in init_from_config(model, cfg):
+            if is_rank_zero():
+                print(line)
     if setup is not None:
         setup(model)
     first_batch_check(model, dm)
@@ -546,19 +549,6 @@ def _original_message(exc: BaseException) -> str:
     if marker in text:  # "Caught FormatError in DataLoader worker ... Original Traceback ... FormatError: <msg>"
         return text.rsplit(marker, 1)[1].splitlines()[0]
     return text.splitlines()[0] if text else type(exc).__name__
-
-
-def load_checkpoint(path: Path) -> dict[str, Any]:
-    """Read a checkpoint with ``weights_only=True``; clear errors for a missing or foreign file."""
-    path = Path(path)
-    if not path.is_file():
-        raise RunError(f"checkpoint {path} does not exist")
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise RunError(
-            f"checkpoint {path} cannot be read safely (weights_only=True): {str(exc).splitlines()[0]}"
-        ) from None
 
 
 def checkpoint_info(ckpt: dict[str, Any], path: Path) -> dict[str, Any]:
