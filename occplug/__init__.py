@@ -51,6 +51,8 @@ PUBLIC_MODULES: tuple[str, ...] = (
     "occplug.run.runner",  # scripts: load_config, build_run, fit, evaluate, load_checkpoint
     "occplug.run.training",  # scripts: the optimiser and schedule a config builds
     "occplug.run.bench",  # scripts: the cost / accuracy benchmark, mean_std
+    "occplug.run.phases",  # scripts: fit_phases (a config with phases:, with the caller's callbacks)
+    "occplug.run.memory",  # scripts: SavedTensorProfile (activations saved for backward, per module)
     "occplug.plugins",  # scripts: the plugin manager and the registry (get_registry)
     "occplug.viz",  # scripts: pictures (palette, camera ray casts, 3D view)
     "occplug.cli",  # scripts: the command line (main)
