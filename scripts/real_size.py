@@ -14,6 +14,9 @@ tree) in its own process for one training step and one validation batch, and pri
 * peak: the process's peak resident set (Linux ``VmHWM``, reset before each phase through ``/proc/self/clear_refs``)
   on a CPU, CUDA's peak allocation on a GPU; per voxel: that peak over the label grid's voxels, so a regression in
   how memory follows the grid shows.
+* est. GPU MiB: an estimate, not a measurement: the activations the step saved for backward per sample times the
+  recipe's batch, plus 16 bytes per parameter (float32 weights, gradients and AdamW's two moments); a GPU's
+  workspace, fragmentation and the inputs come on top.
 * precision: what the trainer ran at. A bf16-autocast recipe on a machine without a GPU trains at 32-true (the
   ``notice:`` line of ``occplug fit``).
 * Below the table, per row: the bytes autograd saved for the backward pass during the training step's forward,
@@ -134,7 +137,16 @@ def write_trees(trees: Path) -> None:
         print(f"writing {kitti} (SemanticKITTI shape, 256 x 256 x 32 voxels)", flush=True)
         shutil.rmtree(kitti, ignore_errors=True)
         occplug("data", "synth", "--out", str(kitti), *KITTI_TREE)
-        occplug("data", "check", "semantickitti", "--root", str(kitti), "--splits", str(kitti / "splits.json"), "--no-progress")
+        occplug(
+            "data",
+            "check",
+            "semantickitti",
+            "--root",
+            str(kitti),
+            "--splits",
+            str(kitti / "splits.json"),
+            "--no-progress",
+        )
         (kitti / ".done").write_text("written and checked\n")
 
 
@@ -180,6 +192,7 @@ def worker(job: dict[str, Any]) -> list[dict[str, Any]]:
         "trainer.enable_progress_bar=false",
         "data.num_workers=0",  # every byte in this process's peak
     ]
+    job["recipe_batch"] = int(runner.load_config(job["refs"], job["overrides"])["data"].get("batch_size", 1))
     if job["batch"] is not None:
         overrides.append(f"data.batch_size={job['batch']}")
     cfg = runner.load_config(job["refs"], overrides)
@@ -204,7 +217,10 @@ def worker(job: dict[str, Any]) -> list[dict[str, Any]]:
             phase = Path(trainer.default_root_dir).name if cfg.get("phases") else "-"
             precision = str(trainer.precision)
             batch = int(cfg["data"].get("batch_size", 1))
-            rows.append({"phase": phase, "precision": precision, "batch": batch, "voxels": voxels(pl_module)})
+            params = sum(p.numel() for p in pl_module.parameters())
+            recipe_batch = int(job["recipe_batch"])
+            rows.append({"phase": phase, "precision": precision, "batch": batch, "recipe_batch": recipe_batch,
+                         "voxels": voxels(pl_module), "params": params})  # fmt: skip
 
         def on_train_batch_start(self, trainer, pl_module, *args) -> None:  # type: ignore[override]
             self.profile = SavedTensorProfile(pl_module).__enter__()  # left in on_before_backward
@@ -214,6 +230,10 @@ def worker(job: dict[str, Any]) -> list[dict[str, Any]]:
         def on_before_backward(self, trainer, pl_module, loss) -> None:  # type: ignore[override]
             self.profile.__exit__(None, None, None)
             rows[-1]["saved_bytes"] = self.profile.total
+            # a GPU estimate at the recipe's batch: the activations saved per sample times the batch, plus the
+            # weights, their gradients and AdamW's two moments (float32); workspace and fragmentation not included
+            row = rows[-1]
+            row["gpu_estimate_bytes"] = self.profile.total / row["batch"] * row["recipe_batch"] + 16 * row["params"]
             rows[-1]["saved_by_module"] = dict(list(self.profile.by_prefix(job["depth"]).items())[:12])
 
         def on_train_batch_end(self, *args) -> None:  # type: ignore[override]
@@ -297,7 +317,10 @@ def run_recipe(name: str, refs: list[str], overrides: list[str], args: argparse.
 
 
 def table(rows: list[dict[str, Any]], device: str) -> str:
-    head = "| recipe | phase | device | precision | batch | step (s) | val batch (s) | peak MiB | peak KiB / voxel |"
+    head = (
+        "| recipe | phase | device | precision | batch | step (s) | val batch (s) | peak MiB | peak KiB / voxel "
+        "| est. GPU MiB at the recipe's batch |"
+    )
     if device == "cuda":
         head += " latency ms (batch 1) | paper |"
     head += " error |"
@@ -314,6 +337,7 @@ def table(rows: list[dict[str, Any]], device: str) -> str:
             f"{r['val_s']:.1f}" if "val_s" in r else "-",
             f"{peak / 2**20:,.0f}" if peak else "-",
             f"{peak / 1024 / r['voxels']:.2f}" if peak and r.get("voxels") else "-",
+            f"{r['gpu_estimate_bytes'] / 2**20:,.0f} (batch {r['recipe_batch']})" if "gpu_estimate_bytes" in r else "-",
         ]
         if device == "cuda":
             cells += [f"{r['latency_ms']:.1f}" if "latency_ms" in r else "-", PAPER_LATENCY.get(r["recipe"], "-")]
