@@ -325,7 +325,7 @@ def _convert(
             bits = png_bit_depth(src)
             if bits != 16:
                 raise FormatError(
-                    f"{src}: a {bits}-bit PNG; expected a 16-bit depth PNG (metres * --depth-scale, 0 = no depth)"
+                    f"{src}: PNG of {bits}-bit samples; expected a 16-bit depth PNG (metres * --depth-scale, 0 = no depth)"
                 )
             return _place(src, dst.with_suffix(".png"), link), False
         if not np.issubdtype(array.dtype, np.floating):
