@@ -7,8 +7,7 @@ import numpy as np
 import torch
 import yaml
 
-from occplug.data import OCC3D_CLASSES, Frame, PseudoLabelSource, load_mapping
-from occplug.data.classes import OCC3D_FREE
+from occplug.data import OCC3D_CLASSES, OCC3D_FREE, Frame, PseudoLabelSource, load_mapping
 from occplug.plugins import config_dirs
 
 IGNORE = 255  # occplug.data.pseudo_labels: a pixel without a target class
