@@ -4,10 +4,9 @@ occplug.data.pseudo_labels."""
 from pathlib import Path
 
 import numpy as np
-import torch
 import yaml
 
-from occplug.data import OCC3D_CLASSES, OCC3D_FREE, Frame, PseudoLabelSource, load_mapping
+from occplug.data import OCC3D_CLASSES, OCC3D_FREE, load_mapping
 from occplug.plugins import config_dirs
 
 IGNORE = 255  # occplug.data.pseudo_labels: a pixel without a target class
@@ -67,30 +66,16 @@ def test_the_table_loads_every_target_is_an_occ3d_class_and_every_prompt_maps_as
         assert prompt in TABLE.read_text().split("classes:")[0], prompt
 
 
-def test_a_hand_made_map_reads_back_as_occ3d_ids(tmp_path):
+def test_a_hand_made_map_maps_to_occ3d_ids_as_the_reader_applies_the_table():
     k = {name: i for i, name in enumerate(OCC3D_CLASSES)}
-    ids = np.array([[16, 16, 255, 0], [1, 2, 7, 11], [15, 10, 13, 6]], dtype=np.int64)
-    (tmp_path / "sem" / "tok").mkdir(parents=True)
-    np.save(tmp_path / "sem" / "tok" / "CAM_FRONT.npy", ids)
-    frame = Frame(
-        images=torch.zeros(1, 3, 3, 4),
-        intrinsics=torch.eye(3)[None],
-        cam_to_ego=torch.eye(4)[None],
-        img_aug=torch.eye(3)[None],
-        ego_to_global=torch.eye(4, dtype=torch.float64),
-        timestamp=0.0,
-        scene="scene-0001",
-        frame_index=0,
-        token="tok",
-        camera_names=("CAM_FRONT",),
-    )
-    source = PseudoLabelSource({"semantics": {"dir": str(tmp_path / "sem"), "mapping": str(TABLE)}}, OCC3D_CLASSES)
-    got = source.attach(frame).pseudo_semantics.tolist()
+    ids = np.array([[16, 16, 255, 0], [1, 2, 7, 11], [15, 10, 13, 6], [3, 4, 5, 8], [9, 12, 14, 16]], dtype=np.int64)
+    lut = load_mapping(TABLE, OCC3D_CLASSES)
+    got = lut[ids].tolist()  # PseudoLabelSource maps a map's foreign ids exactly so (then resizes)
     free = k["free"]
     assert got == [
-        [
-            [free, free, IGNORE, IGNORE],
-            [k["car"], k["driveable_surface"], k["sidewalk"], k["manmade"]],
-            [k["traffic_cone"], k["pedestrian"], k["construction_vehicle"], k["vegetation"]],
-        ]
+        [free, free, IGNORE, IGNORE],
+        [k["car"], k["driveable_surface"], k["sidewalk"], k["manmade"]],
+        [k["traffic_cone"], k["pedestrian"], k["construction_vehicle"], k["vegetation"]],
+        [k["bus"], k["truck"], k["terrain"], k["bicycle"]],
+        [k["barrier"], k["motorcycle"], k["trailer"], free],
     ]
