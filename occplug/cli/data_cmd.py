@@ -1,5 +1,6 @@
-"""``occplug data synth`` (write the synthetic world to disk), ``occplug data prepare`` (index a real data set) and
-``occplug data check`` (verify a data tree or an index, read only)."""
+"""``occplug data synth`` (write the synthetic world to disk), ``occplug data prepare`` (index a real data set),
+``occplug data check`` (verify a data tree or an index, read only) and ``occplug data pseudo-labels`` (per-image
+pseudo-label maps -> occplug's per-sample layout)."""
 
 from __future__ import annotations
 
@@ -118,6 +119,53 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     _check_common(ci, "the Occ3D folder's grid.json, else the shape most label files share")
     ci.set_defaults(func=cmd_check)
+    add_pseudo_labels_parser(actions)
+
+
+def add_pseudo_labels_parser(actions: argparse._SubParsersAction) -> None:
+    pseudo = actions.add_parser(
+        "pseudo-labels", help="per-image depth / semantic maps (Metric3D, Grounded-SAM, ...) -> occplug's layout"
+    )
+    targets = pseudo.add_subparsers(dest="dataset", required=True, metavar="DATASET")
+    pn = targets.add_parser(
+        "nuscenes",
+        help="maps named by sample_data token (or image file name) -> <out>/<kind>/<sample token>/<CAMERA>.<ext>",
+        description="Take one depth and/or semantic map per camera image of every sample a prepared index reads "
+        "(named <sample_data token>.npy|.png, or with --name-by stem as the image file; sub-folders are searched), "
+        "check every map (dtype, shape, the image's aspect ratio, ids against --mapping) and write them as "
+        "<out>/depth/<sample token>/<CAMERA>.npy|.png and <out>/semantics/<sample token>/<CAMERA>.png, which "
+        "data.pseudo_labels reads. Adjacent frames (data.adjacent_offsets) are neighbouring samples, so they are "
+        "covered; maps of non-key frames (sweeps) are not needed and left out. A missing map, a file named by no "
+        "image, a bad map: one line naming the file, exit 2, nothing written.",
+    )
+    pn.add_argument("--index", required=True, metavar="DIR", help="the index folder (or its nuscenes_index.npz)")
+    pn.add_argument("--root", metavar="DIR", help="nuScenes data root (default: the one recorded in the index)")
+    pn.add_argument("--depth", metavar="DIR", help="folder of per-image depth maps: float .npy metres or 16-bit .png")
+    pn.add_argument(
+        "--semantics", metavar="DIR", help="folder of per-image semantic maps: 1-channel .png or integer .npy"
+    )
+    pn.add_argument(
+        "--mapping",
+        metavar="FILE",
+        help="the semantic maps' class-mapping table (checked, ids checked against it, copied to the output), "
+        "e.g. plugins/occplug_queryocc/configs/pseudo_labels/grounded_sam_occ3d.yaml",
+    )
+    pn.add_argument(
+        "--name-by",
+        default="token",
+        choices=("token", "stem"),
+        help="input files are named by the image's sample_data token (default) or by the image file's stem",
+    )
+    pn.add_argument(
+        "--depth-scale", type=float, default=256.0, help="16-bit depth PNGs hold metres * this (default 256, KITTI's)"
+    )
+    pn.add_argument("--splits", nargs="+", metavar="SPLIT", help="write only these splits' samples (default: all)")
+    pn.add_argument(
+        "--link", action="store_true", help="hard-link unchanged files instead of copying (one file system)"
+    )
+    pn.add_argument("--out", required=True, metavar="DIR", help="output folder (absent or empty)")
+    pn.add_argument("--no-progress", action="store_true", help="no progress bar")
+    pn.set_defaults(func=cmd_pseudo_labels)
 
 
 def _check_common(p: argparse.ArgumentParser, default_shape: str) -> None:
@@ -142,7 +190,9 @@ def add_stats_parser(actions: argparse._SubParsersAction) -> None:
     )
     stats.add_argument("-c", "--config", action="append", required=True, metavar="REF", help="config (repeat to merge)")
     stats.add_argument("--split", default="train", help="train, val or test (default: train)")
-    stats.add_argument("--mask", default="none", choices=["none", "camera"], help="count every voxel or camera-visible ones")
+    stats.add_argument(
+        "--mask", default="none", choices=["none", "camera"], help="count every voxel or camera-visible ones"
+    )
     stats.add_argument("--max-frames", type=int, default=None, metavar="N", help="count at most N frames")
     stats.add_argument("overrides", nargs="*", metavar="key=value", help="dotlist overrides applied last")
     stats.set_defaults(func=cmd_stats)
@@ -303,6 +353,42 @@ def cmd_check(args: argparse.Namespace) -> int:
             summary = semantickitti.check_semantickitti(args.root, splits=args.splits, **kwargs)
         else:
             summary = nuscenes.check_index(args.index, root=args.root, occ_root=args.occ, splits=args.splits, **kwargs)
+    except (ValueError, FileNotFoundError) as exc:
+        raise UsageError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
+    print("\n".join(summary.lines()))
+    return 0
+
+
+def cmd_pseudo_labels(args: argparse.Namespace) -> int:
+    from occplug.data.nuscenes.pseudo_import import import_pseudo_labels
+
+    if args.depth is None and args.semantics is None:
+        raise UsageError("give --depth and/or --semantics, the folders of per-image maps")
+    if args.mapping is not None and args.semantics is None:
+        raise UsageError("--mapping: a class-mapping table goes with --semantics")
+    if not args.depth_scale > 0:
+        raise UsageError(f"--depth-scale: expected a positive number, got {args.depth_scale}")
+    check.input_path("--index", args.index, "nuScenes index")
+    for flag in ("root", "depth", "semantics"):
+        if getattr(args, flag) is not None:
+            check.input_dir(f"--{flag}", getattr(args, flag))
+    if args.mapping is not None:
+        check.input_file("--mapping", args.mapping)
+    check.output_dir("--out", args.out, empty=True)
+    try:
+        summary = import_pseudo_labels(
+            args.index,
+            args.out,
+            depth=args.depth,
+            semantics=args.semantics,
+            root=args.root,
+            name_by=args.name_by,
+            depth_scale=args.depth_scale,
+            mapping=args.mapping,
+            splits=args.splits,
+            link=args.link,
+            progress=not args.no_progress,
+        )
     except (ValueError, FileNotFoundError) as exc:
         raise UsageError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
     print("\n".join(summary.lines()))

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from .formats import FormatError
 
-__all__ = ["read_map", "read_rgb", "write_map", "write_npy", "write_rgb"]
+__all__ = ["png_bit_depth", "read_map", "read_rgb", "write_map", "write_npy", "write_rgb"]
 
 
 def _fail(path: Path, exc: BaseException) -> FormatError:
@@ -72,6 +72,29 @@ def read_map(path: str | Path) -> np.ndarray:
     if img.shape[0] != 1:
         raise FormatError(f"{path}: expected a single-channel image, got {img.shape[0]} channels")
     return img[0].to(torch.int32).numpy()
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_bit_depth(path: str | Path) -> int:
+    """The bits per sample of a PNG (1, 2, 4, 8 or 16), read from its header alone (``IHDR``, bytes 8-25).
+
+    :func:`read_map` returns every PNG as int32, so this is how a 16-bit map (depth in metres * scale) is told
+    from an 8-bit one.
+
+    Raises:
+        FormatError: a missing file or one that does not start as a PNG (one line naming it).
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(26)
+    except OSError as exc:
+        raise _fail(path, exc) from None
+    if len(head) < 26 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise FormatError(f"{path}: cannot read (not a PNG file)")
+    return head[24]
 
 
 def write_npy(path: str | Path, array: np.ndarray) -> None:
