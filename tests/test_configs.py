@@ -67,3 +67,29 @@ def test_view_transform_ablation_swaps_with_one_override(view_transform, tmp_pat
         overrides=[f"model.view_transform.type={view_transform}"],
     )
     assert metrics["IoU"] >= 0
+
+
+def _real_recipes():
+    """Each real-data recipe, and the baseline on each real data set (README, "Real data sets"), as config lists."""
+    files = [[str(p)] for p in recipes() if compose([str(p)]).resolved()["data"]["type"] != "synthetic"]
+    baseline = str(ROOT / "configs" / "baseline.yaml")
+    return files + [[baseline, "occplug/data/occ3d_nuscenes"], [baseline, "occplug/data/semantickitti"]]
+
+
+@pytest.mark.parametrize("refs", _real_recipes(), ids=lambda refs: "+".join(Path(r).stem for r in refs))
+def test_a_real_recipe_s_image_size_fits_its_own_encoder(refs):
+    """A recipe for a real data set trains only on a GPU, so the suite does not train it; but its image size must
+    suit its own encoder (``occle/semantickitti`` once asked 370 x 1220 of a stride-8 encoder), in every phase."""
+    from occplug.config.phases import phase_specs
+
+    cfg = compose(refs).resolved()
+    configs = [spec.config for spec in phase_specs(cfg)] if cfg.get("phases") else [cfg]
+    for config in configs:
+        spec = dict(config["model"]["encoder"])
+        if spec["type"] == "timm":
+            pytest.importorskip("timm")
+            spec["weights"] = None
+        encoder = get_registry().build("encoder", spec)
+        height, width = config["data"]["image_size"]
+        stride = max(encoder.level_strides)
+        assert height % stride == 0 and width % stride == 0, (refs, (height, width), stride)
