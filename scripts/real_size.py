@@ -296,7 +296,7 @@ def run_recipe(name: str, refs: list[str], overrides: list[str], args: argparse.
     with log.open("w") as fh:
         try:
             result = subprocess.run(
-                [sys.executable, __file__, "--worker", json.dumps(job)],
+                [sys.executable, "-u", __file__, "--worker", json.dumps(job)],
                 stdout=subprocess.PIPE,
                 stderr=fh,
                 text=True,
