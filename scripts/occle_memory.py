@@ -10,8 +10,8 @@ SemanticKITTI's 51.2 m x 51.2 m x 6.4 m at 0.2 m), freezes what the phase freeze
 
 * tokens at level 1: the length of the first Dual Mamba level's scans, ``X * Y * Z`` per grid;
 * peak MiB: the child's peak resident set during the step (Linux ``VmHWM``, reset just before it through
-  ``/proc/self/clear_refs``), which includes the model, the data and the interpreter (``base MiB``, the resident set
-  before the step);
+  ``/proc/self/clear_refs``), which includes the model, the data and the interpreter (``base MiB``: the resident set
+  just before the step);
 * saved MiB: what autograd kept for backward during the forward (``occplug.run.memory.SavedTensorProfile``); a
   checkpointed mixer's kept input is held by the checkpoint, not saved, so it is not in this column;
 * below the table, per grid and setting, the saved bytes by module (``--depth`` parts of the name), largest first.
@@ -25,6 +25,7 @@ Usage::
 
     python scripts/occle_memory.py [--grids 32x32x8 64x64x16 ...] [--settings plain checkpoint] [--batch 1]
                                    [--depth 3] [--max-rss-gib 10] [--extrapolate 256 256 32] [--json FILE]
+    python scripts/occle_memory.py --from-json FILE [--settings ...] [--extrapolate X Y Z]   # the tables again
 
 Pure PyTorch on the CPU (``mamba_ssm`` is CUDA only; on a CPU the Mamba mixers run the chunked scan with its
 memory-lean backward, ``occplug_occle.selective_scan.SelectiveScanFn``). Run it alone, with
@@ -149,7 +150,7 @@ def table(rows: list[dict[str, Any]], settings: list[str], extrapolate: list[int
     """One line per grid: tokens, peaks per setting, their ratio, and the peak and voxel ratios to the first grid."""
     grids: list[tuple[int, ...]] = list(dict.fromkeys(tuple(r["grid"]) for r in rows))
     by = {(tuple(r["grid"]), r["setting"]): r for r in rows}
-    head = ["grid", "tokens at level 1", "voxels / first"]
+    head = ["grid", "tokens at level 1", "voxels / first", "base MiB"]
     for s in settings:
         head += [f"peak MiB, {s}", f"saved MiB, {s}", f"step s, {s}", f"peak / first, {s}"]
     if len(settings) == 2:
@@ -162,10 +163,12 @@ def table(rows: list[dict[str, Any]], settings: list[str], extrapolate: list[int
         return None if row is None or "error" in row else row["peak_mib"]
 
     for grid in grids:
+        bases = [by[(grid, s)]["base_mib"] for s in settings if "base_mib" in by.get((grid, s), {})]
         cells = [
             "x".join(map(str, grid)),
             f"{_voxels(list(grid)):,}",
             f"{_voxels(list(grid)) / _voxels(list(first)):g}",
+            f"{max(bases):,.0f}" if bases else "",
         ]
         for s in settings:
             row = by.get((grid, s), {})
@@ -185,8 +188,8 @@ def table(rows: list[dict[str, Any]], settings: list[str], extrapolate: list[int
         lines.append("| " + " | ".join(cells) + " |")
     if extrapolate:
         target = list(extrapolate)
-        cells = ["x".join(map(str, target)) + " (extrapolated)", f"{_voxels(target):,}", ""]
-        cells[2] = f"{_voxels(target) / _voxels(list(first)):g}"
+        ratio = f"{_voxels(target) / _voxels(list(first)):g}"
+        cells = ["x".join(map(str, target)) + " (extrapolated)", f"{_voxels(target):,}", ratio, ""]
         for s in settings:
             measured = [(g, peak(g, s)) for g in grids if peak(g, s)]
             if len(measured) < 2:
@@ -212,23 +215,27 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timeout", type=float, default=1800.0)
     parser.add_argument("--extrapolate", type=int, nargs=3, metavar=("X", "Y", "Z"))
     parser.add_argument("--json", help="write every row here")
+    parser.add_argument("--from-json", help="print the tables of rows an earlier --json wrote (runs nothing)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
         print(json.dumps(worker(json.loads(args.worker))), flush=True)
         return 0
-    rows = []
-    for text in args.grids:
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+    commit = commit.stdout.strip() or "?"
+    rows = json.loads(Path(args.from_json).read_text()) if args.from_json else []
+    if rows:
+        commit = rows[0].get("commit", "?")
+    for text in [] if args.from_json else args.grids:
         grid = [int(v) for v in text.lower().split("x")]
         for setting in args.settings:
             job = {"grid": grid, "setting": setting, "batch": args.batch, "depth": args.depth}
-            row = run(job, args.max_rss_gib, args.timeout)
+            row = {**run(job, args.max_rss_gib, args.timeout), "commit": commit}
             rows.append(row)
             summary = row.get("error") or f"peak {row['peak_mib']:,.0f} MiB, step {row['step_s']:.1f} s"
             print(f"{text} {setting}: {summary}", file=sys.stderr, flush=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
     print(f"OccLE `{RECIPE}` phase `{PHASE}`, one training step, batch {args.batch}, CPU, commit "
-          f"{commit.stdout.strip() or '?'}\n")  # fmt: skip
+          f"{commit}\n")  # fmt: skip
     print(table(rows, args.settings, args.extrapolate))
     for row in rows:
         if "saved_by_module" in row:
