@@ -68,7 +68,7 @@ def worker(job: dict[str, Any]) -> dict[str, Any]:
     """One training step of the recipe's final phase at ``job``'s grid; the numbers of its row."""
     import torch
 
-    from occplug.config.phases import phase_specs
+    from occplug.config import phase_specs
     from occplug.run import runner
     from occplug.run.memory import SavedTensorProfile
     from occplug.run.phases import freeze
