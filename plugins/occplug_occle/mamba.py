@@ -189,6 +189,14 @@ class DualMambaBlock(nn.Module):
         d_state, d_conv, expand: of the two :class:`MambaBlock` s.
         exchange_ratio: share of channels exchanged (every other channel at 0.5).
         scan, chunk_size: the selective scan's mode and chunk length.
+        checkpoint: with gradients, run each branch's ``s + Mamba(LN(s))`` under ``torch.utils.checkpoint``
+            (non-reentrant): the forward keeps only its input ``s`` ``(B, L, C)``, and the backward recomputes the
+            Mamba mixer's activations, one branch at a time. Without it a branch keeps about 9 ``(B, L, D)``-sized
+            tensors (``D = expand * C``: the input projection, the causal convolution's input and output, the
+            ``x``-projection's input, the step sizes, the gate, the scan's inputs, the output projection's input)
+            for backward; at the U-Net's first level (``L = X * Y * Z`` tokens) that is the largest share of a
+            training step's memory. The same values and gradients (the mixer has no randomness), about one more
+            forward of the mixers in time.
 
     Forward: ``(a (B, C, X, Y, Z), b (B, C, X, Y, Z))`` -> the same shapes, any ``(X, Y, Z)``.
     """
@@ -202,8 +210,10 @@ class DualMambaBlock(nn.Module):
         exchange_ratio: float = 0.5,
         scan: ScanMode = "auto",
         chunk_size: int = 64,
+        checkpoint: bool = False,
     ) -> None:
         super().__init__()
+        self.checkpoint = bool(checkpoint)
         self.pos_a = nn.Conv3d(channels, channels, 3, padding=1, groups=channels)
         self.pos_b = nn.Conv3d(channels, channels, 3, padding=1, groups=channels)
         self.norm_a, self.norm_b = nn.LayerNorm(channels), nn.LayerNorm(channels)
@@ -215,9 +225,19 @@ class DualMambaBlock(nn.Module):
         shape = tuple(a.shape[2:])
         a, b = channel_exchange(a + self.pos_a(a), b + self.pos_b(b), self.exchange)
         sa, sb = serialize(a), serialize(b)  # (B, L, C) along the Hilbert curve
-        sa = sa + self.mamba_a(self.norm_a(sa))
-        sb = sb + self.mamba_b(self.norm_b(sb))
+        sa = self._mix(self.norm_a, self.mamba_a, sa)
+        sb = self._mix(self.norm_b, self.mamba_b, sb)
         return deserialize(sa, shape), deserialize(sb, shape)
+
+    def _mix(self, norm: nn.LayerNorm, mamba: MambaBlock, s: Tensor) -> Tensor:
+        """``s + mamba(norm(s))`` for ``s`` ``(B, L, C)``, recomputed in backward with ``checkpoint``."""
+        if self.checkpoint and torch.is_grad_enabled():
+            return torch.utils.checkpoint.checkpoint(_residual_mix, norm, mamba, s, use_reentrant=False)
+        return _residual_mix(norm, mamba, s)
+
+
+def _residual_mix(norm: nn.LayerNorm, mamba: MambaBlock, s: Tensor) -> Tensor:
+    return s + mamba(norm(s))
 
 
 class _Down(nn.Module):
@@ -251,6 +271,8 @@ class DualMambaUNet(nn.Module):
         exchange_ratio: share of channels exchanged in every dual block.
         min_size: an axis is halved only while it is >= ``2 * min_size`` (so ``Z = 4`` halves once).
         scan, chunk_size: the selective scan's mode and chunk length.
+        checkpoint: every block's Mamba mixers recomputed in backward (:class:`DualMambaBlock`): the same values
+            and gradients, less memory, more time. Off by default.
 
     Forward: ``(a (B, C_a, X, Y, Z), b (B, C_b, X, Y, Z))`` -> ``(B, C_out, X, Y, Z)``, any ``(X, Y, Z)``.
     """
@@ -266,6 +288,7 @@ class DualMambaUNet(nn.Module):
         min_size: int = 2,
         scan: ScanMode = "auto",
         chunk_size: int = 64,
+        checkpoint: bool = False,
     ) -> None:
         super().__init__()
         if len(channels) < 2:
@@ -278,6 +301,7 @@ class DualMambaUNet(nn.Module):
             "exchange_ratio": exchange_ratio,
             "scan": scan,
             "chunk_size": chunk_size,
+            "checkpoint": checkpoint,
         }
         self.stem_a, self.stem_b = nn.Conv3d(c_a, widths[0], 1), nn.Conv3d(c_b, widths[0], 1)
         stages = range(len(widths) - 1)

@@ -114,6 +114,10 @@ class OccleScene(SceneRepresentation):
             here 2 by default, for CPU).
         mamba_state: the SSM state size of its Mamba blocks.
         mamba_chunk: chunk length of their chunked selective scan (speed only: equal up to float rounding).
+        mamba_checkpoint: recompute the Dual Mamba's mixers in backward instead of keeping their activations
+            (:class:`~.mamba.DualMambaBlock`'s ``checkpoint``): the same values and gradients, less of a training
+            step's memory where the Dual Mamba dominates it (``scripts/occle_memory.py``), about one more forward
+            of the mixers in time. Off by default; ``occle/semantickitti`` turns it on.
         history: past frame offsets the geometric branch fuses with the current frame (§3.3.1's multi-frame
             grids, ``T = len(history) + 1``, a Conv1D over frames per modality); each must be in the model's
             ``input_history`` (``outputs.history``). Empty: one frame. The semantic branch reads the current
@@ -145,6 +149,7 @@ class OccleScene(SceneRepresentation):
         mamba_channels: Annotated[list[Annotated[int, Positive]], Length(min=2)] = [32, 48, 64],  # noqa: B006 - read only
         mamba_state: Annotated[int, Positive] = 16,
         mamba_chunk: Annotated[int, Positive] = 64,
+        mamba_checkpoint: bool = False,
         history: list[int] | None = None,
     ) -> None:
         super().__init__()
@@ -201,7 +206,14 @@ class OccleScene(SceneRepresentation):
             self.stems["geometric"] = _stem(both, c)
         self.fusion_kind = fusion
         self.fusion = (
-            DualMambaUNet(c, c, channels=list(mamba_channels), d_state=mamba_state, chunk_size=mamba_chunk)
+            DualMambaUNet(
+                c,
+                c,
+                channels=list(mamba_channels),
+                d_state=mamba_state,
+                chunk_size=mamba_chunk,
+                checkpoint=mamba_checkpoint,
+            )
             if fusion == "dual_mamba"
             else ConvFusion(c)
         )
