@@ -2,21 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 from occplug.config import phase_specs
 from occplug.run import runner
-
-ROOT = Path(__file__).resolve().parents[2]
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("ablate_mix", ROOT / "scripts" / "ablate_mix.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _fake_metrics(config: str, overrides: list[str]) -> dict:
@@ -26,8 +16,8 @@ def _fake_metrics(config: str, overrides: list[str]) -> dict:
     return {"mIoU": base, "IoU": base + 40, "RayIoU": base / 2, "RayIoU_geometry": base + 1, "mIoU_dynamic": 0.0}
 
 
-def test_every_mix_is_measured_beside_its_parents_per_seed(tmp_path, monkeypatch, capsys):
-    ablate = _script()
+def test_every_mix_is_measured_beside_its_parents_per_seed(script, tmp_path, monkeypatch, capsys):
+    ablate = script("ablate_mix")
     calls: list[tuple[str, list[str], Path]] = []
 
     def fake_fit(config, overrides, out, label):
@@ -95,9 +85,9 @@ def test_every_mix_is_measured_beside_its_parents_per_seed(tmp_path, monkeypatch
     assert calls == []
 
 
-def test_every_planned_run_composes_and_validates():
+def test_every_planned_run_composes_and_validates(script):
     """The overrides the script adds (budgets, label fraction, phase epochs) are valid for each row's config."""
-    ablate = _script()
+    ablate = script("ablate_mix")
     args = ablate.argparse.Namespace(preset="tiny", epochs=1.0, set=["phases.student.trainer.max_epochs=2"])
     for name, row in ablate.ROWS.items():
         cfg = runner.load_config([row.config], ablate.overrides(name, 0, args))
