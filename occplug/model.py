@@ -20,7 +20,7 @@ from occplug.interfaces.model import OccupancyModel
 from occplug.kinds import KINDS, given_arguments
 from occplug.metrics.base import EvalMask
 from occplug.plugins import get_registry
-from occplug.queries import check_query_support
+from occplug.queries import check_query_support, registered_types
 from occplug.run.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
 from occplug.slots import Slot, component_params
 
@@ -263,7 +263,10 @@ class OccModel(OccupancyModel):
                 if spec is not None
             }
         )
-        check_query_support(self.heads, self.supervision)  # a queried head must answer (occplug/queries.py)
+        # a queried head must answer (occplug/queries.py); the message names both by their type:
+        check_query_support(
+            self.heads, self.supervision, registered_types({"heads": heads, "supervision": supervision})
+        )
         self.val_metrics = self._build_metrics(metrics, ignore_label)
         self.test_metrics = self._build_metrics(metrics, ignore_label)
         self.last_results: dict[str, dict[str, float]] = {}

@@ -17,22 +17,33 @@ from typing import Any
 
 from occplug.errors import ConfigError
 
-__all__ = ["check_query_config", "check_query_support"]
+__all__ = ["check_query_config", "check_query_support", "registered_types"]
 
 
-def check_query_support(heads: Mapping[str, Any], supervision: Mapping[str, Any]) -> None:
+def check_query_support(
+    heads: Mapping[str, Any], supervision: Mapping[str, Any], types: Mapping[str, str] | None = None
+) -> None:
     """Raise :class:`ConfigError` (one line) if a supervision source queries a head that cannot answer.
+
+    The message names both components by their registered ``type:`` where ``types`` gives it (a mix of two
+    plugins' components reads as the config that wrote it), else by class.
 
     Args:
         heads: ``{config name: head}`` (instances, or classes when checking a config before building).
         supervision: ``{config name: source}`` (instances or classes; read: ``query_head``,
             ``needs_temporal_queries``).
+        types: ``{"heads.<name>" | "supervision.<name>": registered type}`` of the components, where known.
     """
+    types = types or {}
+
+    def label(key: str, component: Any) -> str:
+        return types.get(key) or _name(component)
+
     for name, source in supervision.items():
         target = getattr(source, "query_head", None)
         if target is None:
             continue
-        what = f"model.supervision.{name} ({_name(source)})"
+        what = f"model.supervision.{name} ({label(f'supervision.{name}', source)})"
         if target not in heads:
             raise ConfigError(
                 f"{what}: queries head '{target}' but model.heads has no such head (heads: {', '.join(heads) or '(none)'})"
@@ -40,11 +51,13 @@ def check_query_support(heads: Mapping[str, Any], supervision: Mapping[str, Any]
         head = heads[target]
         if not getattr(head, "queryable", False):
             raise ConfigError(
-                f"{what}: queries model.heads.{target}, but {_name(head)} cannot be queried at points (queryable = False)"
+                f"{what}: queries model.heads.{target}, but {label(f'heads.{target}', head)} cannot be queried at "
+                "points (queryable = False)"
             )
         if getattr(source, "needs_temporal_queries", False) and not getattr(head, "temporal", False):
             raise ConfigError(
-                f"{what}: queries at times t != 0, but model.heads.{target} ({_name(head)}) is not temporal "
+                f"{what}: queries at times t != 0, but model.heads.{target} ({label(f'heads.{target}', head)}) is not "
+                "temporal "
                 f"(it answers the current frame only)"
             )
 
@@ -69,7 +82,19 @@ def check_query_config(model: Mapping[str, Any], registry: Any) -> None:
         sources[name] = _Declared(factory.__name__, target, bool(getattr(factory, "needs_temporal_queries", False)))
     if any(h is None for h in heads.values()):  # a head we cannot inspect: only check the names it answers to
         heads = {n: h if h is not None else _Declared("?", None, True, queryable=True) for n, h in heads.items()}
-    check_query_support(heads, sources)
+    check_query_support(heads, sources, registered_types(model))
+
+
+def registered_types(model: Mapping[str, Any]) -> dict[str, str]:
+    """``{"heads.<name>" | "supervision.<name>": type}`` of a ``model`` config node's heads and supervision sources."""
+    out: dict[str, str] = {}
+    for section in ("heads", "supervision"):
+        node = model.get(section)
+        if isinstance(node, Mapping):
+            for name, spec in node.items():
+                if isinstance(spec, Mapping) and "type" in spec:
+                    out[f"{section}.{name}"] = str(spec["type"])
+    return out
 
 
 class _Declared:

@@ -313,6 +313,48 @@ def test_three_phase_run_layout_freezing_and_pseudo_labels(tmp_path):
     assert ckpt["occplug"]["labels"] == {"label_fraction": 0.5, "subset": "labelled"}
 
 
+def test_a_streaming_teacher_labels_each_frame_as_a_stream_does(tmp_path):
+    """A stateful teacher runs every training frame in order, so each unlabelled frame is predicted with its history."""
+    from occplug.run.phases import write_teacher_labels
+    from occplug.streams import set_stream_stage
+
+    recipe = tmp_path / "stream_10pct.yaml"
+    recipe.write_text(
+        f"base: [{BASELINE}]\n"
+        "data: {label_fraction: 0.5, sequential: true}\n"
+        "model: {scene: {type: dense_voxels_history}}\n"
+        "phases:\n"
+        "  teacher: {trainer: {max_steps: 1}}\n"
+        "  student: {pseudo_labels_from: {phase: teacher, head: occupancy, subset: unlabelled}}\n"
+    )
+    teacher, student = phase_specs(runner.load_config([str(recipe)], TINY))
+    torch.manual_seed(0)
+    dm, model = runner.build_run(teacher.config)
+    (tmp_path / "run" / "teacher" / "checkpoints").mkdir(parents=True)
+    torch.save({"state_dict": model.state_dict()}, tmp_path / "run" / "teacher" / "checkpoints" / "last.ckpt")
+    folder = write_teacher_labels(teacher, student, student.pseudo_labels_from, tmp_path / "run")
+    data = dm.dataset("train")  # every frame, in order: the stream the teacher ran
+    model.eval()
+    set_stream_stage(model, "predict")
+    streamed, alone = {}, {}
+    with torch.no_grad():
+        for i in range(len(data)):
+            batch = dm.collate([data[i]])
+            streamed[batch.token[0]] = model.head_logits(batch, "occupancy").softmax(1).max(1)
+            batch.is_sequence_start[:] = True  # the same frame with its stream cut
+            alone[batch.token[0]] = model.head_logits(batch, "occupancy").softmax(1).max(1)
+    unlabelled = {data[i].token for i in LabelCut(0.5).unlabelled(len(data))}
+    assert {p.stem for p in folder.glob("*.npz")} == unlabelled and 0 < len(unlabelled) < len(data)
+    differs = 0
+    for token in unlabelled:
+        saved = np.load(folder / f"{token}.npz")
+        confidence, labels = streamed[token]
+        assert np.array_equal(saved["labels"], labels[0].numpy().astype(np.uint8))
+        np.testing.assert_allclose(saved["confidence"], confidence[0].numpy(), rtol=1e-3)
+        differs += not torch.equal(confidence, alone[token][0])
+    assert differs  # the history reached the pseudo labels
+
+
 def test_unlabelled_voxel_labels_never_reach_a_loss(tmp_path, monkeypatch):
     """Corrupting the unlabelled training frames' voxel labels leaves a label-fraction run bit-identical."""
     overrides = [*TINY, "data.label_fraction=0.5", "trainer.max_steps=4"]

@@ -375,11 +375,14 @@ def test_config_validation_rejects_declared_impossible_mixes(isolated_registry) 
     validate(_cfg("model.supervision.q.type=toy_query"), occplug.plugins.get_registry())  # fine
     with pytest.raises(
         ConfigError,
-        match=r"^model.supervision.q \(ToyTemporalSupervision\): queries at times t != 0, "
-        r"but model.heads.occupancy \(VoxelClassifier\) is not temporal",
+        match=r"^model.supervision.q \(toy_temporal_query\): queries at times t != 0, "
+        r"but model.heads.occupancy \(voxel_classifier\) is not temporal",  # both by their type:
     ):
         validate(_cfg("model.supervision.q.type=toy_temporal_query"), occplug.plugins.get_registry())
-    with pytest.raises(ConfigError, match=r"model.heads.occupancy, but FixedHead cannot be queried"):
+    with pytest.raises(
+        ConfigError,
+        match=r"model.supervision.q \(toy_query\): queries model.heads.occupancy, but toy_fixed cannot be queried",
+    ):
         validate(
             _cfg("model.supervision.q.type=toy_query", "model.heads.occupancy.type=toy_fixed"),
             occplug.plugins.get_registry(),
@@ -422,6 +425,6 @@ def test_config_validate_and_show_reject_impossible_mix(isolated_registry, capsy
     for action in ("validate", "show"):
         assert main(["config", action, "-c", BASELINE, "model.supervision.q.type=toy_temporal_query"]) == 2
         err = capsys.readouterr().err.strip()
-        assert err.count("\n") == 0 and err.startswith("error: model.supervision.q (ToyTemporalSupervision)"), err
+        assert err.count("\n") == 0 and err.startswith("error: model.supervision.q (toy_temporal_query)"), err
     assert main(["config", "validate", "-c", BASELINE, "model.supervision.q.type=toy_query"]) == 0
     assert capsys.readouterr().out.strip() == f"ok: {BASELINE}"

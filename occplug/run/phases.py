@@ -38,7 +38,7 @@ from occplug.data.teacher_labels import DONE, META, write_teacher_file
 from occplug.interfaces.model import OccupancyModel
 from occplug.run import runner
 from occplug.run.weights import init_from, init_from_config, matching
-from occplug.streams import find_streams
+from occplug.streams import find_streams, set_stream_stage
 
 __all__ = ["FrozenModulesEval", "fit_phases", "freeze", "init_from", "matching", "write_teacher_labels"]
 
@@ -99,7 +99,9 @@ def write_teacher_labels(teacher: PhaseSpec, consumer: PhaseSpec, source: Pseudo
 
     The teacher phase's model (its last checkpoint) predicts head ``source.head`` on the training
     frames of ``source.subset`` under ``consumer``'s label fraction, un-augmented, in eval mode. A
-    complete folder (DONE marker) is reused as it is.
+    streaming teacher (one holding a :class:`~occplug.streams.StreamState`) runs every training frame in
+    order, one frame at a time, so each frame is predicted with the history it has in a stream; files are
+    written for the subset's frames only. A complete folder (DONE marker) is reused as it is.
     """
     folder = run_dir / "pseudo_labels" / source.folder_name
     if (folder / DONE).is_file():
@@ -111,31 +113,38 @@ def write_teacher_labels(teacher: PhaseSpec, consumer: PhaseSpec, source: Pseudo
             data[key] = consumer_data[key]
         else:
             data.pop(key, None)
-    data.update({"subset": source.subset, "augment": None})
+    data.update({"subset": "all", "augment": None})
     cfg = {**teacher.config, "data": data}
     dm, model = runner.build_run(cfg)
     where = f"phases.{consumer.name}.pseudo_labels_from"
-    if any(True for _ in find_streams(model)):
-        raise runner.RunError(
-            f"{where}: phase '{teacher.name}' holds stream state; teacher pseudo labels need a stateless model"
-        )
+    streamed = any(True for _ in find_streams(model))
+    if not streamed and source.subset != "all":  # batches of the subset's frames alone
+        dm = runner.build_datamodule({**cfg, "data": {**data, "subset": source.subset}})
+        dm.require_fields(set(model.required_fields()) | runner.callback_requirements(cfg))
+    if streamed:  # each frame predicted with its own history: every training frame in order, one slot
+        set_stream_stage(model, "predict")
+        for _, stream in find_streams(model):
+            stream.clear("predict")
     state = runner.load_checkpoint(_last_checkpoint(run_dir, teacher.name))["state_dict"]
     model.load_state_dict(state)
     model.eval()
     folder.mkdir(parents=True, exist_ok=True)
     (folder / DONE).unlink(missing_ok=True)
     dataset = dm.dataset("train")
-    size = max(1, int(dm.batch_size))
+    size = 1 if streamed else max(1, int(dm.batch_size))
     count = 0
     with torch.no_grad(), runner.data_errors():
         for start in range(0, len(dataset), size):  # type: ignore[arg-type]
-            batch = dm.collate([dataset[i] for i in range(start, min(start + size, len(dataset)))])  # type: ignore[arg-type]
+            frames = [dataset[i] for i in range(start, min(start + size, len(dataset)))]  # type: ignore[arg-type]
+            batch = dm.collate(frames)
             try:
                 logits = model.head_logits(batch, source.head).float()
             except ValueError as exc:
                 raise runner.RunError(f"{where}: {runner._first_line(exc)}") from None
             confidence, labels = logits.softmax(dim=1).max(dim=1)
             for b, token in enumerate(batch.token):
+                if streamed and not _in_subset(frames[b], source.subset):
+                    continue  # a frame the stream ran through for its history only
                 write_teacher_file(folder, token, labels[b].numpy(), confidence[b].numpy())
                 count += 1
     k = int(logits.shape[1]) if count else 0
@@ -151,6 +160,11 @@ def write_teacher_labels(teacher: PhaseSpec, consumer: PhaseSpec, source: Pseudo
     runner.write_text_atomic(folder / META, json.dumps(meta, indent=2) + "\n")
     runner.write_text_atomic(folder / DONE, f"{count} frames\n")
     return folder
+
+
+def _in_subset(frame: Any, subset: str) -> bool:
+    """Whether a training frame belongs to ``subset`` (``all``, ``labelled``, ``unlabelled``) of a label fraction."""
+    return subset == "all" or bool(frame.has_voxel_labels) == (subset == "labelled")
 
 
 def _with_teacher_labels(spec: PhaseSpec, folder: Path) -> dict[str, Any]:

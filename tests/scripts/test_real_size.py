@@ -2,21 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("real_size", ROOT / "scripts" / "real_size.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_the_worker_times_one_step_and_one_validation_batch_and_profiles_the_step():
-    real_size = _script()
+def test_the_worker_times_one_step_and_one_validation_batch_and_profiles_the_step(script):
+    real_size = script("real_size")
     job = {
         "refs": [str(ROOT / "configs" / "baseline.yaml")],
         "overrides": ["data.preset=tiny", "data.batch_size=2"],
@@ -46,8 +38,8 @@ def test_the_worker_times_one_step_and_one_validation_batch_and_profiles_the_ste
     assert line.startswith("| baseline | - | cpu | 32-true | 1 |") and line.endswith("|  |")
 
 
-def test_a_failing_recipe_is_a_row_with_its_error(tmp_path):
-    real_size = _script()
+def test_a_failing_recipe_is_a_row_with_its_error(script, tmp_path):
+    real_size = script("real_size")
 
     class Args:
         device, batch, depth, timeout, out = "cpu", 1, 1, 120, str(tmp_path)
