@@ -295,8 +295,12 @@ def run_recipe(name: str, refs: list[str], overrides: list[str], args: argparse.
     start = time.perf_counter()
     with log.open("w") as fh:
         try:
+            env = dict(os.environ)
+            if args.device == "cpu":  # auto-accelerator on a machine with a GPU must still not pick it
+                env["CUDA_VISIBLE_DEVICES"] = ""
             result = subprocess.run(
                 [sys.executable, "-u", __file__, "--worker", json.dumps(job)],
+                env=env,
                 stdout=subprocess.PIPE,
                 stderr=fh,
                 text=True,
@@ -312,7 +316,8 @@ def run_recipe(name: str, refs: list[str], overrides: list[str], args: argparse.
         error = f"killed by signal {-result.returncode}" + (" (out of memory?)" if result.returncode == -9 else "")
     else:
         text = log.read_text().strip().splitlines()
-        error = next((t for t in reversed(text) if t.startswith(("error", "Error"))), text[-1] if text else "failed")
+        errors = [t for t in text if t.startswith(("error", "Error")) or "Error: " in t]
+        error = errors[0] if errors else (text[-1] if text else "failed")
     return [{"recipe": name, "error": error[:200], "wall_s": wall}]
 
 
@@ -398,7 +403,10 @@ def main() -> int:
             for name, nbytes in r["saved_by_module"].items():
                 print(f"  {nbytes / 2**20:10,.0f} MiB  {name}")
     if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=2) + "\n")
+        from occplug.run.bench import code_commit
+
+        commit = code_commit(ROOT)  # the code the rows measured (None outside a git checkout)
+        Path(args.json).write_text(json.dumps([{**r, "commit": commit} for r in rows], indent=2) + "\n")
     return 0
 
 
