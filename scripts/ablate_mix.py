@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import time
 from pathlib import Path
 from typing import NamedTuple
@@ -141,8 +142,18 @@ def final_run(run: Path) -> Path:
 def measure(name: str, seed: int, args: argparse.Namespace) -> dict:
     """The row's metrics at ``seed`` on ``args.split`` (trained first unless a finished run is there)."""
     out = Path(args.out) / f"{name}-seed{seed}"
+    wanted = overrides(name, seed, args)
+    record = out / "ablate_mix_overrides.json"  # what the run in this folder was trained with
+    if record.is_file() and json.loads(record.read_text()) != [ROWS[name].config, *wanted]:
+        print(
+            f"error: {out} was trained with other settings than this command's (--epochs, --preset or --set changed); "
+            "choose a fresh --out",
+            file=sys.stderr,
+        )
+        raise SystemExit(2)
     if not (out / "metrics.json").is_file():
-        fit_in_process(ROWS[name].config, overrides(name, seed, args), out, f"{name} seed {seed}")
+        fit_in_process(ROWS[name].config, wanted, out, f"{name} seed {seed}")
+        record.write_text(json.dumps([ROWS[name].config, *wanted]) + "\n")
     if args.split == "val":
         return json.loads((out / "metrics.json").read_text())
     return evaluate_in_process(final_run(out), args.split)

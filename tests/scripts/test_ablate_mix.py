@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from occplug.config import phase_specs
 from occplug.run import runner
 
@@ -95,3 +97,23 @@ def test_every_planned_run_composes_and_validates(script):
             assert [s.config["trainer"]["max_epochs"] for s in phase_specs(cfg)] == [8, 2, 4]
         else:
             assert cfg["trainer"]["max_epochs"] == row.epochs
+
+
+def test_a_finished_run_of_other_settings_is_refused_not_reused(script, tmp_path, monkeypatch, capsys):
+    ablate = script("ablate_mix")
+
+    def fake_fit(config, overrides, out, label):
+        out.mkdir(parents=True)
+        (out / "metrics.json").write_text(json.dumps(_fake_metrics(config, list(overrides))))
+        return out
+
+    monkeypatch.setattr(ablate, "fit_in_process", fake_fit)
+    common = ["--rows", "queryocc_base", "--seeds", "0", "--out", str(tmp_path / "abl")]
+    ablate.main([*common, "--epochs", "0.5"])
+    ablate.main([*common, "--epochs", "0.5"])  # the same settings: the finished run is reused
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as stop:
+        ablate.main([*common, "--epochs", "1"])  # another budget: never the old numbers
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "queryocc_base-seed0" in err[0]
