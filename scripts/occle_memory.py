@@ -70,7 +70,7 @@ def worker(job: dict[str, Any]) -> dict[str, Any]:
 
     from occplug.config import phase_specs
     from occplug.run import runner
-    from occplug.run.memory import SavedTensorProfile
+    from occplug.run.memory import SavedTensorProfile, peak_rss, reset_peak_rss
     from occplug.run.phases import freeze
 
     torch.manual_seed(0)
@@ -93,7 +93,7 @@ def worker(job: dict[str, Any]) -> dict[str, Any]:
         modules[name].eval()
     optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4)
     base = _status("VmRSS:")
-    Path("/proc/self/clear_refs").write_text("5")  # VmHWM := the current resident set (Linux)
+    reset_peak_rss()
     start = time.perf_counter()
     with SavedTensorProfile(model) as profile:
         losses = model.losses(batch, model(batch))
@@ -103,7 +103,7 @@ def worker(job: dict[str, Any]) -> dict[str, Any]:
     step = time.perf_counter() - start
     return {
         "base_mib": base,
-        "peak_mib": _status("VmHWM:"),
+        "peak_mib": peak_rss() / 2**20,
         "saved_mib": profile.total / 2**20,
         "saved_by_module": {k: v / 2**20 for k, v in list(profile.by_prefix(job["depth"]).items())[:12]},
         "step_s": step,

@@ -151,32 +151,13 @@ def write_trees(trees: Path) -> None:
 
 
 # ---------------------------------------------------------------------- one recipe, in its own process
-def _reset_peak_rss() -> None:
-    try:
-        Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM to the current RSS (Linux)
-    except OSError:
-        pass
-
-
-def _peak_rss() -> int:
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
-
 def worker(job: dict[str, Any]) -> list[dict[str, Any]]:
     """Fit ``job``'s recipe for one step and one validation batch per phase; one row per phase."""
     import torch
     from lightning.pytorch.callbacks import Callback
 
     from occplug.run import runner
-    from occplug.run.memory import SavedTensorProfile
+    from occplug.run.memory import SavedTensorProfile, peak_rss, reset_peak_rss
     from occplug.run.phases import fit_phases
 
     cuda = job["device"] == "cuda"
@@ -211,7 +192,7 @@ def worker(job: dict[str, Any]) -> list[dict[str, Any]]:
         """Times the training batch and the validation batch, and the phase's peak memory."""
 
         def on_fit_start(self, trainer, pl_module) -> None:  # type: ignore[override]
-            _reset_peak_rss()
+            reset_peak_rss()
             if cuda:
                 torch.cuda.reset_peak_memory_stats()
             phase = Path(trainer.default_root_dir).name if cfg.get("phases") else "-"
@@ -249,7 +230,7 @@ def worker(job: dict[str, Any]) -> list[dict[str, Any]]:
             rows[-1]["val_s"] = time.perf_counter() - self.val_start
 
         def on_fit_end(self, trainer, pl_module) -> None:  # type: ignore[override]
-            rows[-1]["peak_bytes"] = torch.cuda.max_memory_allocated() if cuda else _peak_rss()
+            rows[-1]["peak_bytes"] = torch.cuda.max_memory_allocated() if cuda else peak_rss()
             if cuda:
                 rows[-1]["latency_ms"] = latency(trainer, pl_module)
 

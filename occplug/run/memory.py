@@ -17,12 +17,13 @@ forward (the CPU's peak resident set or CUDA's peak allocation, printed beside i
 from __future__ import annotations
 
 from collections import defaultdict
+from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
-__all__ = ["SavedTensorProfile"]
+__all__ = ["SavedTensorProfile", "peak_rss", "reset_peak_rss"]
 
 
 class SavedTensorProfile:
@@ -101,3 +102,26 @@ class SavedTensorProfile:
             lines.append(f"| {name} | {nbytes / 2**20:,.0f} | {100.0 * nbytes / total:.1f} % |")
         lines.append(f"| total | {self.total / 2**20:,.0f} | 100 % |")
         return "\n".join(lines)
+
+
+def reset_peak_rss() -> None:
+    """Start a new peak: Linux's ``VmHWM`` is set to the current resident set (``/proc/self/clear_refs``); a no-op
+    elsewhere, where :func:`peak_rss` then reports the process's lifetime peak."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
+def peak_rss() -> int:
+    """Bytes: this process's peak resident set since the last :func:`reset_peak_rss` (Linux ``VmHWM``), else its
+    lifetime peak (``ru_maxrss``)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    import resource  # Unix only: imported where it is needed
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024

@@ -44,3 +44,19 @@ def test_hooks_are_removed_and_nothing_is_counted_outside() -> None:
     model(torch.randn(3, 4)).sum().backward()
     assert profile.total == 0
     assert not model.first._forward_hooks and not model.first._forward_pre_hooks
+
+
+def test_peak_rss_counts_memory_touched_after_its_reset():
+    import sys
+
+    import pytest
+
+    from occplug.run.memory import peak_rss, reset_peak_rss
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the peak is reset through /proc/self/clear_refs (Linux)")
+    reset_peak_rss()
+    before = peak_rss()
+    block = torch.ones(64 * 2**20 // 4)  # 64 MiB, written
+    assert peak_rss() - before >= 48 * 2**20
+    del block
