@@ -55,8 +55,13 @@ def test_peak_rss_counts_memory_touched_after_its_reset():
 
     if not sys.platform.startswith("linux"):
         pytest.skip("the peak is reset through /proc/self/clear_refs (Linux)")
+    import mmap
+
     reset_peak_rss()
     before = peak_rss()
-    block = torch.ones(64 * 2**20 // 4)  # 64 MiB, written
+    size = 64 * 2**20
+    block = mmap.mmap(-1, size)  # fresh pages from the kernel (a freed tensor's pages may be reused instead)
+    for offset in range(0, size, mmap.PAGESIZE):
+        block[offset] = 1  # touched: resident
     assert peak_rss() - before >= 48 * 2**20
-    del block
+    block.close()
