@@ -27,6 +27,7 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 import torch
+import torch.utils.checkpoint
 from torch import Tensor, nn
 
 from occplug.constraints import Length, NonNegative, Positive
@@ -118,6 +119,11 @@ class OccleScene(SceneRepresentation):
             (:class:`~.mamba.DualMambaBlock`'s ``checkpoint``): the same values and gradients, less of a training
             step's memory where the Dual Mamba dominates it (``scripts/occle_memory.py``), about one more forward
             of the mixers in time. Off by default; ``occle/semantickitti`` turns it on.
+        semantic_checkpoint: recompute the semantic branch (the dense LiDAR UNet ``G_s3d`` and the mix with the
+            lifted image grid) in backward instead of keeping its activations: the same values and gradients (its
+            norms are GroupNorm, so a second forward changes no running statistics). With ``mamba_checkpoint`` on,
+            the UNet is the largest part of what a step keeps (30 % at 128 x 128 x 32,
+            ``scripts/occle_memory.py``); off by default, ``occle/semantickitti`` turns it on.
         history: past frame offsets the geometric branch fuses with the current frame (§3.3.1's multi-frame
             grids, ``T = len(history) + 1``, a Conv1D over frames per modality); each must be in the model's
             ``input_history`` (``outputs.history``). Empty: one frame. The semantic branch reads the current
@@ -150,6 +156,7 @@ class OccleScene(SceneRepresentation):
         mamba_state: Annotated[int, Positive] = 16,
         mamba_chunk: Annotated[int, Positive] = 64,
         mamba_checkpoint: bool = False,
+        semantic_checkpoint: bool = False,
         history: list[int] | None = None,
     ) -> None:
         super().__init__()
@@ -170,6 +177,7 @@ class OccleScene(SceneRepresentation):
         self.lidar_encoder = lidar_encoder
         self.out_channels = c = int(channels)
         self.semantic, self.geometric, self.projection = bool(semantic), bool(geometric), bool(projection)
+        self.semantic_checkpoint = bool(semantic_checkpoint)
         self.history = [int(k) for k in (history or [])]
         if 0 in self.history or len(set(self.history)) != len(self.history):
             raise ValueError(
@@ -236,8 +244,12 @@ class OccleScene(SceneRepresentation):
             )
         lidar_semantic = semantic = geometry = None
         if self.semantic:
-            lidar_semantic = self.semantic_branch["lidar_unet"].features(lidar)
-            semantic = self.semantic_branch["mix"](torch.cat([image, lidar_semantic], dim=1))
+            if self.semantic_checkpoint and torch.is_grad_enabled():
+                lidar_semantic, semantic = torch.utils.checkpoint.checkpoint(
+                    self._semantic_branch, image, lidar, use_reentrant=False
+                )
+            else:
+                lidar_semantic, semantic = self._semantic_branch(image, lidar)
             sem_in = semantic
         else:
             sem_in = self.stems["semantic"](torch.cat([image, lidar], dim=1))
@@ -249,6 +261,11 @@ class OccleScene(SceneRepresentation):
             geo_in = self.stems["geometric"](torch.cat([image, lidar], dim=1))
         fused = self.fusion(sem_in, geo_in)
         return OccleGrids(fused, self.grid, lidar_semantic, semantic, geometry, self.projection)
+
+    def _semantic_branch(self, image: Tensor, lidar: Tensor) -> tuple[Tensor, Tensor]:
+        """``S`` (§3.2): the LiDAR UNet's features and their mix with the lifted image grid, each ``(B, C, X, Y, Z)``."""
+        lidar_semantic = self.semantic_branch["lidar_unet"].features(lidar)
+        return lidar_semantic, self.semantic_branch["mix"](torch.cat([image, lidar_semantic], dim=1))
 
     def _frames(self, lidar: Tensor, image: Tensor, outputs: ModelOutputs) -> tuple[Tensor, Tensor]:
         """``(B, T, C, X, Y, Z)`` LiDAR and image grids: the ``history`` frames in order, then the current one."""

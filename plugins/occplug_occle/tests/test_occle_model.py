@@ -156,3 +156,28 @@ def test_two_frames_composes_with_the_phased_recipe():
     for spec in specs:
         assert spec.config["model"]["input_history"] == [-1] and spec.config["model"]["scene"]["history"] == [-1]
         assert spec.config["data"]["adjacent_offsets"] == [-1] and spec.config["data"]["label_fraction"] == 0.1
+
+
+def test_semantic_checkpoint_gives_the_same_loss_and_gradients_and_keeps_less_of_the_unet():
+    """``semantic_checkpoint`` recomputes the LiDAR UNet and the mix in backward: the step's loss and
+    every parameter's gradient equal the plain model's, and the UNet keeps nothing for backward."""
+    from occplug.run.memory import SavedTensorProfile
+
+    results = {}
+    for flag in (False, True):
+        torch.manual_seed(0)
+        model, batch = _model_and_batch(f"model.scene.semantic_checkpoint={str(flag).lower()}")
+        if flag:
+            model.load_state_dict(results[False][0])
+        with SavedTensorProfile(model) as profile:
+            loss, _ = _loss(model, batch)
+        loss.backward()
+        grads = {k: p.grad.clone() for k, p in model.named_parameters() if p.grad is not None}
+        unet = sum(v for k, v in profile.saved.items() if k.startswith("scene.semantic_branch"))
+        results[flag] = ({k: v.detach().clone() for k, v in model.state_dict().items()}, loss.detach(), grads, unet)
+    (_, loss_plain, grads_plain, unet_plain), (_, loss_ckpt, grads_ckpt, unet_ckpt) = results[False], results[True]
+    assert torch.allclose(loss_plain, loss_ckpt, rtol=1e-6, atol=0)
+    assert grads_plain.keys() == grads_ckpt.keys() and any(k.startswith("scene.semantic_branch") for k in grads_plain)
+    for key, grad in grads_plain.items():
+        assert torch.allclose(grad, grads_ckpt[key], rtol=1e-5, atol=1e-7), key
+    assert unet_plain > 0 and unet_ckpt == 0
