@@ -1,6 +1,11 @@
 #!/usr/bin/env python
 """How OccLE's training memory follows the grid: one Phase III step at several grid sizes, with and without
-``mamba_checkpoint``.
+activation checkpointing.
+
+Settings (``--settings``, default ``plain checkpoint``): ``plain`` keeps every activation; ``checkpoint`` sets
+``model.scene.mamba_checkpoint`` (the Dual Mamba's mixers recomputed in backward); ``both`` also sets
+``model.scene.semantic_checkpoint`` (the semantic branch's dense LiDAR UNet and mix recomputed too), as
+``occle/semantickitti`` does.
 
 For each grid ``X x Y x Z`` and setting, a child process builds the final phase (``fusion``, Phase III) of
 ``occle/three_phase_10pct`` on the synthetic world with the grid replaced (voxel edge ``6.4 m / Z``, ``X`` voxels
@@ -45,7 +50,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = "occle/three_phase_10pct"
 PHASE = "fusion"
-SETTINGS = {"plain": "false", "checkpoint": "true"}
+#: setting -> (model.scene.mamba_checkpoint, model.scene.semantic_checkpoint); ``occle/semantickitti`` runs "both"
+SETTINGS = {"plain": (False, False), "checkpoint": (True, False), "both": (True, True)}
 
 
 def grid_overrides(shape: tuple[int, int, int]) -> list[str]:
@@ -77,7 +83,8 @@ def worker(job: dict[str, Any]) -> dict[str, Any]:
     overrides = [
         *grid_overrides(tuple(job["grid"])),
         f"data.batch_size={job['batch']}",
-        f"model.scene.mamba_checkpoint={SETTINGS[job['setting']]}",
+        f"model.scene.mamba_checkpoint={str(SETTINGS[job['setting']][0]).lower()}",
+        f"model.scene.semantic_checkpoint={str(SETTINGS[job['setting']][1]).lower()}",
         "model.point_encoders.lidar.sampling=first",
     ]
     cfg = runner.load_config([RECIPE], overrides)
@@ -208,7 +215,7 @@ def table(rows: list[dict[str, Any]], settings: list[str], extrapolate: list[int
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--grids", nargs="+", default=["32x32x8", "64x64x16", "128x128x16"])
-    parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS))
+    parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=["plain", "checkpoint"])
     parser.add_argument("--batch", type=int, default=1)
     parser.add_argument("--depth", type=int, default=3)
     parser.add_argument("--max-rss-gib", type=float, default=10.0)
