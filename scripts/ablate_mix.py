@@ -28,10 +28,9 @@ Results go to ``--out`` (default ``runs/ablate_mix``): one run directory per row
 ``--results DIR`` also writes one small JSON per row and seed. A finished run directory is reused, so an
 interrupted ablation continues where it stopped.
 
-CPU budget, estimated from the parents' RESULTS.md (not measured for the mixes): per seed 12 epochs of QueryOcc-size
-runs and 64 epochs of DuOcc-B-size runs (the phased row counts 8 + 8 + 4); DuOcc B trains about 0.4 min per epoch on
-one thread of this 2-core machine (24 epochs in ~10 min), so about 40 min per seed on one thread, about 2 CPU-hours
-for 3 seeds, plus the worlds' generation and each run's start-up and validation.
+CPU budget, measured (``results/mix/RESULTS.md``): the 24 runs of 3 seeds took 2 h 12 min of wall time on a 2-core
+CPU, three to five runs side by side with one thread each (DuOcc B, 8 epochs: 8-11 min per run; the three-phase
+row 27 min; QueryOcc base 13-20 min).
 """
 
 from __future__ import annotations
