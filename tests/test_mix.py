@@ -129,17 +129,19 @@ def test_an_impossible_mix_is_one_line_naming_both_components(tmp_path, capsys):
     assert not run.exists()
 
 
-@pytest.mark.parametrize("fmt", ["torch_export", "onnx"])
-def test_the_label_free_stream_exports_with_parity(fmt, tmp_path, tmp_path_factory, capsys):
-    """QueryOcc's decoder over DuOcc's stream: the state an input and an output, as DuOcc B's export (its level)."""
+@pytest.mark.parametrize(
+    "mix, fmt",
+    [(LABEL_FREE, "torch_export"), (LABEL_FREE, "onnx"), (QUERIES_10PCT, "onnx")],
+    ids=["label_free-torch_export", "label_free-onnx", "queries_10pct-onnx"],
+)
+def test_a_streaming_mix_exports_with_parity(mix, fmt, tmp_path, tmp_path_factory, capsys):
+    """QueryOcc's decoder over DuOcc's stream (mix 1), and DuOcc B with QueryOcc's auxiliary decoder (mix 3): the
+    stream's state an input and an output, as DuOcc B's export (its level)."""
     if fmt == "onnx":
         pytest.importorskip("onnxruntime")
-    ckpt = tmp_path_factory.getbasetemp() / "mix_label_free" / "checkpoints" / "last.ckpt"
+    ckpt = tmp_path_factory.getbasetemp() / f"mix_{Path(mix).stem}" / "checkpoints" / "last.ckpt"
     if not ckpt.is_file():
-        assert (
-            main(["fit", "-c", LABEL_FREE, "-c", "occplug/trainer/debug", *SMALL, "--run-dir", str(ckpt.parents[1])])
-            == 0
-        )
+        assert main(["fit", "-c", mix, "-c", "occplug/trainer/debug", *SMALL, "--run-dir", str(ckpt.parents[1])]) == 0
     capsys.readouterr()
     out = tmp_path / ("mix.pt2" if fmt == "torch_export" else "mix.onnx")
     assert main(["export", "--ckpt", str(ckpt), "--format", fmt, "--out", str(out), "--samples", "2"]) == 0
