@@ -18,10 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from occplug.data import class_groups
 from occplug.run import runner
-
-#: Occ3D-nuScenes' dynamic (object) classes, as the DuOcc tables' mIoU_D
-DYNAMIC = {"bicycle", "bus", "car", "construction_vehicle", "motorcycle", "pedestrian", "trailer", "truck"}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -35,8 +33,9 @@ def main(argv: list[str] | None = None) -> None:
     folder = folders[0]
     teacher = json.loads((folder / "meta.json").read_text())["teacher"]  # the phase that wrote the folder
     cfg = runner.load_config([str(args.run / teacher / "config.yaml")], ["data.label_fraction=1.0"])
-    dm, _ = runner.build_run(cfg)
+    dm = runner.build_datamodule(cfg)  # the frames' true labels; no model is needed
     names = list(dm.class_names)
+    dynamic_names = {names[i] for i in (class_groups(names) or {}).get("dynamic", ())}  # as the metrics group them
     free = len(names) - 1
     inter, union, truth = (np.zeros(len(names)) for _ in range(3))
     inter_k, union_k = np.zeros(len(names)), np.zeros(len(names))
@@ -68,7 +67,7 @@ def main(argv: list[str] | None = None) -> None:
     present = [k for k in range(free) if truth[k] > 0]
     iou = {names[k]: 100 * inter[k] / union[k] for k in present}
     iou_kept = [100 * inter_k[k] / union_k[k] for k in present if union_k[k] > 0]
-    dynamic = [v for n, v in iou.items() if n in DYNAMIC]
+    dynamic = [v for n, v in iou.items() if n in dynamic_names]
     print(json.dumps({
         "run": str(args.run), "folder": folder.name, "files_scored": scored,
         "mIoU": float(np.mean(list(iou.values()))), "mIoU_dynamic": float(np.mean(dynamic)) if dynamic else None,
