@@ -62,12 +62,18 @@ class SmallCNN(ImageEncoder):
             stride-2 :class:`~occplug.nn.BasicBlock2d` on the previous stage with
             its own 1x1 neck to ``out_channels``, so level ``i`` has stride ``stride * 2**i``;
             the first (finest) level is the primary one the view transform reads.
+        finer_level: also output the features at ``stride / 2`` (the stage before the last, or the stem
+            at ``stride`` 4) through their own 1x1 neck to ``out_channels``, as level 0, in front of the
+            others; the primary level (``primary_level = 1``) and its weights' layout stay as without it.
+            For consumers that want finer image features (an image-to-query detector on small objects)
+            than the view transform reads.
 
     Shapes:
         input ``(B, N, 3, H, W)`` float RGB in [0, 1] (standardised inside with ImageNet
         statistics); output ``(B, N, out_channels, H // stride, W // stride)``, or with
         ``levels > 1`` a list of ``(B, N, out_channels, H // s_i, W // s_i)``, ``s_i = stride * 2**i``
-        (``H`` and ``W`` must then be divisible by the coarsest ``s_i``).
+        (``H`` and ``W`` must then be divisible by the coarsest ``s_i``). With ``finer_level`` the list
+        starts with ``(B, N, out_channels, H // (stride / 2), W // (stride / 2))``.
     """
 
     def __init__(
@@ -78,6 +84,7 @@ class SmallCNN(ImageEncoder):
         num_blocks: Annotated[int, Positive] = 1,
         norm: Literal["batch", "group"] = "batch",
         levels: Annotated[int, Positive] = 1,
+        finer_level: bool = False,
     ) -> None:
         super().__init__()
         if levels < 1:
@@ -92,6 +99,8 @@ class SmallCNN(ImageEncoder):
         layers: list[nn.Module] = [ConvNormAct2d(3, width, 3, stride=2, norm=norm)]
         channels = width
         for i in range(int(math.log2(stride)) - 1):
+            # the finer level reads the features before the last stage (at stride / 2)
+            finer_channels, self._finer_after = channels, len(layers)
             out = width * 2**i
             layers.append(BasicBlock2d(channels, out, stride=2, norm=norm))
             layers.extend(BasicBlock2d(out, out, norm=norm) for _ in range(num_blocks - 1))
@@ -101,16 +110,29 @@ class SmallCNN(ImageEncoder):
         # coarser levels (multi-scale consumers such as image-to-query detectors); none by default
         self.down = nn.ModuleList(BasicBlock2d(channels, channels, stride=2, norm=norm) for _ in range(levels - 1))
         self.level_necks = nn.ModuleList(nn.Conv2d(channels, self.out_channels, 1) for _ in range(levels - 1))
-        if levels > 1:
-            self._level_channels = (self.out_channels,) * levels
-            self._level_strides = tuple(self.stride * 2**i for i in range(levels))
+        # the finest level (stride / 2), in front of the primary one; absent by default
+        self.finer_neck = nn.Conv2d(finer_channels, self.out_channels, 1) if finer_level else None
+        strides = tuple(self.stride * 2**i for i in range(levels))
+        if finer_level:
+            strides = (self.stride // 2, *strides)
+            self.primary_level = 1
+        if len(strides) > 1:
+            self._level_channels = (self.out_channels,) * len(strides)
+            self._level_strides = strides
 
     def forward(self, images: Tensor) -> Tensor | list[Tensor]:
         """``(B, N, 3, H, W)`` in [0, 1] -> ``(B, N, C, H / stride, W / stride)`` (or a list of levels)."""
         _check_divisible(images, self.level_strides[-1], "small_cnn")
         b, n = images.shape[:2]
-        x = self.body(self.standardise(images.flatten(0, 1)))
-        out = [self.neck(x)]
+        x = self.standardise(images.flatten(0, 1))
+        out = []
+        if self.finer_neck is not None:
+            x = self.body[: self._finer_after](x)
+            out.append(self.finer_neck(x))
+            x = self.body[self._finer_after :](x)
+        else:
+            x = self.body(x)
+        out.append(self.neck(x))
         for down, neck in zip(self.down, self.level_necks, strict=True):
             x = down(x)
             out.append(neck(x))

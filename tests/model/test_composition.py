@@ -18,7 +18,7 @@ from occplug.components import SmallCNN, VoxelPoints
 from occplug.components.point_encoders import voxel_point_statistics
 from occplug.config import validate
 from occplug.geometry import GridSpec
-from occplug.interfaces import ModelOutputs, OccupancyHead, Scene, SupervisionSource
+from occplug.interfaces import ImageEncoder, ModelOutputs, OccupancyHead, Scene, SupervisionSource
 from occplug.kinds import KINDS, given_arguments
 from occplug.model import OccModel, head_order
 from occplug.plugins import isolated
@@ -125,6 +125,38 @@ def test_small_cnn_levels_share_the_primary_level_bit_for_bit():
     assert [tuple(x.shape) for x in levels] == [(1, 2, 8, 8, 16), (1, 2, 8, 4, 8), (1, 2, 8, 2, 4)]
     assert torch.equal(levels[0], one(images))
     assert one.level_strides == (4,) and isinstance(one(images), Tensor)
+
+
+@pytest.mark.parametrize("stride", [4, 8])
+def test_small_cnn_finer_level_adds_the_half_stride_features_and_keeps_the_primary(stride):
+    """``finer_level``: level 0 is the stage before the last through its own neck, at ``stride / 2``; the primary
+    level (now index 1) and the coarser ones equal the encoder without it, given the same weights."""
+    images = torch.rand(1, 2, 3, 32, 64)
+    plain = SmallCNN(out_channels=8, width=8, stride=stride, num_blocks=2, levels=2).eval()
+    fine = SmallCNN(out_channels=8, width=8, stride=stride, num_blocks=2, levels=2, finer_level=True).eval()
+    missing, unexpected = fine.load_state_dict(plain.state_dict(), strict=False)
+    assert sorted(missing) == ["finer_neck.bias", "finer_neck.weight"] and not unexpected
+    levels = fine(images)
+    assert fine.primary_level == 1 and fine.level_strides == (stride // 2, stride, 2 * stride)
+    assert fine.level_channels == (8, 8, 8) and (fine.out_channels, fine.stride) == (8, stride)
+    assert [tuple(x.shape[-2:]) for x in levels] == [
+        (64 // stride, 128 // stride),
+        (32 // stride, 64 // stride),
+        (16 // stride, 32 // stride),
+    ]
+    for a, b in zip(levels[1:], plain(images), strict=True):
+        assert torch.equal(a, b)
+    # the finer level by hand: everything before the last stage (the stem alone at stride 4), then its neck
+    last_stage = 2  # num_blocks layers
+    before = plain.body[: len(plain.body) - last_stage](plain.standardise(images.flatten(0, 1)))
+    torch.testing.assert_close(levels[0].flatten(0, 1), fine.finer_neck(before), rtol=0, atol=0)
+    assert before.shape[-2:] == (64 // stride, 128 // stride)
+
+
+def test_small_cnn_finer_level_passes_the_encoder_contract():
+    enc = SmallCNN(out_channels=8, width=8, stride=8, finer_level=True)
+    grid = GridSpec.from_config({"range": [0, 0, 0, 2, 2, 1], "voxel_size": 1.0})
+    ImageEncoder.check_conformance(enc, make_tiny_batch(), grid)
 
 
 def test_small_cnn_rejects_images_the_coarsest_level_does_not_divide():

@@ -420,3 +420,21 @@ def test_the_oracles_control_writes_class_footprints_and_no_instance_features():
             "model.scene.query_agg.dqa=false",
             "model.scene.query_agg.v2q=false",
         )
+
+
+def test_the_detector_reads_the_encoders_finer_level_and_the_view_transform_keeps_its_stride():
+    """``model.encoder.finer_level=true`` (issue 41, step 3): the detector samples a stride-4 level beside strides 8
+    and 16, its loss reaches that level's neck, and the view transform still reads the stride-8 level."""
+    torch.manual_seed(0)
+    model, dm = _model_and_dm("full", "model.encoder.finer_level=true")
+    enc, qa = model.encoder, model.scene.query_agg
+    assert enc.level_strides == (4, 8, 16) and enc.primary_level == 1 and enc.stride == 8
+    assert all(layer.deformable.num_levels == 3 for layer in qa.detector.layers)
+    batch = _batch(dm, [0, 3])
+    outputs = model(batch)
+    h, w = batch.images.shape[-2:]
+    assert outputs.image_features.shape[-2:] == (h // 8, w // 8)
+    assert [tuple(x.shape[-2:]) for x in outputs.image_levels] == [(h // s, w // s) for s in (4, 8, 16)]
+    losses = model.losses(batch, outputs)
+    losses["detection/det_cls"].backward()
+    assert enc.finer_neck.weight.grad is not None and enc.finer_neck.weight.grad.abs().sum() > 0
