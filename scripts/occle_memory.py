@@ -7,7 +7,8 @@ Settings (``--settings``, default ``plain checkpoint``): ``plain`` keeps every a
 ``model.scene.semantic_checkpoint`` (the semantic branch's dense LiDAR UNet and mix recomputed too), as
 ``occle/semantickitti`` does.
 
-For each grid ``X x Y x Z`` and setting, a child process builds the final phase (``fusion``, Phase III) of
+For each grid ``X x Y x Z`` and setting, a child process builds the final phase (``fusion``, Phase III; another with
+``--phase``) of
 ``occle/three_phase_10pct`` on the synthetic world with the grid replaced (voxel edge ``6.4 m / Z``, ``X`` voxels
 forward from the ego, ``Y`` centred, from 1 m below the ego: 32 x 32 x 8 is the recipe's own grid, 256 x 256 x 32
 SemanticKITTI's 51.2 m x 51.2 m x 6.4 m at 0.2 m), freezes what the phase freezes, and runs one training step
@@ -29,7 +30,7 @@ estimate, not a measurement, and says so.
 Usage::
 
     python scripts/occle_memory.py [--grids 32x32x8 64x64x16 ...] [--settings plain checkpoint] [--batch 1]
-                                   [--depth 3] [--max-rss-gib 10] [--extrapolate 256 256 32] [--json FILE]
+                                   [--phase fusion] [--set key=value ...] [--depth 3] [--max-rss-gib 10] [--extrapolate 256 256 32] [--json FILE]
     python scripts/occle_memory.py --from-json FILE [--settings ...] [--extrapolate X Y Z]   # the tables again
 
 Pure PyTorch on the CPU (``mamba_ssm`` is CUDA only; on a CPU the Mamba mixers run the chunked scan with its
@@ -49,6 +50,7 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = "occle/three_phase_10pct"
+#: the phase measured by default (``--phase``): Phase III, the largest model that trains
 PHASE = "fusion"
 #: setting -> (model.scene.mamba_checkpoint, model.scene.semantic_checkpoint); ``occle/semantickitti`` runs "both"
 SETTINGS = {"plain": (False, False), "checkpoint": (True, False), "both": (True, True)}
@@ -71,7 +73,7 @@ def _status(key: str) -> float:
 
 
 def worker(job: dict[str, Any]) -> dict[str, Any]:
-    """One training step of the recipe's final phase at ``job``'s grid; the numbers of its row."""
+    """One training step of the recipe's phase ``job["phase"]`` at ``job``'s grid; the numbers of its row."""
     import torch
 
     from occplug.config import phase_specs
@@ -86,12 +88,14 @@ def worker(job: dict[str, Any]) -> dict[str, Any]:
         f"model.scene.mamba_checkpoint={str(SETTINGS[job['setting']][0]).lower()}",
         f"model.scene.semantic_checkpoint={str(SETTINGS[job['setting']][1]).lower()}",
         "model.point_encoders.lidar.sampling=first",
+        *job.get("set", []),
     ]
     cfg = runner.load_config([RECIPE], overrides)
-    spec = next(s for s in phase_specs(cfg) if s.name == PHASE)
+    phase = job.get("phase", PHASE)
+    spec = next(s for s in phase_specs(cfg) if s.name == phase)
     dm = runner.build_datamodule(spec.config)
     model = runner.build_model(spec.config, dm)
-    frozen = freeze(model, spec.freeze, f"phases.{PHASE}.freeze")
+    frozen = freeze(model, spec.freeze, f"phases.{phase}.freeze")
     dataset = dm.dataset("train")
     batch = dm.collate([dataset[i] for i in range(job["batch"])])
     model.train()
@@ -223,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--extrapolate", type=int, nargs=3, metavar=("X", "Y", "Z"))
     parser.add_argument("--json", help="write every row here")
     parser.add_argument("--from-json", help="print the tables of rows an earlier --json wrote (runs nothing)")
+    parser.add_argument("--phase", default=PHASE, help=f"the phase of {RECIPE} to measure (default {PHASE})")
+    parser.add_argument("--set", nargs="*", default=[], help="further config overrides (key=value) for every row")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
@@ -231,17 +237,19 @@ def main(argv: list[str] | None = None) -> int:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
     commit = commit.stdout.strip() or "?"
     rows = json.loads(Path(args.from_json).read_text()) if args.from_json else []
+    phase = args.phase
     if rows:
-        commit = rows[0].get("commit", "?")
+        commit, phase = rows[0].get("commit", "?"), rows[0].get("phase", PHASE)
     for text in [] if args.from_json else args.grids:
         grid = [int(v) for v in text.lower().split("x")]
         for setting in args.settings:
-            job = {"grid": grid, "setting": setting, "batch": args.batch, "depth": args.depth}
+            job = {"grid": grid, "setting": setting, "batch": args.batch, "depth": args.depth, "phase": args.phase}
+            job["set"] = list(args.set)
             row = {**run(job, args.max_rss_gib, args.timeout), "commit": commit}
             rows.append(row)
             summary = row.get("error") or f"peak {row['peak_mib']:,.0f} MiB, step {row['step_s']:.1f} s"
             print(f"{text} {setting}: {summary}", file=sys.stderr, flush=True)
-    print(f"OccLE `{RECIPE}` phase `{PHASE}`, one training step, batch {args.batch}, CPU, commit "
+    print(f"OccLE `{RECIPE}` phase `{phase}`, one training step, batch {args.batch}, CPU, commit "
           f"{commit}\n")  # fmt: skip
     print(table(rows, args.settings, args.extrapolate))
     for row in rows:

@@ -257,8 +257,8 @@ class ProjectedSegmentationHead(Head):
         self.net = ProjectionHead(in_channels, self.num_classes, hidden)
 
     def forward(self, scene: Scene, batch: Batch) -> dict[str, Tensor]:
-        """``{"image_logits": (B, N, K, h, w)}``; ``{}`` with the projection off."""
-        if not getattr(scene, "projection", True):
+        """``{"image_logits": (B, N, K, h, w)}``; ``{}`` with the projection off or no fused grid."""
+        if not getattr(scene, "projection", True) or scene.features is None:
             return {}
         b, n, _, big_h, big_w = batch.images.shape
         h, w = big_h // self.stride, big_w // self.stride

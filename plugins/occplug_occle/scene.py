@@ -49,7 +49,8 @@ class OccleGrids(DenseVoxelScene):
     """The scene OccLE's heads read: the fused grid plus the branch grids, all ``(B, C, X, Y, Z)`` on ``grid``.
 
     Attributes:
-        features: ``F_3d^f``, the Dual Mamba output (sampled by :meth:`sample`).
+        features: ``F_3d^f``, the Dual Mamba output (sampled by :meth:`sample`), or None where the scene ran one
+            branch alone (``occle_scene`` ``compute``).
         grid: the ego-frame grid of every tensor here.
         lidar_semantic: ``F_P^s`` of the LiDAR 3D UNet, or None (semantic branch off).
         semantic: ``F_f^s``, the semantic grid fused, or None (semantic branch off).
@@ -59,14 +60,18 @@ class OccleGrids(DenseVoxelScene):
 
     def __init__(
         self,
-        features: Tensor,
+        features: Tensor | None,
         grid: GridSpec,
         lidar_semantic: Tensor | None = None,
         semantic: Tensor | None = None,
         geometry: Tensor | None = None,
         projection: bool = True,
     ) -> None:
-        super().__init__(features, grid)
+        if features is not None:
+            super().__init__(features, grid)
+        else:  # one branch alone: no fused grid (the heads on it give nothing)
+            present = next(g for g in (lidar_semantic, semantic, geometry) if g is not None)
+            self.features, self.grid, self.channels = None, grid, int(present.shape[1])
         self.lidar_semantic = lidar_semantic
         self.semantic = semantic
         self.geometry = geometry
@@ -124,6 +129,11 @@ class OccleScene(SceneRepresentation):
             norms are GroupNorm, so a second forward changes no running statistics). With ``mamba_checkpoint`` on,
             the UNet is the largest part of what a step keeps (30 % at 128 x 128 x 32,
             ``scripts/occle_memory.py``); off by default, ``occle/semantickitti`` turns it on.
+        compute: what a forward runs: ``all``; ``semantic``, the semantic branch alone (Phase I, whose losses read
+            nothing else); ``geometric``, the geometric branch alone (the teacher and student phases). Every
+            module is built either way (the state dict and a phase's ``init_from`` are the same); a grid not run is
+            None and the heads on it give nothing. The trained values are the same as with ``all`` (no loss reads
+            what is not run), without the memory and time of the unread branches and of the Dual Mamba fusion.
         history: past frame offsets the geometric branch fuses with the current frame (§3.3.1's multi-frame
             grids, ``T = len(history) + 1``, a Conv1D over frames per modality); each must be in the model's
             ``input_history`` (``outputs.history``). Empty: one frame. The semantic branch reads the current
@@ -157,9 +167,15 @@ class OccleScene(SceneRepresentation):
         mamba_chunk: Annotated[int, Positive] = 64,
         mamba_checkpoint: bool = False,
         semantic_checkpoint: bool = False,
+        compute: Literal["all", "semantic", "geometric"] = "all",
         history: list[int] | None = None,
     ) -> None:
         super().__init__()
+        if compute not in ("all", "semantic", "geometric"):
+            raise ValueError(f"occle_scene compute must be 'all', 'semantic' or 'geometric', got {compute!r}")
+        if compute != "all" and not (semantic if compute == "semantic" else geometric):
+            raise ValueError(f"occle_scene compute: {compute} runs the {compute} branch alone, which is switched off")
+        self.compute = compute
         if geometry not in ("cross_plane", "conv3d"):
             raise ValueError(f"occle_scene geometry must be 'cross_plane' or 'conv3d', got {geometry!r}")
         if fusion not in ("dual_mamba", "conv"):
@@ -243,6 +259,9 @@ class OccleScene(SceneRepresentation):
                 f"{tuple(lidar.shape)}"
             )
         lidar_semantic = semantic = geometry = None
+        if self.compute == "geometric":
+            geometry = self.geometric_branch(*self._frames(lidar, image, outputs))
+            return OccleGrids(None, self.grid, geometry=geometry, projection=self.projection)
         if self.semantic:
             if self.semantic_checkpoint and torch.is_grad_enabled():
                 lidar_semantic, semantic = torch.utils.checkpoint.checkpoint(
@@ -251,6 +270,8 @@ class OccleScene(SceneRepresentation):
             else:
                 lidar_semantic, semantic = self._semantic_branch(image, lidar)
             sem_in = semantic
+            if self.compute == "semantic":
+                return OccleGrids(None, self.grid, lidar_semantic, semantic, projection=self.projection)
         else:
             sem_in = self.stems["semantic"](torch.cat([image, lidar], dim=1))
         if self.geometric:

@@ -181,3 +181,58 @@ def test_semantic_checkpoint_gives_the_same_loss_and_gradients_and_keeps_less_of
     for key, grad in grads_plain.items():
         assert torch.allclose(grad, grads_ckpt[key], rtol=1e-5, atol=1e-7), key
     assert unet_plain > 0 and unet_ckpt == 0
+
+
+@pytest.mark.parametrize(("phase", "compute", "skipped"), [
+    ("semantic", "semantic", ("scene.geometric_branch", "scene.fusion")),
+    ("teacher", "geometric", ("scene.semantic_branch", "scene.fusion")),
+])  # fmt: skip
+def test_computing_one_branch_gives_the_phases_loss_and_gradients_and_runs_nothing_else(phase, compute, skipped):
+    """``compute: semantic`` (Phase I) and ``compute: geometric`` (the teacher): the phase's loss and every gradient
+    equal the full forward's, the modules no loss reads keep nothing for backward, and the heads on the grids not
+    run give nothing."""
+    import copy
+
+    from occplug.config import phase_specs
+    from occplug.run.memory import SavedTensorProfile
+
+    cfg = runner.load_config(["occle/three_phase_10pct", "occplug/trainer/debug"], SMALL)
+    spec = next(s for s in phase_specs(cfg) if s.name == phase)
+    results = {}
+    for mode in ("all", compute):
+        config = copy.deepcopy(spec.config)
+        config["model"]["scene"]["compute"] = mode
+        torch.manual_seed(0)
+        dm = runner.build_datamodule(config)
+        model = runner.build_model(config, dm)
+        if mode != "all":
+            model.load_state_dict(results["all"][0])
+        dataset = dm.dataset("train")
+        batch = dm.collate([dataset[i] for i in range(min(2, len(dataset)))])
+        with SavedTensorProfile(model) as profile:
+            outputs = model(batch)
+            losses = model.losses(batch, outputs)
+        loss = torch.stack(list(losses.values())).sum()
+        loss.backward()
+        grads = {k: p.grad.clone() for k, p in model.named_parameters() if p.grad is not None}
+        kept = {name: sum(v for k, v in profile.saved.items() if k.startswith(name)) for name in skipped}
+        state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        results[mode] = (state, loss.detach(), grads, kept, outputs)
+    (_, loss_all, grads_all, kept_all, _), (_, loss_one, grads_one, kept_one, outputs) = results["all"], results[compute]
+    assert torch.allclose(loss_all, loss_one, rtol=1e-6, atol=0)
+    assert grads_all.keys() == grads_one.keys() and grads_all
+    for key, grad in grads_all.items():
+        assert torch.allclose(grad, grads_one[key], rtol=1e-5, atol=1e-7), key
+    assert all(kept_all[name] > 0 for name in skipped) and all(kept_one[name] == 0 for name in skipped)
+    assert outputs.heads["occupancy"] == {} and outputs.heads["projection"] == {}
+    assert outputs.scene.features is None
+
+
+def test_compute_names_a_branch_that_is_on():
+    from occplug_occle.scene import OccleScene
+
+    grid = {"range": [0.0, -6.4, -1.0, 12.8, 6.4, 5.4], "voxel_size": 0.8}
+    with pytest.raises(ValueError, match="compute: geometric runs the geometric branch alone, which is switched off"):
+        OccleScene(32, grid, geometric=False, compute="geometric")
+    with pytest.raises(ValueError, match="compute must be 'all', 'semantic' or 'geometric'"):
+        OccleScene(32, grid, compute="fusion")
