@@ -30,7 +30,8 @@ estimate, not a measurement, and says so.
 Usage::
 
     python scripts/occle_memory.py [--grids 32x32x8 64x64x16 ...] [--settings plain checkpoint] [--batch 1]
-                                   [--phase fusion] [--set key=value ...] [--depth 3] [--max-rss-gib 10] [--extrapolate 256 256 32] [--json FILE]
+                                   [--phase fusion] [--set key=value ...] [--depth 3] [--max-rss-gib 10]
+                                   [--extrapolate 256 256 32] [--json FILE]
     python scripts/occle_memory.py --from-json FILE [--settings ...] [--extrapolate X Y Z]   # the tables again
 
 Pure PyTorch on the CPU (``mamba_ssm`` is CUDA only; on a CPU the Mamba mixers run the chunked scan with its

@@ -218,7 +218,8 @@ def test_computing_one_branch_gives_the_phases_loss_and_gradients_and_runs_nothi
         kept = {name: sum(v for k, v in profile.saved.items() if k.startswith(name)) for name in skipped}
         state = {k: v.detach().clone() for k, v in model.state_dict().items()}
         results[mode] = (state, loss.detach(), grads, kept, outputs)
-    (_, loss_all, grads_all, kept_all, _), (_, loss_one, grads_one, kept_one, outputs) = results["all"], results[compute]
+    _, loss_all, grads_all, kept_all, _ = results["all"]
+    _, loss_one, grads_one, kept_one, outputs = results[compute]
     assert torch.allclose(loss_all, loss_one, rtol=1e-6, atol=0)
     assert grads_all.keys() == grads_one.keys() and grads_all
     for key, grad in grads_all.items():
