@@ -6,6 +6,7 @@ import dataclasses
 import inspect
 import sys
 import warnings
+import weakref
 from typing import Annotated, Any
 
 import torch
@@ -301,10 +302,19 @@ class OccModel(OccupancyModel):
     def forward(self, batch: Batch) -> I.ModelOutputs:
         """Run every component on ``batch``; see :class:`~occplug.interfaces.ModelOutputs`."""
 
+        # ``query`` reads the outputs it is stored in through a weak reference: a closure over ``outputs`` would make
+        # a reference cycle, and every step's outputs (features, scene, logits) would then wait for Python's rare
+        # full garbage collection (several GB of a long CPU run's memory)
+        outputs_ref: weakref.ReferenceType[I.ModelOutputs]
+
         def query(head_name: str, points: Tensor, times: Tensor | None = None) -> I.QueryResult:
-            return self.heads[head_name].query(outputs.scene, points, times)
+            owner = outputs_ref()
+            if owner is None:
+                raise RuntimeError("ModelOutputs.query was called after its outputs were released")
+            return self.heads[head_name].query(owner.scene, points, times)
 
         outputs = I.ModelOutputs(image_features=None, lifted=None, scene=None, heads={}, query=query)
+        outputs_ref = weakref.ref(outputs)
         for offset in self.input_history:
             past = I.ModelOutputs(image_features=None, lifted=None, scene=None, heads={}, query=query)
             self._encode(frame_in_current_ego(batch, offset), past)

@@ -146,6 +146,20 @@ _STACKED = (
 _LISTED = ("points", "point_labels", "boxes", "box_labels", "box_track_ids", "sequence_lidar_origins")
 
 
+def _move(v: Any, device: torch.device | str) -> Any:
+    """``v`` with every tensor in it (in lists, dicts, batches) moved to ``device`` (a module function: a recursive
+    closure would be a reference cycle per call)."""
+    if isinstance(v, Tensor):
+        return v.to(device)
+    if isinstance(v, list):
+        return [_move(x, device) for x in v]
+    if isinstance(v, dict):
+        return {k: _move(x, device) for k, x in v.items()}
+    if isinstance(v, Batch):
+        return v.to(device)
+    return v
+
+
 @dataclass
 class Batch:
     """Frames collated for a network: the :class:`Frame` fields with a leading batch axis ``B``.
@@ -202,19 +216,7 @@ class Batch:
 
     def to(self, device: torch.device | str) -> Batch:
         """A copy with every tensor moved to ``device``."""
-
-        def move(v: Any) -> Any:
-            if isinstance(v, Tensor):
-                return v.to(device)
-            if isinstance(v, list):
-                return [move(x) for x in v]
-            if isinstance(v, dict):
-                return {k: move(x) for k, x in v.items()}
-            if isinstance(v, Batch):
-                return v.to(device)
-            return v
-
-        return Batch(**{f.name: move(getattr(self, f.name)) for f in fields(self)})
+        return Batch(**{f.name: _move(getattr(self, f.name), device) for f in fields(self)})
 
     def pin_memory(self) -> Batch:
         """A copy with every tensor in pinned memory (called by ``DataLoader(pin_memory=True)``)."""
