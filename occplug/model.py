@@ -6,7 +6,6 @@ import dataclasses
 import inspect
 import sys
 import warnings
-import weakref
 from typing import Annotated, Any
 
 import torch
@@ -302,25 +301,23 @@ class OccModel(OccupancyModel):
     def forward(self, batch: Batch) -> I.ModelOutputs:
         """Run every component on ``batch``; see :class:`~occplug.interfaces.ModelOutputs`."""
 
-        # ``query`` reads the outputs it is stored in through a weak reference: a closure over ``outputs`` would make
-        # a reference cycle, and every step's outputs (features, scene, logits) would then wait for Python's rare
-        # full garbage collection (several GB of a long CPU run's memory)
-        outputs_ref: weakref.ReferenceType[I.ModelOutputs]
+        # ``query`` reads the scene from a holder filled once the scene exists, not from ``outputs``: a closure over
+        # ``outputs`` (which holds ``query``) is a reference cycle, and every step's outputs (features, scene, logits)
+        # would then wait for Python's rare full garbage collection (several GB of a long CPU run's memory)
+        built: dict[str, I.Scene] = {}
 
         def query(head_name: str, points: Tensor, times: Tensor | None = None) -> I.QueryResult:
-            owner = outputs_ref()
-            if owner is None:
-                raise RuntimeError("ModelOutputs.query was called after its outputs were released")
-            return self.heads[head_name].query(owner.scene, points, times)
+            if "scene" not in built:
+                raise RuntimeError("ModelOutputs.query was called before the model built its scene")
+            return self.heads[head_name].query(built["scene"], points, times)
 
         outputs = I.ModelOutputs(image_features=None, lifted=None, scene=None, heads={}, query=query)
-        outputs_ref = weakref.ref(outputs)
         for offset in self.input_history:
             past = I.ModelOutputs(image_features=None, lifted=None, scene=None, heads={}, query=query)
             self._encode(frame_in_current_ego(batch, offset), past)
             outputs.history[offset] = past
         self._encode(batch, outputs)
-        outputs.scene = _call(self.scene, outputs, outputs.lifted, batch)
+        outputs.scene = built["scene"] = _call(self.scene, outputs, outputs.lifted, batch)
         for name in self.head_order:
             outputs.heads[name] = _call(self.heads[name], outputs, outputs.scene, batch)
         return outputs

@@ -22,7 +22,7 @@ def no_gc():
         gc.enable()
 
 
-def test_model_outputs_are_freed_by_reference_counting_and_query_says_when_they_are_gone(no_gc):
+def test_model_outputs_are_freed_by_reference_counting_and_query_keeps_only_the_scene(no_gc):
     cfg = runner.load_config(["configs/baseline.yaml", "occplug/trainer/debug"], [])
     dm, model = runner.build_run(cfg)
     data = dm.dataset("train")
@@ -30,14 +30,16 @@ def test_model_outputs_are_freed_by_reference_counting_and_query_says_when_they_
     outputs = model(batch)
     points = torch.zeros(1, 4, 3)
     head = next(name for name, h in model.heads.items() if getattr(h, "queryable", False))
-    assert outputs.query(head, points) is not None  # works while the outputs live
-    query, released = outputs.query, weakref.ref(outputs)
+    answer = outputs.query(head, points)
+    query, released, scene = outputs.query, weakref.ref(outputs), weakref.ref(outputs.scene)
     loss = torch.stack(list(model.losses(batch, outputs).values())).sum()
     loss.backward()
     del outputs, loss
-    assert released() is None
-    with pytest.raises(RuntimeError, match="after its outputs were released"):
-        query(head, points)
+    assert released() is None  # freed without the garbage collector
+    assert scene() is not None  # the query holds the scene it answers from, and answers the same
+    torch.testing.assert_close(query(head, points).features, answer.features, rtol=0, atol=0)
+    del query
+    assert scene() is None
 
 
 def test_moving_a_batch_makes_no_garbage(no_gc):
