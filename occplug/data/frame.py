@@ -18,7 +18,7 @@ so in its docstring and fails with a clear error when it is missing.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -146,17 +146,17 @@ _STACKED = (
 _LISTED = ("points", "point_labels", "boxes", "box_labels", "box_track_ids", "sequence_lidar_origins")
 
 
-def _move(v: Any, device: torch.device | str) -> Any:
-    """``v`` with every tensor in it (in lists, dicts, batches) moved to ``device`` (a module function: a recursive
-    closure would be a reference cycle per call)."""
+def _apply(v: Any, fn: Callable[[Tensor], Tensor]) -> Any:
+    """``v`` with ``fn`` applied to every tensor in it (in lists, dicts and batches). A module function: a recursive
+    closure would make a reference cycle per call."""
     if isinstance(v, Tensor):
-        return v.to(device)
+        return fn(v)
     if isinstance(v, list):
-        return [_move(x, device) for x in v]
+        return [_apply(x, fn) for x in v]
     if isinstance(v, dict):
-        return {k: _move(x, device) for k, x in v.items()}
+        return {k: _apply(x, fn) for k, x in v.items()}
     if isinstance(v, Batch):
-        return v.to(device)
+        return Batch(**{f.name: _apply(getattr(v, f.name), fn) for f in fields(v)})
     return v
 
 
@@ -216,23 +216,11 @@ class Batch:
 
     def to(self, device: torch.device | str) -> Batch:
         """A copy with every tensor moved to ``device``."""
-        return Batch(**{f.name: _move(getattr(self, f.name), device) for f in fields(self)})
+        return Batch(**{f.name: _apply(getattr(self, f.name), lambda t: t.to(device)) for f in fields(self)})
 
     def pin_memory(self) -> Batch:
         """A copy with every tensor in pinned memory (called by ``DataLoader(pin_memory=True)``)."""
-
-        def pin(v: Any) -> Any:
-            if isinstance(v, Tensor):
-                return v.pin_memory()
-            if isinstance(v, list):
-                return [pin(x) for x in v]
-            if isinstance(v, dict):
-                return {k: pin(x) for k, x in v.items()}
-            if isinstance(v, Batch):
-                return v.pin_memory()
-            return v
-
-        return Batch(**{f.name: pin(getattr(self, f.name)) for f in fields(self)})
+        return Batch(**{f.name: _apply(getattr(self, f.name), Tensor.pin_memory) for f in fields(self)})
 
     def require(self, *names: str, by: str) -> None:
         """Raise a clear error if any of the named fields is missing (``by`` names the component)."""

@@ -127,13 +127,13 @@ def test_small_cnn_levels_share_the_primary_level_bit_for_bit():
     assert one.level_strides == (4,) and isinstance(one(images), Tensor)
 
 
-@pytest.mark.parametrize("stride", [4, 8])
-def test_small_cnn_finer_level_adds_the_half_stride_features_and_keeps_the_primary(stride):
+@pytest.mark.parametrize(("stride", "num_blocks"), [(4, 2), (8, 2), (16, 1)])
+def test_small_cnn_finer_level_adds_the_half_stride_features_and_keeps_the_primary(stride, num_blocks):
     """``finer_level``: level 0 is the stage before the last through its own neck, at ``stride / 2``; the primary
     level (now index 1) and the coarser ones equal the encoder without it, given the same weights."""
     images = torch.rand(1, 2, 3, 32, 64)
-    plain = SmallCNN(out_channels=8, width=8, stride=stride, num_blocks=2, levels=2).eval()
-    fine = SmallCNN(out_channels=8, width=8, stride=stride, num_blocks=2, levels=2, finer_level=True).eval()
+    plain = SmallCNN(out_channels=8, width=8, stride=stride, num_blocks=num_blocks, levels=2).eval()
+    fine = SmallCNN(out_channels=8, width=8, stride=stride, num_blocks=num_blocks, levels=2, finer_level=True).eval()
     missing, unexpected = fine.load_state_dict(plain.state_dict(), strict=False)
     assert sorted(missing) == ["finer_neck.bias", "finer_neck.weight"] and not unexpected
     levels = fine(images)
@@ -147,7 +147,7 @@ def test_small_cnn_finer_level_adds_the_half_stride_features_and_keeps_the_prima
     for a, b in zip(levels[1:], plain(images), strict=True):
         assert torch.equal(a, b)
     # the finer level by hand: everything before the last stage (the stem alone at stride 4), then its neck
-    last_stage = 2  # num_blocks layers
+    last_stage = num_blocks  # layers
     before = plain.body[: len(plain.body) - last_stage](plain.standardise(images.flatten(0, 1)))
     torch.testing.assert_close(levels[0].flatten(0, 1), fine.finer_neck(before), rtol=0, atol=0)
     assert before.shape[-2:] == (64 // stride, 128 // stride)

@@ -3,6 +3,7 @@ rare full garbage collection (a cycle per step held several GB of a long CPU run
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import weakref
 
@@ -51,3 +52,29 @@ def test_moving_a_batch_makes_no_garbage(no_gc):
     moved = batch.to("cpu")
     del moved
     assert gc.collect() == 0
+
+
+def test_pin_memory_reaches_every_tensor_of_a_batch(monkeypatch):
+    """``Batch.pin_memory`` applies ``Tensor.pin_memory`` to every tensor, in lists and dicts too (pinning itself
+    needs an accelerator, so a stand-in marks what it touched)."""
+    cfg = runner.load_config(["configs/baseline.yaml", "occplug/trainer/debug"], [])
+    dm = runner.build_datamodule(cfg)
+    data = dm.dataset("train")
+    batch = dm.collate([data[0], data[1]])
+    touched = []
+    monkeypatch.setattr(torch.Tensor, "pin_memory", lambda t: touched.append(t) or t.clone())
+    pinned = batch.pin_memory()
+
+    def tensors(v):
+        if torch.is_tensor(v):
+            return [v]
+        if isinstance(v, (list, tuple)):
+            return [t for x in v for t in tensors(x)]
+        if isinstance(v, dict):
+            return [t for x in v.values() for t in tensors(x)]
+        return []
+
+    before = [t for f in dataclasses.fields(batch) for t in tensors(getattr(batch, f.name))]
+    after = [t for f in dataclasses.fields(pinned) for t in tensors(getattr(pinned, f.name))]
+    assert len(touched) == len(before) == len(after) > 5
+    assert all(a is not b and torch.equal(a, b) for a, b in zip(after, before, strict=True))

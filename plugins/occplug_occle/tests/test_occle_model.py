@@ -237,3 +237,18 @@ def test_compute_names_a_branch_that_is_on():
         OccleScene(32, grid, geometric=False, compute="geometric")
     with pytest.raises(ValueError, match="compute must be 'all', 'semantic' or 'geometric'"):
         OccleScene(32, grid, compute="fusion")
+
+
+def test_the_semantickitti_recipe_runs_in_each_phase_only_what_its_losses_read():
+    """``occle/semantickitti``: Phase I computes the semantic branch, the teacher and the student the geometric one,
+    Phase III everything; and each phase's losses read only what it computes."""
+    from occplug.config import phase_specs
+
+    cfg = runner.load_config(["occle/semantickitti"], ["data.root=/nonexistent"])
+    compute = {s.name: s.config["model"]["scene"].get("compute", "all") for s in phase_specs(cfg)}
+    assert compute == {"semantic": "semantic", "teacher": "geometric", "student": "geometric", "fusion": "all"}
+    losses = {s.name: set(s.config["model"]["supervision"]) for s in phase_specs(cfg)}
+    assert losses["semantic"] == {"semantic"}
+    assert losses["teacher"] == losses["student"] == {"geometry"}
+    heads = {s.name: s.config["model"]["occupancy_head"] for s in phase_specs(cfg)}
+    assert heads["semantic"] == "lidar_semantic" and heads["teacher"] == heads["student"] == "geometry"
