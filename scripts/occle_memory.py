@@ -1,6 +1,6 @@
 #!/usr/bin/env python
-"""How OccLE's training memory follows the grid: one Phase III step at several grid sizes, with and without
-activation checkpointing.
+"""How OccLE's training memory follows the grid: one training step (of Phase III, or ``--phase``) at several grid
+sizes, with and without activation checkpointing.
 
 Settings (``--settings``, default ``plain checkpoint``): ``plain`` keeps every activation; ``checkpoint`` sets
 ``model.scene.mamba_checkpoint`` (the Dual Mamba's mixers recomputed in backward); ``both`` also sets
@@ -244,8 +244,8 @@ def main(argv: list[str] | None = None) -> int:
     for text in [] if args.from_json else args.grids:
         grid = [int(v) for v in text.lower().split("x")]
         for setting in args.settings:
-            job = {"grid": grid, "setting": setting, "batch": args.batch, "depth": args.depth, "phase": args.phase}
-            job["set"] = list(args.set)
+            job = {"grid": grid, "setting": setting, "batch": args.batch, "depth": args.depth}
+            job |= {"phase": args.phase, "set": list(args.set)}
             row = {**run(job, args.max_rss_gib, args.timeout), "commit": commit}
             rows.append(row)
             summary = row.get("error") or f"peak {row['peak_mib']:,.0f} MiB, step {row['step_s']:.1f} s"

@@ -126,12 +126,10 @@ class SmallCNN(ImageEncoder):
         b, n = images.shape[:2]
         x = self.standardise(images.flatten(0, 1))
         out = []
-        if self.finer_neck is not None:
-            x = self.body[: self._finer_after](x)
-            out.append(self.finer_neck(x))
-            x = self.body[self._finer_after :](x)
-        else:
-            x = self.body(x)
+        for i, layer in enumerate(self.body):
+            if i == self._finer_after and self.finer_neck is not None:
+                out.append(self.finer_neck(x))
+            x = layer(x)
         out.append(self.neck(x))
         for down, neck in zip(self.down, self.level_necks, strict=True):
             x = down(x)

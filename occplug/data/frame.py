@@ -216,11 +216,11 @@ class Batch:
 
     def to(self, device: torch.device | str) -> Batch:
         """A copy with every tensor moved to ``device``."""
-        return Batch(**{f.name: _apply(getattr(self, f.name), lambda t: t.to(device)) for f in fields(self)})
+        return _apply(self, lambda t: t.to(device))
 
     def pin_memory(self) -> Batch:
         """A copy with every tensor in pinned memory (called by ``DataLoader(pin_memory=True)``)."""
-        return Batch(**{f.name: _apply(getattr(self, f.name), Tensor.pin_memory) for f in fields(self)})
+        return _apply(self, Tensor.pin_memory)
 
     def require(self, *names: str, by: str) -> None:
         """Raise a clear error if any of the named fields is missing (``by`` names the component)."""
