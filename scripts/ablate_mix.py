@@ -20,8 +20,8 @@ difference to each parent row and on how many seeds it is ahead; nothing is judg
     python scripts/ablate_mix.py --dry-run                     # the planned runs and their epochs
     python scripts/ablate_mix.py --seeds 0 --preset tiny --epochs 0.25   # a smoke run
 
-``--epochs`` scales every row's budget (1 = the parents' own ablation budgets: ``python -m occplug_queryocc.ablate``
-trains 4 epochs, ``python -m occplug_duocc.ablate`` 8; a phased row scales each phase's epochs), at least 1 epoch
+``--epochs`` scales every row's budget (1 = the parents' own ablation budgets: ``python -m occplug_queryocc.tools.ablate``
+trains 4 epochs, ``python -m occplug_duocc.tools.ablate`` 8; a phased row scales each phase's epochs), at least 1 epoch
 each. ``--set`` adds overrides to every run (one under ``phases.<name>.`` only to the rows that declare that phase).
 ``--split test`` scores every trained run on the test split instead (cached beside the run, nothing retrained).
 Results go to ``--out`` (default ``runs/ablate_mix``): one run directory per row and seed, and ``table.json``;

@@ -1,4 +1,4 @@
-"""The method plugins' tools (``python -m occplug_<m>.<name>``: ablations, benchmarks, diagnostics): each prints
+"""The method plugins' tools (``python -m occplug_<m>.tools.<name>``: ablations, benchmarks, diagnostics): each prints
 its help, and importing one only defines things (its work runs in ``main()``), checked with occplug.testing's
 tool checks, which any plugin's own tests can use the same way."""
 
@@ -9,19 +9,18 @@ import pytest
 from occplug.testing import check_tool_help, check_tool_main_guard, check_tools_import_quietly
 
 TOOLS = [
-    "occplug_queryocc.ablate",
-    "occplug_queryocc.bench",
-    "occplug_queryocc.diagnose",
-    "occplug_queryocc.window_coverage",
-    "occplug_occle.ablate",
-    "occplug_occle.bench",
-    "occplug_duocc.ablate",
-    "occplug_duocc.bench",
-    "occplug_duocc.fit_anchors",
-    "occplug_duocc.fit_class_weights",
-    "occplug_duocc.detector_overfit",
-    "occplug_duocc.history_norm",
-    "occplug_duocc.stream_gain",
+    "occplug_queryocc.tools.ablate",
+    "occplug_queryocc.tools.bench",
+    "occplug_queryocc.tools.diagnose",
+    "occplug_occle.tools.ablate",
+    "occplug_occle.tools.bench",
+    "occplug_occle.tools.memory",
+    "occplug_duocc.tools.ablate",
+    "occplug_duocc.tools.bench",
+    "occplug_duocc.tools.fit_anchors",
+    "occplug_duocc.tools.fit_class_weights",
+    "occplug_duocc.tools.selection",
+    "occplug_duocc.tools.stream_gain",
 ]
 
 

@@ -8,9 +8,9 @@ both come from ``detection_targets``, so an error shared by both could still be 
 unseen validation frames is what shows the boxes line up with the images). One that fits its frames but not the
 validation split is limited by data and budget::
 
-    python -m occplug_duocc.detector_overfit                       # the first 12 training batches, 40 passes
-    python -m occplug_duocc.detector_overfit --batches 4 --passes 60 --set data.num_cameras=1
-    python -m occplug_duocc.detector_overfit --run runs/duocc_ablate/full-seed0 --batches 48
+    python investigations/duocc/detector_overfit.py                       # the first 12 training batches, 40 passes
+    python investigations/duocc/detector_overfit.py --batches 4 --passes 60 --set data.num_cameras=1
+    python investigations/duocc/detector_overfit.py --run runs/duocc_ablate/full-seed0 --batches 48
 
 ``--run`` evaluates a trained run's last checkpoint on the first training and validation batches, training
 nothing: a detector that scores far higher on its training frames than on the validation split has memorised
@@ -34,12 +34,11 @@ from occplug.data import OCC3D_CLASSES
 from occplug.run import runner
 from occplug.run.training import build_optimizer
 from occplug.streams import find_streams, set_stream_stage
-
-from .detection_eval import stream_detection_map
+from occplug_duocc.tools.detection_eval import stream_detection_map
 
 
 def detector_map(model, batches: list, stage: str) -> dict:
-    """:func:`~occplug_duocc.detection_eval.stream_detection_map` over ``batches`` in order, with ``"names"``: the
+    """:func:`~occplug_duocc.tools.detection_eval.stream_detection_map` over ``batches`` in order, with ``"names"``: the
     class name of each detection class index."""
     result = stream_detection_map(model, batches, stage)
     result["names"] = [OCC3D_CLASSES[c] for c in result["classes"]]
@@ -53,7 +52,7 @@ def per_class(result: dict) -> dict[str, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(
-        prog="python -m occplug_duocc.detector_overfit",
+        prog="python investigations/duocc/detector_overfit.py",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

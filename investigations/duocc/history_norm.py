@@ -6,7 +6,7 @@ lifted volume) and of ``V_S.A`` (after the stream fusion, what the next frame's 
 Eq. 5 (``V_S.A = RefineNet(warp(V_fin)) + V_curr``, RefineNet residual) the fused volume is a running sum over the
 stream; with the public code's concat + GroupNorm fusion it stays bounded::
 
-    python -m occplug_duocc.history_norm runs/duocc_ablate/stream_agg-seed0 runs/duocc_ablate/stream_agg_concat-seed0
+    python investigations/duocc/history_norm.py runs/duocc_ablate/stream_agg-seed0 runs/duocc_ablate/stream_agg_concat-seed0
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ def norms_along_stream(run: Path, max_batches: int) -> dict[int, tuple[float, fl
 
 def main() -> None:
     parser = argparse.ArgumentParser(
-        prog="python -m occplug_duocc.history_norm",
+        prog="python investigations/duocc/history_norm.py",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -6,7 +6,7 @@ current ego frame, as the query source does) are voxelised on the evaluation gri
 share of points inside the grid and inside the current frame's camera mask, and how many occupied camera-visible
 voxels (what Sem./Occ. IoU and RayIoU score) the adjacent frames reach that the current frame's points miss.
 
-    python -m occplug_queryocc.window_coverage [--batches 6]
+    python investigations/queryocc/window_coverage.py [--batches 6]
 """
 
 from __future__ import annotations
@@ -16,13 +16,12 @@ import argparse
 import torch
 
 from occplug.run.runner import build_datamodule, load_config
-
-from .supervision import supervision_points
+from occplug_queryocc.supervision import supervision_points
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(
-        prog="python -m occplug_queryocc.window_coverage",
+        prog="python investigations/queryocc/window_coverage.py",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -11,9 +11,8 @@ import occplug
 @occplug.hookimpl
 def occplug_register_components(registry: occplug.Registry) -> None:
     from .heads import DuOccDecoder
-    from .mask_decoder import DuOccMask
     from .scene import DuOccStacking, DuOccStream
-    from .supervision import DuOccDetection, DuOccForecast, DuOccOccupied
+    from .supervision import DuOccDetection, DuOccForecast, DuOccMask, DuOccOccupied
 
     registry.add("scene", "duocc_stream", DuOccStream)
     registry.add("scene", "duocc_stacking", DuOccStacking)

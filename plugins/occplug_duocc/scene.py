@@ -2,7 +2,7 @@
 baseline (``duocc_stacking``), both streaming through the core's :class:`~occplug.streams.StreamState`.
 
 Both read the view transform's ``V_init`` ``(B, C_init, X, Y, Z)`` on the evaluation grid (ego frame), run
-the lightweight 3D-FPN (:class:`~occplug_duocc.fpn3d.VoxelFPN3D`) to ``V_curr`` ``(B, C, X/d, Y/d, Z/d)``
+the lightweight 3D-FPN (:class:`~occplug_duocc.blocks.fpn3d.VoxelFPN3D`) to ``V_curr`` ``(B, C, X/d, Y/d, Z/d)``
 (``d = downsample``, DuOcc: 2, on every axis: the synthetic grids have ``Z = 8``, which halves to 4, so ``Z``
 is halved as in the paper) and return a :class:`StreamVoxelScene` on that coarse grid, whose
 ``label_grid`` is the evaluation grid the ``duocc_decoder`` head upsamples back to.
@@ -22,9 +22,9 @@ from occplug.geometry import GridSpec, relative_pose, warp_volume
 from occplug.interfaces import DenseVoxelScene, Lifted, ModelOutputs, SceneRepresentation
 from occplug.streams import StreamState
 
-from .fpn3d import VoxelFPN3D
-from .queryagg import QueryAggregation, QueryAggSettings
-from .stream_agg import StreamAggregation
+from .blocks.fpn3d import VoxelFPN3D
+from .blocks.queryagg import QueryAggregation, QueryAggSettings
+from .blocks.stream_agg import StreamAggregation
 
 __all__ = [
     "DETECTION_CLASSES_KEY",
@@ -42,7 +42,7 @@ __all__ = [
 OCCUPIED_KEY = "duocc_stream/occupied_logits"
 #: ``outputs.extras`` key of the forecasting logits ``(B, K, X, Y, Z)`` on the label grid (training only).
 FORECAST_KEY = "duocc_stream/forecast_logits"
-#: ``outputs.extras`` key of the detector's :class:`~occplug_duocc.detector.DetectorOutput` (with ``query_agg``;
+#: ``outputs.extras`` key of the detector's :class:`~occplug_duocc.blocks.detector.DetectorOutput` (with ``query_agg``;
 #: every stage: boxes ``(B, Q, 9)`` per layer in the current ego frame).
 DETECTION_KEY = "duocc_stream/detection"
 #: ``outputs.extras`` key of the label id of each detection class (a tuple of ints, detection class order).
@@ -139,7 +139,7 @@ class DuOccStream(_DuOccVoxels):
     In training the auxiliary heads publish their logits in ``outputs.extras`` (:data:`OCCUPIED_KEY`,
     :data:`FORECAST_KEY`) for the ``duocc_occupied`` and ``duocc_forecast`` supervision sources.
 
-    ``query_agg`` (:class:`~occplug_duocc.queryagg.QueryAggSettings`, off when None) adds QueryAgg (§3.2) after StreamAgg:
+    ``query_agg`` (:class:`~occplug_duocc.blocks.queryagg.QueryAggSettings`, off when None) adds QueryAgg (§3.2) after StreamAgg:
     the image-to-query detector on ``outputs.image_levels``, V2Q into ``V_S.A``, DQA on the selected queries and the
     voxel FFN give ``V_fin``, which is what the history keeps. The detector's state lives in the same
     :class:`~occplug.streams.StreamState` entry as the voxel history (``{"voxels", "detector"}``), so it is kept per
@@ -165,7 +165,7 @@ class DuOccStream(_DuOccVoxels):
         train_cut_prob: probability of restarting a continuing history in training (not in the paper or
             the code; 0: off): the current frame must then stand alone, as at a stream start.
         query_agg: QueryAgg's settings (a mapping in a config, checked by config validation:
-            :class:`~occplug_duocc.queryagg.QueryAggSettings`: ``v2q``, ``dqa``, ``gt_boxes``, ``selection``,
+            :class:`~occplug_duocc.blocks.queryagg.QueryAggSettings`: ``v2q``, ``dqa``, ``gt_boxes``, ``selection``,
             ``detector``, ...), or None (off: Tab. 4 B). Needs ``stream: true``.
         level_channels: the image encoder's levels' channels, finest first (given by the model; QueryAgg's
             detector reads those levels).

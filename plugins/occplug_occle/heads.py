@@ -20,8 +20,8 @@ from occplug.geometry import GridSpec
 from occplug.interfaces import DEFAULT_QUERY_CHUNK, Head, ModelOutputs, OccupancyHead, Scene
 from occplug.nn import UNet2d
 
-from .geometry_branch import GeometryHead
-from .projection import ProjectionHead, feature_map_intrinsics, scatter_project
+from .blocks.geometry_branch import GeometryHead
+from .blocks.projection import ProjectionHead, feature_map_intrinsics, scatter_project
 from .scene import _no_query, conformance_scene
 
 __all__ = [

@@ -12,7 +12,7 @@ from occplug.data import Batch
 from occplug.geometry import GridSpec, transform_points
 from occplug.interfaces import PointEncoder
 
-from .geometry_branch import LidarVoxelEncoder, PointSampling
+from .blocks.geometry_branch import LidarVoxelEncoder, PointSampling
 
 __all__ = ["OccleLidarVoxels"]
 

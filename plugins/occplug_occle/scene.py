@@ -36,8 +36,8 @@ from occplug.geometry import GridSpec
 from occplug.interfaces import DenseVoxelScene, Lifted, ModelOutputs, SceneRepresentation
 from occplug.nn import BasicBlock3d, UNet3d
 
-from .geometry_branch import Conv3dDeformableBaseline, CrossPlaneFusion
-from .mamba import DualMambaUNet
+from .blocks.geometry_branch import Conv3dDeformableBaseline, CrossPlaneFusion
+from .blocks.mamba import DualMambaUNet
 
 __all__ = ["OccleGrids", "OccleScene", "conformance_scene"]
 
@@ -122,13 +122,13 @@ class OccleScene(SceneRepresentation):
         mamba_chunk: chunk length of their chunked selective scan (speed only: equal up to float rounding).
         mamba_checkpoint: recompute the Dual Mamba's mixers in backward instead of keeping their activations
             (:class:`~.mamba.DualMambaBlock`'s ``checkpoint``): the same values and gradients, less of a training
-            step's memory where the Dual Mamba dominates it (``scripts/occle_memory.py``), about one more forward
+            step's memory where the Dual Mamba dominates it (``occplug_occle.tools.memory``), about one more forward
             of the mixers in time. Off by default; ``occle/semantickitti`` turns it on.
         semantic_checkpoint: recompute the semantic branch (the dense LiDAR UNet ``G_s3d`` and the mix with the
             lifted image grid) in backward instead of keeping its activations: the same values and gradients (its
             norms are GroupNorm, so a second forward changes no running statistics). With ``mamba_checkpoint`` on,
             the UNet is the largest part of what a step keeps (30 % at 128 x 128 x 32,
-            ``scripts/occle_memory.py``); off by default, ``occle/semantickitti`` turns it on.
+            ``occplug_occle.tools.memory``); off by default, ``occle/semantickitti`` turns it on.
         compute: what a forward runs: ``all``; ``semantic``, the semantic branch alone (Phase I, whose losses read
             nothing else); ``geometric``, the geometric branch alone (the teacher and student phases). Every
             module is built either way (the state dict and a phase's ``init_from`` are the same); a grid not run is

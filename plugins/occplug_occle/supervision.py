@@ -35,8 +35,8 @@ from occplug.data import Batch, lidar_points
 from occplug.geometry import GridSpec
 from occplug.interfaces import ModelOutputs, SupervisionSource
 
+from .blocks.losses import OccupancyLoss, class_weights_from_frequencies, lidar_count_mask, weighted_cross_entropy
 from .heads import upsample_image_logits
-from .losses import OccupancyLoss, class_weights_from_frequencies, lidar_count_mask, weighted_cross_entropy
 from .scene import _no_query
 
 __all__ = ["OccleFusion", "OccleGeometry", "OccleSemantic", "lift_pseudo_labels"]

@@ -193,7 +193,7 @@ def test_an_out_of_range_value_inside_query_agg_is_one_line(capsys, override, li
 def test_query_agg_reaches_the_scene_as_typed_settings(monkeypatch):
     from occplug.run import runner
     from occplug_duocc import scene as duocc_scene
-    from occplug_duocc.queryagg import DetectorSettings, QueryAggSettings, SelectionSettings
+    from occplug_duocc.blocks.queryagg import DetectorSettings, QueryAggSettings, SelectionSettings
 
     seen = []
     real = duocc_scene.QueryAggregation

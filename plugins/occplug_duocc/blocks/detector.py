@@ -15,7 +15,7 @@ Assumptions (where the paper, §3.2 "I2Q" and suppl. A.4, is silent; the public 
 ``duocc-code-notes.md`` §3):
 
 * §3.2 I2Q, anchors: 900 k-means anchors of the training boxes in the code; here ``anchor_centres`` when given
-  (``python -m occplug_duocc.fit_anchors`` makes them as the code does, :mod:`.anchors`), else ``num_queries`` centres drawn
+  (``python -m occplug_duocc.tools.fit_anchors`` makes them as the code does, :mod:`.anchors`), else ``num_queries`` centres drawn
   uniformly (fixed seed) in ``anchor_range``; size ``anchor_size``, yaw 0, all learnable. The
   instance features start at zero (code) and are learnable unless ``learn_instance_feature=False`` (the code
   freezes them).
@@ -311,7 +311,7 @@ class SparseDetector(nn.Module):
         anchor_range: ``(x_min, y_min, z_min, x_max, y_max, z_max)`` ego-frame box in which anchor centres start.
         anchor_size: initial ``(l, w, h)`` of every anchor, metres.
         anchor_centres: ``num_queries`` ego-frame ``(x, y, z)`` starting centres (the code's k-means anchors;
-            ``python -m occplug_duocc.fit_anchors``), or None to draw them uniformly in ``anchor_range``.
+            ``python -m occplug_duocc.tools.fit_anchors``), or None to draw them uniformly in ``anchor_range``.
         learn_instance_feature: whether the initial instance features are learned (code: frozen zeros).
         confidence_decay: decay of a cached instance's confidence per frame.
         use_velocity: move cached anchors by constant velocity as well as by ego motion.
@@ -374,7 +374,7 @@ class SparseDetector(nn.Module):
             if len(anchor_centres) != num_queries:
                 raise ValueError(
                     f"SparseDetector: anchor_centres must be num_queries={num_queries} rows of (x, y, z), got "
-                    f"{len(anchor_centres)} rows; make them for this query count with python -m occplug_duocc.fit_anchors "
+                    f"{len(anchor_centres)} rows; make them for this query count with python -m occplug_duocc.tools.fit_anchors "
                     "--queries, or set anchor_centres: null"
                 )
             bad = [i for i, c in enumerate(anchor_centres) if len(c) != 3]

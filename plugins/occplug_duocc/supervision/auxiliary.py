@@ -17,11 +17,11 @@ from occplug.constraints import NonNegative, UnitInterval
 from occplug.data import Batch
 from occplug.interfaces import ModelOutputs, SupervisionSource
 
-from .detection_loss import detection_loss
-from .detector import DetectorOutput
-from .queryagg import detection_targets
-from .scene import DETECTION_CLASSES_KEY, DETECTION_KEY, FORECAST_KEY, OCCUPIED_KEY
-from .stream_agg import forecast_loss, occupied_loss
+from ..blocks.detection_loss import detection_loss
+from ..blocks.detector import DetectorOutput
+from ..blocks.queryagg import detection_targets
+from ..blocks.stream_agg import forecast_loss, occupied_loss
+from ..scene import DETECTION_CLASSES_KEY, DETECTION_KEY, FORECAST_KEY, OCCUPIED_KEY
 
 __all__ = ["DuOccDetection", "DuOccForecast", "DuOccOccupied"]
 
@@ -163,12 +163,12 @@ class DuOccForecast(_AuxLoss):
 
 
 class DuOccDetection(SupervisionSource):
-    """``L_det``: Sparse4D v3's detection loss (:func:`~occplug_duocc.detection_loss.detection_loss`) on QueryAgg's detector.
+    """``L_det``: Sparse4D v3's detection loss (:func:`~occplug_duocc.blocks.detection_loss.detection_loss`) on QueryAgg's detector.
 
     Reads ``outputs.extras["duocc_stream/detection"]`` (every layer's ``(B, Q, K)`` logits and ``(B, Q, 10)``
     encoded boxes, ego frame) and ``"duocc_stream/detection_classes"`` (the label id of each of the ``K`` classes),
     and ``batch.boxes`` ``(M_b, 9)`` / ``batch.box_labels`` ``(M_b,)``; ground truths whose label is not a
-    detection class are left out (:func:`~occplug_duocc.queryagg.detection_targets`), and so are those farther
+    detection class are left out (:func:`~occplug_duocc.blocks.queryagg.detection_targets`), and so are those farther
     than ``max_distance`` metres from the ego in x-y (the public code: 42 m; None keeps all).
 
     Args:
@@ -179,7 +179,7 @@ class DuOccDetection(SupervisionSource):
         free_label, ignore_label: unused (the model fills them in).
 
     Returns ``{"det_cls": scalar, "det_box": scalar}`` (summed over layers; with the detector's denoising groups
-    in training also ``{"det_dn_cls", "det_dn_box"}``, :mod:`~occplug_duocc.denoising`); ``{}`` outside training
+    in training also ``{"det_dn_cls", "det_dn_box"}``, :mod:`~occplug_duocc.blocks.denoising`); ``{}`` outside training
     when the batch has no boxes.
     """
 

@@ -12,7 +12,7 @@ What it does (``duocc-code-notes.md`` §4 "Auxiliary mask decoder"; the paper gi
   classes, each a list of label ids merged into it (every non-free id exactly once). ``free`` is the no-object
   class of every group, and is itself a ground-truth mask (its label is the no-object index).
 * ``num_layers`` decoder layers (code: 1), each: 3D deformable cross-attention of the queries into ``V_fin``
-  (:class:`~occplug_duocc.v2q.VoxelToQuery`, the plugin's V2Q block, reused: each query samples
+  (:class:`~occplug_duocc.blocks.v2q.VoxelToQuery`, the plugin's V2Q block, reused: each query samples
   ``heads x points`` points around its reference point ``sigmoid(Linear(query_pos))`` in the scene's range,
   within a box of ``sampling_extent`` times the range's extent), LayerNorm; self-attention within each group
   (the queries are attended per group, so no group reads another), LayerNorm; FFN, LayerNorm.
@@ -68,9 +68,9 @@ from occplug.nn import (
     sigmoid_focal_loss,
 )
 
-from .scene import StreamVoxelScene, coarse_grid
-from .supervision import _AuxLoss
-from .v2q import VoxelToQuery
+from ..blocks.v2q import VoxelToQuery
+from ..scene import StreamVoxelScene, coarse_grid
+from .auxiliary import _AuxLoss
 
 __all__ = [
     "OCC3D_GROUP_SPLIT",

@@ -1,13 +1,13 @@
-"""The detector's k-means anchors (the public code's anchor generator) and occplug_duocc.fit_anchors."""
+"""The detector's k-means anchors (the public code's anchor generator) and occplug_duocc.tools.fit_anchors."""
 
 import pytest
 import torch
 import yaml
 
 from occplug.run import runner
-from occplug_duocc import fit_anchors
-from occplug_duocc.anchors import kmeans, kmeans_anchors
-from occplug_duocc.detector import SparseDetector
+from occplug_duocc.blocks.detector import SparseDetector
+from occplug_duocc.tools import fit_anchors
+from occplug_duocc.tools.anchors import kmeans, kmeans_anchors
 
 
 def test_kmeans_recovers_separated_clusters_deterministically():

@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from occplug.geometry import GridSpec, make_pose, rotation_z, warp_volume
-from occplug_duocc.dqa import (
+from occplug_duocc.blocks.dqa import (
     CODE_SELECTION,
     PAPER_SELECTION,
     DynamicQueryAggregation,
@@ -16,8 +16,8 @@ from occplug_duocc.dqa import (
     points_in_boxes,
     select_queries,
 )
-from occplug_duocc.matching import encode_boxes, hungarian_match, matching_cost
-from occplug_duocc.stream_agg import RefineNet, StreamAggregation, forecast_loss, occupied_loss
+from occplug_duocc.blocks.matching import encode_boxes, hungarian_match, matching_cost
+from occplug_duocc.blocks.stream_agg import RefineNet, StreamAggregation, forecast_loss, occupied_loss
 
 # power-of-two extents and 1 m voxels: voxel centres normalise to exact binary fractions, so an identity
 # or whole-voxel warp samples exactly one voxel with weight 1 (bit-exact comparisons are meaningful)

@@ -1,4 +1,4 @@
-"""The public code's occupancy CE class weights (5 / ln f, free halved) and occplug_duocc.fit_class_weights."""
+"""The public code's occupancy CE class weights (5 / ln f, free halved) and occplug_duocc.tools.fit_class_weights."""
 
 import pytest
 import torch
@@ -6,8 +6,8 @@ import yaml
 
 from occplug.data import class_counts, inverse_log_weights
 from occplug.run import runner
-from occplug_duocc import fit_class_weights
-from occplug_duocc.class_weights import duocc_class_weights
+from occplug_duocc.tools import fit_class_weights
+from occplug_duocc.tools.class_weights import duocc_class_weights
 
 # fmt: off
 #: Occ3D-nuScenes voxels per class (others .. vegetation, free): the ``nusc_class_frequencies`` of the

@@ -77,7 +77,7 @@ def test_synthetic_no_camera_mask_recipe_is_full_without_the_mask():
 
 
 def test_synthetic_recipes_weight_the_occupancy_ce_by_the_default_worlds_counts():
-    from occplug_duocc.class_weights import duocc_class_weights
+    from occplug_duocc.tools.class_weights import duocc_class_weights
 
     overlay = compose(["duocc/class_weights/synthetic"]).resolved()["model"]["supervision"]["occupancy"]
     # the overlay's header records the counts it was made from: the weights are the code's rule over them
@@ -100,8 +100,8 @@ def test_the_detector_settings_default_to_the_detectors_own_defaults():
     import dataclasses
     import inspect
 
-    from occplug_duocc.detector import SparseDetector
-    from occplug_duocc.queryagg import DetectorSettings
+    from occplug_duocc.blocks.detector import SparseDetector
+    from occplug_duocc.blocks.queryagg import DetectorSettings
 
     params = inspect.signature(SparseDetector).parameters
     given = {"num_classes", "level_channels"}

@@ -9,10 +9,10 @@ from test_duocc_detector import GT_BOX, H, W, _cameras, _detector, _levels, _pos
 
 from occplug.nn import sigmoid_focal_loss
 from occplug.run import runner
-from occplug_duocc.denoising import DN_NOISE_SCALE, denoising_loss, make_denoising_queries
-from occplug_duocc.detection_loss import detection_loss
-from occplug_duocc.detector import SparseDetector, _DecoderLayer
-from occplug_duocc.matching import SPARSE4D_REG_WEIGHTS, encode_boxes
+from occplug_duocc.blocks.denoising import DN_NOISE_SCALE, denoising_loss, make_denoising_queries
+from occplug_duocc.blocks.detection_loss import detection_loss
+from occplug_duocc.blocks.detector import SparseDetector, _DecoderLayer
+from occplug_duocc.blocks.matching import SPARSE4D_REG_WEIGHTS, encode_boxes
 
 SCALE = torch.tensor(DN_NOISE_SCALE)
 

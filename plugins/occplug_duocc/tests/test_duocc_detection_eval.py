@@ -1,13 +1,13 @@
-"""The streamed detector mAP that occplug_duocc.ablate and occplug_duocc.detector_overfit report, on the tiny world."""
+"""The streamed detector mAP that occplug_duocc.tools.ablate and occplug_duocc.detector_overfit report, on the tiny world."""
 
 from types import SimpleNamespace
 
 import pytest
 import torch
 
-from occplug_duocc.detection_eval import stream_detection_map
-from occplug_duocc.queryagg import detection_targets
+from occplug_duocc.blocks.queryagg import detection_targets
 from occplug_duocc.scene import DETECTION_CLASSES_KEY, DETECTION_KEY
+from occplug_duocc.tools.detection_eval import stream_detection_map
 
 
 def _frames(dm, split="val"):
@@ -54,7 +54,7 @@ def test_each_pass_starts_from_a_cleared_stream(model_dm, monkeypatch):
     The stream resets by itself when time does not move forward, so the pass before must end on an earlier frame of
     the same scene: frame 1, then a pass over frame 2 (0.5 s later) would read frame 1's history without the clear.
     """
-    import occplug_duocc.detection_eval as detection_eval
+    import occplug_duocc.tools.detection_eval as detection_eval
 
     model, dm = model_dm
     seen: list[list] = []

@@ -6,13 +6,19 @@ import pytest
 import torch
 
 from occplug.geometry import GridSpec, make_pose, project_to_image, rotation_z, sample_volume, unproject_from_image
-from occplug_duocc.boxes import decode_boxes
-from occplug_duocc.detection_eval import detection_map
-from occplug_duocc.detection_loss import detection_loss
-from occplug_duocc.detector import DetectorOutput, DetectorState, SparseDetector, propagate_state, select_detections
-from occplug_duocc.image_aggregation import sample_image_features
-from occplug_duocc.matching import encode_boxes
-from occplug_duocc.v2q import VoxelToQuery
+from occplug_duocc.blocks.boxes import decode_boxes
+from occplug_duocc.blocks.detection_loss import detection_loss
+from occplug_duocc.blocks.detector import (
+    DetectorOutput,
+    DetectorState,
+    SparseDetector,
+    propagate_state,
+    select_detections,
+)
+from occplug_duocc.blocks.image_aggregation import sample_image_features
+from occplug_duocc.blocks.matching import encode_boxes
+from occplug_duocc.blocks.v2q import VoxelToQuery
+from occplug_duocc.tools.detection_eval import detection_map
 
 H, W = 32, 48
 # one forward-looking camera (OpenCV axes: x right = -y ego, y down = -z ego, z forward = +x ego), 1.5 m up
@@ -345,7 +351,7 @@ def test_v2q_points_stay_inside_the_box_and_gradients_reach_offsets():
     boxes = torch.tensor([[[0.5, -0.5, 0.0, 3.0, 1.5, 1.0, 0.6]]])
     pts = v2q.sample_points(torch.randn(1, 1, 16), boxes)
     assert pts.shape == (1, 1, 4, 3, 3)
-    from occplug_duocc.dqa import points_in_boxes
+    from occplug_duocc.blocks.dqa import points_in_boxes
 
     assert points_in_boxes(pts.view(1, -1, 3), boxes).all()
     out = v2q(torch.randn(1, 8, *GRID.shape), torch.randn(1, 1, 16), boxes)

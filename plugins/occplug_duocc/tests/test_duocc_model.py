@@ -10,7 +10,7 @@ from occplug.cli import main
 from occplug.config import ConfigError
 from occplug.run import runner
 from occplug.streams import find_streams, set_stream_stage
-from occplug_duocc.queryagg import detection_targets
+from occplug_duocc.blocks.queryagg import detection_targets
 
 # 20 x 20 x 8 label voxels (V_curr 10 x 10 x 4): the recipes' 60 x 60 x 8 shrunk for test speed
 SMALL = ["grid.range=[-8.0,-8.0,-1.0,8.0,8.0,5.4]", "model.encoder.out_channels=16", "model.encoder.width=16"]

@@ -1,9 +1,9 @@
-"""occplug_duocc.selection: what QueryAgg's selection hands DQA, on hand-made frames and on the tiny world."""
+"""occplug_duocc.tools.selection: what QueryAgg's selection hands DQA, on hand-made frames and on the tiny world."""
 
 import pytest
 import torch
 
-from occplug_duocc.selection import SelectionTally, main, near_a_box, stream_selection_report
+from occplug_duocc.tools.selection import SelectionTally, main, near_a_box, stream_selection_report
 
 
 def test_near_a_box_is_an_xy_radius_both_ways():

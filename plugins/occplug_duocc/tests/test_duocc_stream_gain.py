@@ -1,10 +1,10 @@
-"""``python -m occplug_duocc.stream_gain``: accuracy per position in the scene, on a tiny streamed DuOcc run."""
+"""``python -m occplug_duocc.tools.stream_gain``: accuracy per position in the scene, on a tiny streamed DuOcc run."""
 
 import pytest
 import torch
 
 from occplug.run import runner
-from occplug_duocc import stream_gain
+from occplug_duocc.tools import stream_gain
 
 SMALL = ["grid.range=[-8.0,-8.0,-1.0,8.0,8.0,5.4]", "model.encoder.out_channels=16", "model.encoder.width=16"]
 

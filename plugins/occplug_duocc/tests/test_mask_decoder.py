@@ -12,7 +12,8 @@ from occplug.interfaces import ModelOutputs
 from occplug.run import runner
 from occplug.streams import set_stream_stage
 from occplug.testing import check_component, label_grid, make_tiny_batch
-from occplug_duocc.mask_decoder import (
+from occplug_duocc.scene import StreamVoxelScene, coarse_grid
+from occplug_duocc.supervision.mask_decoder import (
     OCC3D_GROUP_SPLIT,
     DuOccMask,
     MaskDecoder,
@@ -20,7 +21,6 @@ from occplug_duocc.mask_decoder import (
     group_lookup,
     match_masks,
 )
-from occplug_duocc.scene import StreamVoxelScene, coarse_grid
 
 SMALL = ["grid.range=[-8.0,-8.0,-1.0,8.0,8.0,5.4]", "model.encoder.out_channels=16", "model.encoder.width=16"]
 TINY = dict(in_channels=8, num_queries=4, num_groups=3, channels=16, heads=2, points=2, ffn_hidden=32, mask_hidden=32)

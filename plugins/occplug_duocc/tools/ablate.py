@@ -10,7 +10,7 @@ budget and evaluated on the validation split (camera mask), printed as mean ± s
   class groups (``occplug.data.classes.OCC3D_STATIC`` / ``OCC3D_DYNAMIC``), the geometric IoU, and the IoU of car
   and pedestrian (car: the dynamic class with the most voxels);
 * the detector's mAP (C, D, D with GT boxes, D with the mask decoder):
-  :func:`occplug_duocc.detection_eval.detection_map` (nuScenes-style, BEV centre distance 0.5 / 1 / 2 / 4 m) over the
+  :func:`occplug_duocc.tools.detection_eval.detection_map` (nuScenes-style, BEV centre distance 0.5 / 1 / 2 / 4 m) over the
   validation split read in order, the stream state carried as in evaluation, top 100 (query, class) pairs per frame;
 * latency (ms per frame) and peak memory (MiB) of inference: the seed-0 run directories measured side by side by
   :func:`occplug.run.bench.run_bench` (each in its own process, interleaved; on CPU the memory is the process's peak
@@ -21,10 +21,10 @@ budget and evaluated on the validation split (camera mask), printed as mean ± s
 The expected direction (paper: B > A; D > B with the gain mostly on dynamic classes) is printed as a check, not
 tuned for::
 
-    python -m occplug_duocc.ablate                                   # 3 seeds, Tab. 4's rows, default world
-    python -m occplug_duocc.ablate --rows single_frame stream_warp_only stream_refine stream_refine_forecast stream_agg
-    python -m occplug_duocc.ablate --rows stream_agg full --seeds 0 1 2
-    python -m occplug_duocc.ablate --seeds 0 --preset tiny --epochs 1 --set trainer.max_steps=4   # a smoke run
+    python -m occplug_duocc.tools.ablate                                   # 3 seeds, Tab. 4's rows, default world
+    python -m occplug_duocc.tools.ablate --rows single_frame stream_warp_only stream_refine stream_refine_forecast stream_agg
+    python -m occplug_duocc.tools.ablate --rows stream_agg full --seeds 0 1 2
+    python -m occplug_duocc.tools.ablate --seeds 0 --preset tiny --epochs 1 --set trainer.max_steps=4   # a smoke run
 
 Results go to ``--out`` (default ``runs/duocc_ablate``): one run directory per row and seed, and ``table.json``.
 A finished run directory (its ``metrics.json``) is reused, so an interrupted ablation continues where it stopped;
@@ -168,7 +168,9 @@ def mean(values: list[float]) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(
-        prog="python -m occplug_duocc.ablate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python -m occplug_duocc.tools.ablate",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--rows", nargs="+", default=DEFAULT_ROWS, choices=list(ROWS))

@@ -17,10 +17,10 @@ are measured on the first seed's run directories. With ``--epochs 0`` the config
 accuracy). A finished run directory is reused, so seeds can be trained by separate invocations side by side and
 tabled by a last one over all of them::
 
-    python -m occplug_duocc.bench                                       # K = 1 2 4 8, default world, 4 epochs, seed 0
-    python -m occplug_duocc.bench --seeds 0 1 2                         # accuracy as mean ± std over 3 seeds
-    python -m occplug_duocc.bench --preset tiny --epochs 1 --set trainer.max_steps=4 --repeats 2 --train-repeats 2
-    python -m occplug_duocc.bench --device cuda --preset occ3d --epochs 0 --full --repeats 10 --train-repeats 0 \\
+    python -m occplug_duocc.tools.bench                                       # K = 1 2 4 8, default world, 4 epochs, seed 0
+    python -m occplug_duocc.tools.bench --seeds 0 1 2                         # accuracy as mean ± std over 3 seeds
+    python -m occplug_duocc.tools.bench --preset tiny --epochs 1 --set trainer.max_steps=4 --repeats 2 --train-repeats 2
+    python -m occplug_duocc.tools.bench --device cuda --preset occ3d --epochs 0 --full --repeats 10 --train-repeats 0 \\
         --set "grid={range: [-40.0, -40.0, -1.0, 40.0, 40.0, 5.4], voxel_size: 0.4}"
 
 ``--train-repeats 0`` measures inference only: a training step on the ``occ3d`` world reads frames the benchmark
@@ -76,7 +76,9 @@ def train(name: str, config: str, overrides: list[str], seed: int, args: argpars
 
 def main() -> None:
     parser = argparse.ArgumentParser(
-        prog="python -m occplug_duocc.bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python -m occplug_duocc.tools.bench",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--ks", type=int, nargs="+", default=[1, 2, 4, 8], help="past frames K of the stacking rows")
     parser.add_argument("--epochs", type=int, default=4, help="training epochs per row (0: measure untrained)")

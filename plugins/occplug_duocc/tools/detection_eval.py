@@ -17,9 +17,9 @@ from torch import Tensor
 from occplug.data import Batch
 from occplug.streams import find_streams, set_stream_stage
 
-from .detector import select_detections
-from .queryagg import detection_targets
-from .scene import DETECTION_CLASSES_KEY, DETECTION_KEY
+from ..blocks.detector import select_detections
+from ..blocks.queryagg import detection_targets
+from ..scene import DETECTION_CLASSES_KEY, DETECTION_KEY
 
 __all__ = ["detection_map", "stream_detection_map"]
 

@@ -7,7 +7,7 @@ code; it uses 42 m; default: the centre inside the config's grid in x and y), an
 ``anchor_centres`` (k-means of the centres, k = the detector's ``num_queries`` or ``--queries``) and
 ``anchor_size`` (the mean box size)::
 
-    python -m occplug_duocc.fit_anchors -c duocc/full --out anchors.yaml
+    python -m occplug_duocc.tools.fit_anchors -c duocc/full --out anchors.yaml
     occplug fit -c duocc/full -c anchors.yaml
 
 ``duocc/full`` ships the overlay this module wrote for the synthetic ``default`` world
@@ -53,7 +53,7 @@ def training_boxes(cfg: dict, classes: list[int], max_distance: float | None) ->
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m occplug_duocc.fit_anchors",
+        prog="python -m occplug_duocc.tools.fit_anchors",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     centres, size = kmeans_anchors(boxes, k, seed=args.seed)
     where = f"within {args.max_distance:g} m" if args.max_distance is not None else "inside the grid"
     header = (
-        f"# DuOcc detector anchors (python -m occplug_duocc.fit_anchors): k-means (k={k}, seed {args.seed}) of\n"
+        f"# DuOcc detector anchors (python -m occplug_duocc.tools.fit_anchors): k-means (k={k}, seed {args.seed}) of\n"
         f"# {boxes.shape[0]} ego-frame centres of the training boxes {where}, classes {list(agg['detection_classes'])};\n"
         f"# size = the mean box size. Made from: -c {' -c '.join(args.config)} {' '.join(args.overrides)}\n"
     )

@@ -4,12 +4,12 @@ Counts the voxel labels of a config's training split (``occplug data stats``'s c
 ``nusc_class_frequencies``; ``--mask camera`` counts camera-visible ones only) and writes a config overlay that
 sets ``model.supervision.<source>.class_weights`` (``occupancy``: the recipes' ``voxel_ce``)::
 
-    python -m occplug_duocc.fit_class_weights -c duocc/stream_agg --out weights.yaml
+    python -m occplug_duocc.tools.fit_class_weights -c duocc/stream_agg --out weights.yaml
     occplug fit -c duocc/stream_agg -c weights.yaml
 
 The synthetic recipes ship the overlay this module wrote for the ``default`` world
 (``duocc/class_weights/synthetic``); ``duocc/occ3d_nuscenes`` carries the code's own nuScenes values. A class
-absent from the split gets the largest weight of the others (:func:`occplug_duocc.class_weights.duocc_class_weights`).
+absent from the split gets the largest weight of the others (:func:`occplug_duocc.tools.class_weights.duocc_class_weights`).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from occplug.run import runner
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m occplug_duocc.fit_class_weights",
+        prog="python -m occplug_duocc.tools.fit_class_weights",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     header = (
-        f"# DuOcc occupancy CE class weights (python -m occplug_duocc.fit_class_weights): 5 / ln(f) per class, free\n"
+        f"# DuOcc occupancy CE class weights (python -m occplug_duocc.tools.fit_class_weights): 5 / ln(f) per class, free\n"
         f"# halved, the public code's rule; f = voxels per class ({args.mask} mask) over {counts.frames} training frames:\n"
         f"# {[int(c) for c in counts.counts]}\n"
         f"# Made from: {' '.join(['-c ' + c for c in args.config] + list(args.overrides))}\n"

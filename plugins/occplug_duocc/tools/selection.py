@@ -3,20 +3,20 @@ which voxels DQA writes.
 
 Reads a run's checkpoint and streams the validation split in order, as evaluation does (no training)::
 
-    python -m occplug_duocc.selection runs/duocc_ablate/full-seed0                 # the run's last.ckpt
-    python -m occplug_duocc.selection RUN --thresholds 0.1 0.2 0.3 0.5 --json out.json
+    python -m occplug_duocc.tools.selection runs/duocc_ablate/full-seed0                 # the run's last.ckpt
+    python -m occplug_duocc.tools.selection RUN --thresholds 0.1 0.2 0.3 0.5 --json out.json
 
 Per frame it counts, for the learned detector's last layer:
 
 * for each score threshold ``s``: the queries a score-only selection takes (``score > s``, the largest class
-  sigmoid, as :func:`~occplug_duocc.dqa.select_queries` without ground truth), and their **precision**: the share
+  sigmoid, as :func:`~occplug_duocc.blocks.dqa.select_queries` without ground truth), and their **precision**: the share
   whose box centre lies within ``--radius`` (1 m) in ``x, y`` of a ground-truth box centre of a detection class;
   and the ground-truth boxes' **recall**: the share with a taken query within that radius;
 * for every ground-truth box, the distance (x, y) to the nearest query centre of any score (its mean: how close
   the detector's boxes come to the objects at all);
 * the queries the model itself selected (``duocc_stream/dqa_selected``: at evaluation the score rule at the
   run's ``score_threshold``), their precision, and what DQA wrote: the voxels its boxes cover under the run's
-  coverage rule (:meth:`~occplug_duocc.dqa.DynamicQueryAggregation.edges`), and the share of those that the same
+  coverage rule (:meth:`~occplug_duocc.blocks.dqa.DynamicQueryAggregation.edges`), and the share of those that the same
   rule puts inside a ground-truth box.
 
 Every count is a mean per frame. A run trained with ``gt_boxes: true`` at evaluation is not what this reads: it
@@ -38,9 +38,9 @@ from occplug import UserError
 from occplug.data import Batch
 from occplug.streams import find_streams, set_stream_stage
 
-from .dqa import DynamicQueryAggregation
-from .queryagg import detection_targets
-from .scene import DETECTION_CLASSES_KEY, DETECTION_KEY, DQA_SELECTED_KEY
+from ..blocks.dqa import DynamicQueryAggregation
+from ..blocks.queryagg import detection_targets
+from ..scene import DETECTION_CLASSES_KEY, DETECTION_KEY, DQA_SELECTED_KEY
 
 __all__ = ["SelectionTally", "near_a_box", "stream_selection_report", "main"]
 
@@ -137,7 +137,7 @@ def stream_selection_report(
     radius: float = 1.0,
 ) -> dict:
     """:class:`SelectionTally`'s report over ``batches`` read in order as one stream (the stage's stream state is
-    cleared first, as :func:`~occplug_duocc.detection_eval.stream_detection_map` does). The model is left in eval
+    cleared first, as :func:`~occplug_duocc.tools.detection_eval.stream_detection_map` does). The model is left in eval
     mode."""
     dqa = next((m for m in model.modules() if isinstance(m, DynamicQueryAggregation)), None)
     model.eval()
@@ -167,7 +167,9 @@ def stream_selection_report(
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m occplug_duocc.selection", description=__doc__, formatter_class=argparse.RawTextHelpFormatter
+        prog="python -m occplug_duocc.tools.selection",
+        description=__doc__,
+        formatter_class=argparse.RawTextHelpFormatter,
     )
     parser.add_argument("run", type=Path, help="a run directory (its checkpoints/last.ckpt) or a checkpoint file")
     parser.add_argument("--thresholds", type=float, nargs="+", default=list(THRESHOLDS), help="score thresholds")

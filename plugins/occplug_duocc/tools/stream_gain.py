@@ -8,7 +8,7 @@ where it is long. ``--set`` overrides apply to every run, e.g. longer or more va
 at every frame (``model.scene.max_gap_s=0.01``). The first metric must keep a confusion matrix (``occ3d_miou``); the
 whole validation split is read (``trainer.limit_val_batches`` does not apply)::
 
-    python -m occplug_duocc.stream_gain runs/a-seed0 runs/b-seed0 --set data.frames_per_scene=12 data.val_scenes=8
+    python -m occplug_duocc.tools.stream_gain runs/a-seed0 runs/b-seed0 --set data.frames_per_scene=12 data.val_scenes=8
 """
 
 from __future__ import annotations
@@ -106,7 +106,7 @@ def results_by_position(run: Path, overrides: list[str], buckets: list[tuple[int
 
 def main() -> None:
     parser = argparse.ArgumentParser(
-        prog="python -m occplug_duocc.stream_gain",
+        prog="python -m occplug_duocc.tools.stream_gain",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -46,7 +46,7 @@ Four implementations with one signature (sequence-major layout ``(B, L, ...)``):
   otherwise. Measured on an H100 (``B = 2, L = 4096, D = 64, N = 16``, float32): ref 269 ms, chunked 7.6 ms,
   ``mamba_ssm`` 0.19 ms; its output, last state and gradients equal the reference (``test_occle_cuda.py``).
 
-Measured with ``python -m occplug_occle.bench`` (CPU, one thread of a shared machine, ``B = 2, L = 4096, D = 64,
+Measured with ``python -m occplug_occle.tools.bench`` (CPU, one thread of a shared machine, ``B = 2, L = 4096, D = 64,
 N = 16``, forward without autograd, median of 5): ref 264 ms vs ``"steps"`` (``T = 64``) 37 ms in float32
 (7.2x); 386 ms vs 65 ms in float64 (5.9x); ``"segsum"`` (``T = 8``, float64) 526 ms (0.7x). The
 reference's time is mostly its ``L`` Python iterations (its ``einsum`` per step alone is about half).

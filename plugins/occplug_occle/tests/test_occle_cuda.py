@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from occplug.run import runner
-from occplug_occle.selective_scan import _mamba_ssm_kernel, selective_scan, selective_scan_ref
+from occplug_occle.blocks.selective_scan import _mamba_ssm_kernel, selective_scan, selective_scan_ref
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
 
@@ -40,7 +40,7 @@ def test_mamba_ssm_kernel_equals_the_reference_forward_and_backward(monkeypatch)
     y_ref, last_ref = selective_scan_ref(*ref_in, return_last_state=True)
     kernel_in = [t.float().cuda().requires_grad_() for t in (u, delta, A, B, C, D, z)]
     for name in ("selective_scan_lean", "selective_scan_chunked", "selective_scan_ref"):
-        monkeypatch.setattr(f"occplug_occle.selective_scan.{name}", not_this)
+        monkeypatch.setattr(f"occplug_occle.blocks.selective_scan.{name}", not_this)
     y, last = selective_scan(*kernel_in, mode="auto", return_last_state=True)
     monkeypatch.undo()
     scale = float(y_ref.abs().max())

@@ -6,7 +6,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from occplug.geometry import GridSpec
-from occplug_occle.geometry_branch import (
+from occplug_occle.blocks.geometry_branch import (
     Conv3dDeformableBaseline,
     CrossPlaneFusion,
     CrossPlaneGeometryBranch,

@@ -9,8 +9,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from occplug_occle.mamba import DualMambaBlock, DualMambaUNet, MambaBlock, channel_exchange, exchange_mask
-from occplug_occle.selective_scan import (
+from occplug_occle.blocks.mamba import DualMambaBlock, DualMambaUNet, MambaBlock, channel_exchange, exchange_mask
+from occplug_occle.blocks.selective_scan import (
     SelectiveScanFn,
     _mamba_ssm_kernel,
     _scan_mamba_ssm,
@@ -19,7 +19,7 @@ from occplug_occle.selective_scan import (
     selective_scan_lean,
     selective_scan_ref,
 )
-from occplug_occle.serialization import deserialize, hilbert_curve, hilbert_permutation, serialize
+from occplug_occle.blocks.serialization import deserialize, hilbert_curve, hilbert_permutation, serialize
 
 #: the Dual Mamba stage grids the shipped recipes build (synthetic 32 x 32 x 8 and occle/semantickitti's
 #: 256 x 256 x 32, anisotropic where z is short); the 2.1 M-voxel 256 x 256 x 32 itself takes ~8 s: left out
@@ -249,7 +249,7 @@ def test_mamba_ssm_layout_adapter_equals_the_reference(fresh_mamba_ssm):
     # hands it and how it reads the result back must give the reference's (B, L, D) output and (B, D, N) state
     _fake_mamba_ssm(
         fresh_mamba_ssm,
-        "from occplug_occle.selective_scan import selective_scan_ref\n"
+        "from occplug_occle.blocks.selective_scan import selective_scan_ref\n"
         "def selective_scan_fn(u, delta, A, B, C, D=None, z=None, delta_bias=None, delta_softplus=False,\n"
         "                      return_last_state=False):\n"
         "    assert delta_bias is None and not delta_softplus and u.is_contiguous() and B.is_contiguous()\n"

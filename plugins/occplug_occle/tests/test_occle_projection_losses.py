@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from occplug.geometry import GridSpec, make_pose, project_to_image
 from occplug.nn import UNet2d, UNet3d
 from occplug.ops import feature_cell_centers
-from occplug_occle.losses import (
+from occplug_occle.blocks.losses import (
     OccupancyLoss,
     class_weights_from_frequencies,
     geo_scal_loss,
@@ -18,7 +18,7 @@ from occplug_occle.losses import (
     sem_scal_loss,
     weighted_cross_entropy,
 )
-from occplug_occle.projection import ProjectionHead, ScatterProjection, feature_map_intrinsics, scatter_project
+from occplug_occle.blocks.projection import ProjectionHead, ScatterProjection, feature_map_intrinsics, scatter_project
 
 # ------------------------------------------------------------------ a pinhole camera looking along ego +x
 H, W = 24, 32

@@ -4,10 +4,10 @@ Each row is one shipped config (``occle/<row>``) trained per seed in its own ``o
 budget and evaluated on the validation split (camera mask): mIoU and IoU of the final phase, plus mIoU of the
 semantic branch's ``S`` (Phase I) for Tab. 3 and IoU of the geometric branch's ``G`` for Tab. 4(a)::
 
-    python -m occplug_occle.ablate                                  # 3 seeds, every row, default world
-    python -m occplug_occle.ablate --rows three_phase_10pct baseline_10pct full_100pct   # the pass/fail rows
-    python -m occplug_occle.ablate --dry-run                        # the planned runs and optimizer steps
-    python -m occplug_occle.ablate --seeds 0 --preset tiny --epochs 0.02 --rows three_phase_10pct baseline_10pct
+    python -m occplug_occle.tools.ablate                                  # 3 seeds, every row, default world
+    python -m occplug_occle.tools.ablate --rows three_phase_10pct baseline_10pct full_100pct   # the pass/fail rows
+    python -m occplug_occle.tools.ablate --dry-run                        # the planned runs and optimizer steps
+    python -m occplug_occle.tools.ablate --seeds 0 --preset tiny --epochs 0.02 --rows three_phase_10pct baseline_10pct
 
 Pass/fail (printed when the rows ran): OccLE at 10 % labels (``three_phase_10pct``) beats the stated baseline at
 10 % (``baseline_10pct``: Tab. 4(b)'s "Baseline", OccLE with its semantic branch, geometric branch and projection
@@ -289,7 +289,9 @@ def dry_run(args: argparse.Namespace) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(
-        prog="python -m occplug_occle.ablate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python -m occplug_occle.tools.ablate",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))

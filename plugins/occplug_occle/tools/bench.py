@@ -2,10 +2,10 @@
 
 Sections:
 
-* ``scan``: the selective state-space scan of Mamba (:mod:`occplug_occle.selective_scan`) at one sequence
-  length -- :func:`~occplug_occle.selective_scan.selective_scan_ref` (a Python loop over the ``L`` steps,
+* ``scan``: the selective state-space scan of Mamba (:mod:`occplug_occle.blocks.selective_scan`) at one sequence
+  length -- :func:`~occplug_occle.blocks.selective_scan.selective_scan_ref` (a Python loop over the ``L`` steps,
   written like ``mamba_ssm``'s reference) against
-  :func:`~occplug_occle.selective_scan.selective_scan_chunked` (chunks of ``--chunk-size`` steps, the
+  :func:`~occplug_occle.blocks.selective_scan.selective_scan_chunked` (chunks of ``--chunk-size`` steps, the
   state carried between chunks) on the same random inputs: ``u``, ``delta = softplus(N(0,1) - 1)``,
   ``A = -exp(N(0, 1))`` ``(D, N)``, ``B``, ``C``, skip ``D`` and gate ``z``. Prints the wall-clock
   milliseconds of each (median and best of ``--repeats`` forward calls after one warm-up, without autograd,
@@ -14,8 +14,8 @@ Sections:
   there) is a third row.
 
 * ``geometry``: the geometric branch (Tab. 4(a)'s module time, the paper: 26.08 ms vs 138.62 ms on an A6000) --
-  :class:`~occplug_occle.geometry_branch.CrossPlaneGeometryBranch` (cross-plane image/LiDAR synergy + 3D header)
-  against :class:`~occplug_occle.geometry_branch.Conv3dDeformableBaseline` (concatenation, Conv3D, 3D deformable
+  :class:`~occplug_occle.blocks.geometry_branch.CrossPlaneGeometryBranch` (cross-plane image/LiDAR synergy + 3D header)
+  against :class:`~occplug_occle.blocks.geometry_branch.Conv3dDeformableBaseline` (concatenation, Conv3D, 3D deformable
   attention, the same header) side by side on the same random inputs: one frame of a LiDAR and a lifted image
   grid ``(B, 1, C, X, Y, Z)`` at ``--grid X Y Z`` with ``--channels C`` for both modalities and the branch,
   ``--grid-batch B``. Prints, for each, the milliseconds of a forward pass (eval mode, no autograd; median and
@@ -25,7 +25,7 @@ Sections:
 
 Another section is one more ``bench_<name>(args)`` function and one entry in ``SECTIONS``.
 
-Usage: ``python -m occplug_occle.bench [--section scan|geometry|all] [--length 4096 --dim 64 --state 16 --batch 2]
+Usage: ``python -m occplug_occle.tools.bench [--section scan|geometry|all] [--length 4096 --dim 64 --state 16 --batch 2]
 [--grid 32 32 8 --channels 32 --grid-batch 1] [--repeats 3] [--device cpu|cuda] [--dtype float32|float64]
 [--chunk-size 64] [--within steps|segsum]``. Set ``OMP_NUM_THREADS`` for a fixed CPU thread count.
 """
@@ -40,8 +40,8 @@ from collections.abc import Callable
 import torch
 import torch.nn.functional as F
 
-from .geometry_branch import Conv3dDeformableBaseline, CrossPlaneGeometryBranch
-from .selective_scan import _mamba_ssm_kernel, _scan_mamba_ssm, selective_scan_chunked, selective_scan_ref
+from ..blocks.geometry_branch import Conv3dDeformableBaseline, CrossPlaneGeometryBranch
+from ..blocks.selective_scan import _mamba_ssm_kernel, _scan_mamba_ssm, selective_scan_chunked, selective_scan_ref
 
 
 def _time(fn: Callable[[], torch.Tensor], repeats: int, device: torch.device) -> tuple[list[float], torch.Tensor]:
@@ -153,7 +153,7 @@ SECTIONS: dict[str, Callable[[argparse.Namespace], None]] = {"scan": bench_scan,
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m occplug_occle.bench", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m occplug_occle.tools.bench", description=__doc__.split("\n\n")[0])
     parser.add_argument("--section", choices=[*SECTIONS, "all"], default="all")
     parser.add_argument("--length", type=int, default=4096, help="sequence length L")
     parser.add_argument("--dim", type=int, default=64, help="channels D")

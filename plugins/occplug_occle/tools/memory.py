@@ -29,13 +29,13 @@ estimate, not a measurement, and says so.
 
 Usage::
 
-    python scripts/occle_memory.py [--grids 32x32x8 64x64x16 ...] [--settings plain checkpoint] [--batch 1]
+    python -m occplug_occle.tools.memory [--grids 32x32x8 64x64x16 ...] [--settings plain checkpoint] [--batch 1]
                                    [--phase fusion] [--set key=value ...] [--depth 3] [--max-rss-gib 10]
                                    [--extrapolate 256 256 32] [--json FILE]
-    python scripts/occle_memory.py --from-json FILE [--settings ...] [--extrapolate X Y Z]   # the tables again
+    python -m occplug_occle.tools.memory --from-json FILE [--settings ...] [--extrapolate X Y Z]   # the tables again
 
 Pure PyTorch on the CPU (``mamba_ssm`` is CUDA only; on a CPU the Mamba mixers run the chunked scan with its
-memory-lean backward, ``occplug_occle.selective_scan.SelectiveScanFn``). Run it alone, with
+memory-lean backward, ``occplug_occle.blocks.selective_scan.SelectiveScanFn``). Run it alone, with
 ``OMP_NUM_THREADS=1``: the peaks are per process, and the children run one after another.
 """
 
@@ -49,7 +49,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parent  # inside the checkout: git finds the commit from here
 RECIPE = "occle/three_phase_10pct"
 #: the phase measured by default (``--phase``): Phase III, the largest model that trains
 PHASE = "fusion"
@@ -218,7 +218,7 @@ def table(rows: list[dict[str, Any]], settings: list[str], extrapolate: list[int
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m occplug_occle.tools.memory", description=__doc__.split("\n\n")[0])
     parser.add_argument("--grids", nargs="+", default=["32x32x8", "64x64x16", "128x128x16"])
     parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=["plain", "checkpoint"])
     parser.add_argument("--batch", type=int, default=1)

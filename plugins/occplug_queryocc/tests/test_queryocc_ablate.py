@@ -1,9 +1,9 @@
-"""occplug_queryocc.ablate re-scores a trained run (another split, evaluation-only overrides) without retraining."""
+"""occplug_queryocc.tools.ablate re-scores a trained run (another split, evaluation-only overrides) without retraining."""
 
 import json
 
 from occplug.run import bench
-from occplug_queryocc import ablate
+from occplug_queryocc.tools import ablate
 
 TINY = ["--seeds", "0", "--rows", "base", "--preset", "tiny", "--epochs", "1"]
 SET = ["--set", "trainer.limit_train_batches=2", "trainer.limit_val_batches=2", "trainer.limit_test_batches=2"]

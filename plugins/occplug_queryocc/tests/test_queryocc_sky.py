@@ -10,7 +10,8 @@ from occplug.data import LabelledPoints, free_pixel_rays
 from occplug.geometry import GridSpec, camera_rays
 from occplug.testing import hand_batch, make_tiny_batch
 from occplug_queryocc import QuerySupervision, RenderSupervision
-from occplug_queryocc.diagnose import (
+from occplug_queryocc.supervision import sample_sky_negatives, sample_surface_negatives
+from occplug_queryocc.tools.diagnose import (
     NO_HIT,
     Tally,
     covered,
@@ -19,7 +20,6 @@ from occplug_queryocc.diagnose import (
     height_above_ground,
     main,
 )
-from occplug_queryocc.supervision import sample_sky_negatives, sample_surface_negatives
 
 FREE = 17
 

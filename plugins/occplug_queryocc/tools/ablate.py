@@ -5,9 +5,9 @@ the same budget, evaluated on the validation split's voxel labels, and printed a
 (mean ± std over the seeds): Sem. / Dyn. / Occ. RayIoU and Sem. / Occ. IoU (camera mask), plus the
 semantic scores without ``others`` (a class the pseudo taxonomy cannot express)::
 
-    python -m occplug_queryocc.ablate                              # 3 seeds, every row, default world
-    python -m occplug_queryocc.ablate --rows base render_only      # the supervision rows only
-    python -m occplug_queryocc.ablate --seeds 0 --preset tiny --epochs 1   # a smoke run
+    python -m occplug_queryocc.tools.ablate                              # 3 seeds, every row, default world
+    python -m occplug_queryocc.tools.ablate --rows base render_only      # the supervision rows only
+    python -m occplug_queryocc.tools.ablate --seeds 0 --preset tiny --epochs 1   # a smoke run
 
 The constant-class row predicts every voxel below 1 m as the most frequent occupied class the training
 labels have there (the road) and free above (a floor any trained model must clear). Pass/fail is printed for
@@ -21,7 +21,7 @@ evaluation-only overrides (e.g. ``model.heads.occupancy.voxel_samples=2``): the 
 by ``occplug validate`` / ``occplug test`` (cached beside the run), nothing is retrained. A setting is chosen on
 the test split and then reported on the validation split, so no choice is tuned to the numbers it reports::
 
-    python -m occplug_queryocc.ablate --rows base --seeds 0 --split test --eval-set model.heads.occupancy.voxel_samples=2
+    python -m occplug_queryocc.tools.ablate --rows base --seeds 0 --split test --eval-set model.heads.occupancy.voxel_samples=2
 """
 
 from __future__ import annotations
@@ -159,7 +159,7 @@ def checks(rows: dict[str, dict[str, list[float]]], floor: dict[str, float]) -> 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
-        prog="python -m occplug_queryocc.ablate",
+        prog="python -m occplug_queryocc.tools.ablate",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -19,9 +19,9 @@ three equal-memory planes are trained with ``occplug fit -c queryocc/base`` and 
 labels, pseudo points, ``--epochs`` epochs), each in its own process; any finished run directory of a (range,
 plane) in ``--out`` is scored (mean over its seeds).
 
-    python -m occplug_queryocc.bench                                    # R = 50..200 m; accuracy at 50 and 200
-    python -m occplug_queryocc.bench --ranges 50 --train-ranges 50 --epochs 1   # a smoke run
-    python -m occplug_queryocc.bench --train-ranges                     # time and memory only
+    python -m occplug_queryocc.tools.bench                                    # R = 50..200 m; accuracy at 50 and 200
+    python -m occplug_queryocc.tools.bench --ranges 50 --train-ranges 50 --epochs 1   # a smoke run
+    python -m occplug_queryocc.tools.bench --train-ranges                     # time and memory only
 
 The ``long_range`` world is generated once (about 25 s per frame per core; 44 frames) into the world cache.
 Results go to ``--out`` (default ``runs/queryocc_bench``); a finished run directory is reused.
@@ -89,7 +89,7 @@ def train(variant: str, r: float, seed: int, args: argparse.Namespace) -> Path:
 
 def main() -> None:
     parser = argparse.ArgumentParser(
-        prog="python -m occplug_queryocc.bench",
+        prog="python -m occplug_queryocc.tools.bench",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -2,8 +2,8 @@
 
 Reads a run's checkpoint and the validation split (no training)::
 
-    python -m occplug_queryocc.diagnose runs/queryocc_ablate/base-seed0            # the run's last.ckpt
-    python -m occplug_queryocc.diagnose CKPT --batches 12 --draws 4 --json out.json
+    python -m occplug_queryocc.tools.diagnose runs/queryocc_ablate/base-seed0            # the run's last.ckpt
+    python -m occplug_queryocc.tools.diagnose CKPT --batches 12 --draws 4 --json out.json
 
 Scored voxels are those of the camera mask (the evaluation's). A **false-occupied** voxel is scored, free in
 the voxel labels and predicted occupied (any class). Each is tallied
@@ -262,7 +262,9 @@ def _checkpoint(path: Path) -> Path:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m occplug_queryocc.diagnose", description=__doc__, formatter_class=argparse.RawTextHelpFormatter
+        prog="python -m occplug_queryocc.tools.diagnose",
+        description=__doc__,
+        formatter_class=argparse.RawTextHelpFormatter,
     )
     parser.add_argument("run", type=Path, help="a run directory (its checkpoints/last.ckpt) or a checkpoint file")
     parser.add_argument("--batches", type=_positive, default=8, help="validation samples to diagnose (default 8)")
