@@ -19,7 +19,7 @@ class DuOccDecoder(OccupancyHead):
     """``V_up = ReLU(BN(ConvTranspose3d(V_fin)))`` on the label grid, then ``Linear -> ReLU -> Linear`` per voxel.
 
     The public code's main head: ``ConvTranspose3d(C -> hidden, k = s, stride = s)``, BN, ReLU, then pointwise
-    ``hidden -> mlp_hidden`` (ReLU) ``-> K`` (duocc-code-notes.md §4; the paper's "MLP" are these pointwise
+    ``hidden -> mlp_hidden`` (ReLU) ``-> K`` (inside its DQA; the paper's "MLP" are these pointwise
     convolutions). Queryable: a point reads ``V_up`` trilinearly and goes through the same MLP, so queries at
     label-voxel centres equal the voxel logits (and any query supervision can train it). Not temporal.
 

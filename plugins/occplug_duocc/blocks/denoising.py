@@ -2,7 +2,7 @@
 
 Sparse4D v3 (Lin et al. 2023, §3.2) trains its decoder also on noised copies of the ground-truth boxes: each
 copy is an extra query that starts at a noised box and must recover the box it came from (positive) or call
-itself background (negative). The public DuOcc code uses it (``duocc-code-notes.md`` §3 "Denoising": 5 groups,
+itself background (negative). The public DuOcc code uses it (Sparse4D v3's denoising in its config: 5 groups,
 noise ``[2.0] * 3 + [0.5] * 7`` on the encoded box, at most 32 ground truths, negatives on); DuOcc's paper does
 not mention it. It gives the decoder's refinement a dense, well-posed target from the first step, where the
 Hungarian-matched queries give one noisy target per object.

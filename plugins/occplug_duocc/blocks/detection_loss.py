@@ -4,7 +4,7 @@
 classification (:func:`occplug.nn.sigmoid_focal_loss`) and weighted L1 regression on
 :func:`~.matching.encode_boxes`; with the detector's denoising queries, their loss too (:func:`~.denoising.denoising_loss`).
 
-Assumptions (where the paper is silent; the public code's choices are in ``duocc-code-notes.md`` §3):
+Assumptions (where the paper is silent; the public code's choices, from its config, are these):
 
 * Suppl. A.4 / code loss: focal (alpha 0.25, gamma 2) x 2.0 and L1 x 0.25 with per-dimension weights
   ``[2, 2, 2, 1, 1, 1, 1, 1, 1, 1]``, both divided by the number of matched ground truths in the batch (at least

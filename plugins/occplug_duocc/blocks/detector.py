@@ -11,8 +11,8 @@ Beside it: the encoded box (:mod:`.boxes`), the image aggregation (:mod:`.image_
 (:mod:`.detection_eval`). Boxes are decoded in the ego frame, ``(..., 9)``; anchors and regression live in
 Sparse4D's encoding, :data:`~.boxes.BOX_DIM` wide (:mod:`.boxes`).
 
-Assumptions (where the paper, §3.2 "I2Q" and suppl. A.4, is silent; the public code's choices are in
-``duocc-code-notes.md`` §3):
+Assumptions (where the paper, §3.2 "I2Q" and suppl. A.4, is silent; the public code's choices, from
+its Sparse4D v3 detector in ``models/heads/queryagg/``, are these):
 
 * §3.2 I2Q, anchors: 900 k-means anchors of the training boxes in the code; here ``anchor_centres`` when given
   (``python -m occplug_duocc.tools.fit_anchors`` makes them as the code does, :mod:`.anchors`), else ``num_queries`` centres drawn

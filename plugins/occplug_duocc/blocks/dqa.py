@@ -17,7 +17,7 @@ the whole grid.
 Boxes are ``(..., 7)`` ``[cx, cy, cz, l, w, h, yaw]`` in the ego frame (extra columns, e.g. velocity,
 are ignored): centre, length along the heading, width, height (metres), yaw about +z from +x (radians).
 
-Paper versus the public code (``duocc-code-notes.md`` §3 "DQA"):
+Paper versus the public code (``projects/mmdet3d_plugin/models/heads/queryagg/dqa.py``):
 
 * coverage: a voxel belongs to a box when its centre lies inside the rotated box (``coverage="center"``,
   exact); the code takes the axis-aligned index range of the rounded box corners (``coverage="aabb"``),

@@ -3,7 +3,7 @@
 Three residual 3D stages (strides 1, 2, 2 after one another, so the levels lie at ``X x Y x Z``, ``X/2`` and
 ``X/4``), every level resampled trilinearly to the output size, concatenated, and compressed by a
 ``1x1x1 conv -> BatchNorm -> ReLU`` to ``C`` channels (the public code's ``CustomResNet3D`` +
-``LSSFPN3D_small``, duocc-code-notes.md §1, with fewer channels and blocks for a CPU).
+``LSSFPN3D_small`` in ``projects/configs/DuOcc.py``, with fewer channels and blocks for a CPU).
 """
 
 from __future__ import annotations

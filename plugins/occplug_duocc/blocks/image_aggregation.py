@@ -9,8 +9,8 @@ Pixels follow :mod:`occplug.geometry.cameras`: pixel ``[row, col]`` has its cent
 of the augmented image (``img_aug @ intrinsics``); a feature level of stride ``s`` covers the image exactly, so
 ``grid_sample(..., align_corners=False)`` at ``((u + 0.5) / W, (v + 0.5) / H)`` reads every level at the point.
 
-Assumptions (where the paper, §3.2 "I2Q" and suppl. A.4, is silent; the public code's choices are in
-``duocc-code-notes.md`` §3):
+Assumptions (where the paper, §3.2 "I2Q" and suppl. A.4, is silent; the public code's choices, from
+its Sparse4D v3 detector in ``models/heads/queryagg/``, are these):
 
 * Key points: the code's 7 fixed (centre, +-0.45 x size along each box axis) plus ``num_learnable_points``
   predicted from the instance feature within +-0.5 x size; rotated by the anchor's yaw (sin/cos normalised).

@@ -2,7 +2,7 @@
 
 DuOcc's image-to-query detector is Sparse4D v3 (paper §3.2, "I2Q") trained with its detection loss
 (suppl. A.4), whose one-to-one assignment minimises, per sample, the cost (Sparse4D v3
-``SparseBox3DTarget``; values of DuOcc's config, ``duocc-code-notes.md`` §3 "Matching")
+``SparseBox3DTarget``; values of DuOcc's config, ``projects/configs/DuOcc.py``)
 
 ``C[q, g] = cls_weight * (pos(p_q,c_g) - neg(p_q,c_g)) + box_weight * sum_d w_g,d * r_d * |b_q,d - b_g,d|``
 

@@ -10,7 +10,7 @@ All volumes are laid out ``(B, C, X, Y, Z)`` on one :class:`~occplug.geometry.Gr
 frame of their frame. The history is the previous frame's ``V_fin`` (after DQA in the full model),
 detached: no gradient flows across frames.
 
-Paper versus the public code (``duocc-code-notes.md`` §2), and what is chosen here:
+Paper versus the public code (``models/heads/streamagg/streamagg.py``, ``refinenet.py``), and what is chosen here:
 
 * fusion: Eq. 5 adds (``fusion="add"``, default); the code concatenates, then a 1x1x1 conv, GroupNorm
   and ReLU (``fusion="concat"``);

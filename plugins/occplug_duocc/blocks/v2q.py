@@ -4,7 +4,7 @@ into the stream-aggregated volume around its box (:class:`VoxelToQuery`).
 QueryAgg (:mod:`.queryagg`) applies it to the detector's queries (``q_img`` -> ``q_vox``); the mask decoder
 (:mod:`.mask_decoder`) reuses it as its cross-attention.
 
-Assumptions (where the paper is silent; the public code's choices are in ``duocc-code-notes.md`` §3):
+Assumptions (where the paper is silent; the public code's choices, from ``models/heads/queryagg/``, are these):
 
 * §3.2 V2Q (Eq. 6): ``heads x points`` learnable offsets per query within +-0.5 x box size, rotated by yaw
   (the code adds the 7 fixed key points; here the offset bias starts on a spread pattern instead); weights are

@@ -5,7 +5,7 @@ that reads ``V_fin`` and is dropped at inference: it adds a loss, never changes 
 a supervision source (``duocc_mask``) that owns its decoder's parameters; the prediction path (scene, heads,
 export) does not contain it, and it returns no loss outside training.
 
-What it does (``duocc-code-notes.md`` §4 "Auxiliary mask decoder"; the paper gives the idea only):
+What it does (the public code's ``projects/mmdet3d_plugin/models/heads/mask_head/``; the paper gives the idea only):
 
 * ``G`` groups of ``Q`` learnable queries (code: 6 x 100). Group 0 classifies the full class set (every label id
   but ``free``); group ``g >= 1`` classifies the coarse relabelling ``group_split[g - 1]``: a list of coarse

@@ -1,6 +1,6 @@
 """The public DuOcc code's occupancy CE class weights, from a training split's class counts.
 
-The code (``duocc-code-notes.md`` §4) weights its occupancy CE by ``5 / ln(f_c)`` over the raw voxel counts
+The code (``duocc_head.py`` ``loss_occ_pred``) weights its occupancy CE by ``5 / ln(f_c)`` over the raw voxel counts
 ``f_c`` of nuScenes (its ``nusc_class_frequencies``) and halves the free class's weight; the paper does not give
 them. :func:`duocc_class_weights` computes the same from any counts (``occplug data stats`` prints them);
 ``python -m occplug_duocc.tools.fit_class_weights`` counts a config's training split and writes a config overlay.
