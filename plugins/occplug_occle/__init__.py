@@ -8,10 +8,11 @@ imports only occplug's public API (``occplug.PUBLIC_MODULES``). The same layout 
 * components by kind: ``point_encoder.py`` (``occle_lidar_voxels``), ``scene.py`` (``occle_scene``: the
   semantic and geometric branches and their fusion), ``heads.py`` (``occle_*_head``), ``supervision.py``
   (``occle_semantic``, ``occle_geometry``, ``occle_fusion``);
-* building blocks: ``geometry_branch`` (the cross-plane branch), ``mamba`` and ``selective_scan`` (Dual Mamba),
+* ``blocks/``: ``geometry_branch`` (the cross-plane branch), ``mamba`` and ``selective_scan`` (Dual Mamba),
   ``serialization`` (Hilbert order), ``projection``, ``losses`` (its UNets and deformable attention are the
   core's, :mod:`occplug.nn`);
-* scripts, run as ``python -m occplug_occle.<name>``: ``ablate`` (the paper's tables), ``bench``;
-* ``configs/`` (addressed as ``occle/<name>``; ``three_phase_10pct`` is Algorithm 1), ``README.md`` and
-  ``RESULTS.md``.
+* ``tools/``, run as ``python -m occplug_occle.tools.<name>``: ``ablate`` (the paper's tables), ``bench``,
+  ``memory``; nothing in ``plugin.py`` imports them;
+* ``configs/`` (addressed as ``occle/<name>``; ``three_phase_10pct`` is Algorithm 1) and ``README.md``; the
+  measurements are in the repository's ``results/occle/``, not in the package.
 """

@@ -5,10 +5,12 @@ plugin; it imports only occplug's public API (``occplug.PUBLIC_MODULES``). The s
 
 * ``plugin.py``: the hooks; the registry names (``queryocc_*``) and the classes they build;
 * components by kind: ``view_transform.py`` (``queryocc_lift_contract_splat``), ``scene.py`` (``queryocc_bev``),
-  ``heads.py`` (``queryocc_decoder``), ``supervision.py`` (``queryocc_query_points``, ``queryocc_render_points``);
-* scripts, run as ``python -m occplug_queryocc.<name>``: ``ablate`` (the supervision ablation), ``bench``,
-  ``window_coverage``;
-* ``configs/`` (addressed as ``queryocc/<name>``), ``README.md`` and ``RESULTS.md``.
+  ``heads.py`` (``queryocc_decoder``), ``supervision/`` (``query_points.py``: ``queryocc_query_points``;
+  ``render_points.py``: ``queryocc_render_points``);
+* ``tools/``, run as ``python -m occplug_queryocc.tools.<name>``: ``ablate`` (the supervision ablation), ``bench``,
+  ``diagnose``; nothing in ``plugin.py`` imports them;
+* ``configs/`` (addressed as ``queryocc/<name>``) and ``README.md``; the measurements are in the repository's
+  ``results/queryocc/``, not in the package.
 """
 
 from .heads import QueryDecoder

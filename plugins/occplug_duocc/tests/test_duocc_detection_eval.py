@@ -1,4 +1,5 @@
-"""The streamed detector mAP that occplug_duocc.tools.ablate and occplug_duocc.detector_overfit report, on the tiny world."""
+"""The streamed detector mAP that occplug_duocc.tools.ablate and investigations/duocc/detector_overfit.py report, on the
+tiny world."""
 
 from types import SimpleNamespace
 
