@@ -159,7 +159,9 @@ def regenerate(root: Path) -> dict[Path, tuple[str, str, list[str]]]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python scripts/claims_tables.py", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python scripts/claims_tables.py",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--check", action="store_true", help="change nothing; exit 1 if a table differs")
     parser.add_argument("--root", type=Path, default=ROOT, help=argparse.SUPPRESS)

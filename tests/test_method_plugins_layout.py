@@ -26,9 +26,11 @@ KIND_MODULES = {
     "supervision": "supervision",
 }
 #: what a method package holds at its top level: the same names in all three
-TOP_LEVEL = {"__init__.py", "plugin.py", "README.md", "configs", "tests", "docs", "blocks", "tools"} | {
-    f"{m}.py" for m in KIND_MODULES.values()
-} | set(KIND_MODULES.values())
+TOP_LEVEL = (
+    {"__init__.py", "plugin.py", "README.md", "configs", "tests", "docs", "blocks", "tools"}
+    | {f"{m}.py" for m in KIND_MODULES.values()}
+    | set(KIND_MODULES.values())
+)
 #: the README's sections, in this order (a heading starting with each)
 README_SECTIONS = ("## What it is", "## Components", "## Commands", "## Differences from the paper", "## Claims")
 #: the sub-sections of "## Commands", in this order
@@ -121,7 +123,9 @@ def test_plugin_py_reaches_every_installed_module_but_the_tools(method):
             todo.extend(_imported(name, modules[name], modules))
     tools = f"occplug_{method}.tools"
     unreached = sorted(m for m in modules.keys() - reached if m != tools and not m.startswith(tools + "."))
-    assert not unreached, f"{start} does not reach {unreached}: a tool goes to tools/, an investigation out of the package"
+    assert not unreached, (
+        f"{start} does not reach {unreached}: a tool goes to tools/, an investigation out of the package"
+    )
     assert not any(m.startswith(tools) for m in reached), f"{start} imports a tool"
 
 
@@ -149,7 +153,9 @@ def test_investigations_are_outside_the_packages_and_each_is_documented():
     assert not undocumented, f"investigations/README.md does not say what these answered: {undocumented}"
 
 
-@pytest.mark.parametrize("script", sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "investigations").glob("*/*.py")))
+@pytest.mark.parametrize(
+    "script", sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "investigations").glob("*/*.py"))
+)
 def test_an_investigation_still_runs(script, tmp_path):
     proc = subprocess.run([sys.executable, str(ROOT / script), "--help"], cwd=tmp_path, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -167,7 +173,9 @@ def test_the_readme_is_user_documentation_in_one_structure(method):
     assert lines[0].startswith("# "), f"{path.name}: no title"
     headings = [line for _, line in _sections(lines, "##")]
     at = [next((k for k, h in enumerate(headings) if h.startswith(s)), None) for s in README_SECTIONS]
-    assert None not in at and at == sorted(at), f"{method} README sections {headings}, expected in order {README_SECTIONS}"
+    assert None not in at and at == sorted(at), (
+        f"{method} README sections {headings}, expected in order {README_SECTIONS}"
+    )
     body = {s: _body(lines, s) for s in README_SECTIONS}
     assert "```" in body["## What it is"], f"{method} README: 'What it is' has no component diagram"
     assert any(line.startswith("|") for line in body["## Components"]), f"{method} README: no components table"
@@ -227,7 +235,9 @@ def test_a_wheel_holds_no_results(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     (wheel,) = (tmp_path / "w").glob("occplug-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
-    assert any(n.startswith("occplug_duocc/tools/") for n in names) and any(n.endswith("duocc/configs/full.yaml") for n in names)
+    assert any(n.startswith("occplug_duocc/tools/") for n in names) and any(
+        n.endswith("duocc/configs/full.yaml") for n in names
+    )
     carried = [n for n in names if n.endswith((".json", "RESULTS.md")) or "/results/" in n or "/tests/" in n]
     assert not carried, f"the wheel carries results or tests: {carried}"
     assert not any(n.startswith("investigations/") for n in names)

@@ -189,7 +189,8 @@ def main() -> None:
         "is re-scored on the validation split (cached beside it), nothing is retrained",
     )
     parser.add_argument(
-        "--results", help="also write each row's numbers per seed as small JSONs here (commit them under results/duocc/<claim>/)"
+        "--results",
+        help="also write each row's numbers per seed as small JSONs here (commit them under results/duocc/<claim>/)",
     )
     args = parser.parse_args()
     start = time.monotonic()

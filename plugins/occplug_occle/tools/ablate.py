@@ -301,7 +301,8 @@ def main() -> None:
     parser.add_argument("--set", nargs="*", default=[], help="extra key=value overrides for every run")
     parser.add_argument("--out", default="runs/occle_ablate")
     parser.add_argument(
-        "--results", help="also write each row's numbers per seed as small JSONs here (commit them under results/occle/<claim>/)"
+        "--results",
+        help="also write each row's numbers per seed as small JSONs here (commit them under results/occle/<claim>/)",
     )
     parser.add_argument("--until", help="train each row's phases up to and including this one (e.g. semantic: Tab. 3)")
     parser.add_argument("--dry-run", action="store_true", help="print the planned optimizer steps and stop")

@@ -174,7 +174,8 @@ def main(argv: list[str] | None = None) -> None:
         "--eval-set", nargs="*", default=[], help="evaluation-only key=value overrides (the checkpoint is re-scored)"
     )
     parser.add_argument(
-        "--results", help="also write each row's numbers per seed as small JSONs here (commit them under results/queryocc/<claim>/)"
+        "--results",
+        help="also write each row's numbers per seed as small JSONs here (commit them under results/queryocc/<claim>/)",
     )
     args = parser.parse_args(argv)
     start = time.monotonic()
