@@ -69,6 +69,8 @@ __all__ = [
     "BACKWARD_GROUP_ELEMENTS",
     "ScanMode",
     "SelectiveScanFn",
+    "mamba_ssm_kernel",
+    "scan_mamba_ssm",
     "selective_scan",
     "selective_scan_chunked",
     "selective_scan_lean",
@@ -545,3 +547,8 @@ def selective_scan(
     if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (u, delta, A, B, C, D, z)):
         return selective_scan_lean(u, delta, A, B, C, D, z, chunk_size=chunk_size, return_last_state=return_last_state)
     return selective_scan_chunked(u, delta, A, B, C, D, z, chunk_size=chunk_size, return_last_state=return_last_state)
+
+
+#: the CUDA path by public names, for a tool outside this sub-package (``occplug_occle.tools.bench`` times it)
+mamba_ssm_kernel = _mamba_ssm_kernel
+scan_mamba_ssm = _scan_mamba_ssm

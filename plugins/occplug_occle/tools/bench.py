@@ -41,7 +41,7 @@ import torch
 import torch.nn.functional as F
 
 from ..blocks.geometry_branch import Conv3dDeformableBaseline, CrossPlaneGeometryBranch
-from ..blocks.selective_scan import _mamba_ssm_kernel, _scan_mamba_ssm, selective_scan_chunked, selective_scan_ref
+from ..blocks.selective_scan import mamba_ssm_kernel, scan_mamba_ssm, selective_scan_chunked, selective_scan_ref
 
 
 def _time(fn: Callable[[], torch.Tensor], repeats: int, device: torch.device) -> tuple[list[float], torch.Tensor]:
@@ -86,10 +86,10 @@ def bench_scan(args: argparse.Namespace) -> None:
             device,
         )
         rows = {"ref": (t_ref, y_ref), "chunked": (t_chunk, y_chunk)}
-        kernel = _mamba_ssm_kernel() if device.type == "cuda" and dtype != torch.float64 else None
+        kernel = mamba_ssm_kernel() if device.type == "cuda" and dtype != torch.float64 else None
         if kernel is not None:  # what selective_scan's "auto" runs on CUDA where mamba_ssm's kernel loads
             rows["mamba_ssm"] = _time(
-                lambda: _scan_mamba_ssm(u, delta, A, B, C, D, z, False, kernel), args.repeats, device
+                lambda: scan_mamba_ssm(u, delta, A, B, C, D, z, False, kernel), args.repeats, device
             )
     for name, (times, _) in rows.items():
         print(f"  {name:9s} median {statistics.median(times) * 1e3:9.2f} ms   best {min(times) * 1e3:9.2f} ms")
