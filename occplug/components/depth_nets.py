@@ -16,12 +16,21 @@ from typing import Annotated, Any
 import torch
 from torch import Tensor, nn
 
-from occplug.constraints import NonNegative, Positive
+from occplug.constraints import Length, NonNegative, Positive
 from occplug.geometry import effective_intrinsics
 from occplug.interfaces.depth_net import DepthAndContext, DepthNet
 from occplug.nn import BasicBlock2d, ConvNormAct2d, PixelNet
 
-__all__ = ["CAMERA_FEATURES", "CameraAwareDepthNet", "DepthAndContext", "DepthNet", "PlainDepthNet", "camera_vector"]
+__all__ = [
+    "CAMERA_FEATURES",
+    "CameraAwareDepthNet",
+    "DepthAndContext",
+    "DepthNet",
+    "OracleDepthNet",
+    "PlainDepthNet",
+    "camera_vector",
+    "oracle_depth_logits",
+]
 
 #: Length of :func:`camera_vector`.
 CAMERA_FEATURES = 18
@@ -131,3 +140,86 @@ class CameraAwareDepthNet(DepthNet):
         depth = self.depth_head(self.depth_blocks(x * self.depth_gate(camera)[..., None, None]))
         context = self.context_head(x * self.context_gate(camera)[..., None, None])
         return DepthAndContext(depth.view(b, n, self.num_bins, h, w), context.view(b, n, self.out_channels, h, w))
+
+
+#: Logit of the bins an oracle rules out: ``exp(-1e4)`` is exactly 0 in float32, and -1e4 fits float16.
+_RULED_OUT = -1.0e4
+
+
+def oracle_depth_logits(depth: Tensor, h: int, w: int, depth_bins: tuple[float, float, float]) -> Tensor:
+    """One-hot depth logits of each feature cell from a true depth map.
+
+    Cell ``(r, c)`` of an ``(h, w)`` feature map with stride ``s = H / h`` reads the depth of the pixel
+    nearest its centre ``(s * r + (s - 1) / 2, s * c + (s - 1) / 2)`` (the point the lift unprojects,
+    :func:`occplug.ops.feature_cell_centers`); that depth's bin ``floor((z - start) / step)`` gets
+    logit 0 and every other bin :data:`_RULED_OUT`, so the softmax is exactly one-hot. Cells without
+    a depth in ``[start, stop)`` (sky: 0) get equal logits (a uniform distribution).
+
+    Args:
+        depth: ``(B, N, H, W)`` camera-frame z, metres (0 = no surface).
+        h, w: the feature map's size (``H``, ``W`` whole multiples of them).
+        depth_bins: ``(start, stop, step)`` of the view transform's bins.
+
+    Returns:
+        ``(B, N, D, h, w)`` float32 logits.
+    """
+    big_h, big_w = depth.shape[-2:]
+    if big_h % h or big_w % w or big_h // h != big_w // w:
+        raise ValueError(f"oracle_depth: depth maps {big_h}x{big_w} are not a whole multiple of features {h}x{w}")
+    s = big_h // h
+    start, stop, step = (float(v) for v in depth_bins)
+    num_bins = round((stop - start) / step)
+    rows = torch.arange(h, device=depth.device) * s + s // 2
+    cols = torch.arange(w, device=depth.device) * s + s // 2
+    z = depth[..., rows[:, None], cols[None, :]].float()  # (B, N, h, w)
+    index = torch.floor((z - start) / step).long()
+    valid = (z > 0) & (index >= 0) & (index < num_bins)
+    one_hot = torch.nn.functional.one_hot(index.clamp(0, num_bins - 1), num_bins).movedim(-1, 2).bool()
+    logits = torch.where(one_hot, 0.0, _RULED_OUT)
+    return torch.where(valid[:, :, None], logits, torch.zeros_like(logits))
+
+
+class OracleDepthNet(DepthNet):
+    """Perfect depth: the batch's true depth maps as one-hot depth distributions (a ceiling, not a model).
+
+    The depth logits are :func:`oracle_depth_logits` of ``batch.depth`` (the ground-truth depth the
+    synthetic world renders; augmented with the images); the context is a learnt per-cell conv head
+    (``3x3 conv -> norm -> ReLU -> 1x1 conv``, or one 1x1 conv with ``hidden: 0``). Any lift-splat model
+    is run with perfect depth by ``view_transform.depth_net: {type: oracle_depth, depth_bins: <the view
+    transform's>}``: the lift then puts every feature exactly on its surface, and what the model still
+    misses is not depth's fault. Sky cells spread their feature uniformly along the ray.
+
+    Args:
+        in_channels: ``C_in``; num_bins: ``D``; out_channels: ``C``.
+        depth_bins: ``[start, stop, step]`` metres, the same as the view transform's (checked against ``D``).
+        hidden: width of the context head's 3x3 conv (0: a single 1x1 conv).
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        num_bins: int,
+        out_channels: int,
+        depth_bins: Annotated[list[float], Length(exact=3)] = [1.0, 45.0, 1.0],  # noqa: B006 - read only
+        hidden: Annotated[int, NonNegative] = 64,
+    ) -> None:
+        super().__init__()
+        start, stop, step = (float(v) for v in depth_bins)
+        if step <= 0 or stop <= start or round((stop - start) / step) != num_bins:
+            raise ValueError(
+                f"oracle_depth: depth_bins {list(depth_bins)} give {(stop - start) / step:g} bins; "
+                f"the view transform has {num_bins} (give oracle_depth the view transform's depth_bins)"
+            )
+        self.num_bins, self.out_channels = int(num_bins), int(out_channels)
+        self.depth_bins = (start, stop, step)
+        self.context_net = PixelNet(in_channels, hidden, self.out_channels)
+
+    def forward(self, features: Tensor, batch: Any) -> DepthAndContext:
+        """``(B, N, C_in, h, w)`` and ``batch.depth`` ``(B, N, H, W)`` -> :class:`DepthAndContext`."""
+        depth = getattr(batch, "depth", None)
+        if depth is None:
+            raise ValueError("oracle_depth needs the batch's true depth maps ('depth'); this data set has none")
+        b, n, _, h, w = features.shape
+        logits = oracle_depth_logits(depth, h, w, self.depth_bins).to(features.dtype)
+        context = self.context_net(features.flatten(0, 1)).view(b, n, self.out_channels, h, w)
+        return DepthAndContext(logits, context)
