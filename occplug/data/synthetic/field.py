@@ -4,7 +4,7 @@ The *ideal field* gives every point in the ego frame the class of the solid that
 solid generated last wins, as in :func:`~.labels.voxel_labels`), else the ground's class where
 ``-ground_shell <= z <= 0`` (the ground as a slab of that thickness below its surface: what a
 model taught by perfect depth, which places ground points on the surface and free space above,
-learns), else free. It is read at the ``k**3`` sub-sample centres of every voxel of a grid
+learns; the surface ``z = 0`` itself included), else free. It is read at the ``k**3`` sub-sample centres of every voxel of a grid
 (``k = 1``: the voxel centres, the points a query decoder is read at); :func:`occplug.ceilings.read_voxels`
 turns those samples into one class per voxel.
 """
@@ -26,6 +26,9 @@ __all__ = ["DEFAULT_GROUND_SHELL", "field_samples", "scene_field_samples"]
 
 #: Metres of ground below its surface that the ideal field counts as ground.
 DEFAULT_GROUND_SHELL = 0.5
+# Samples up to this far above z = 0 count as on the ground surface: a voxel centre placed at z = 0 by the
+# grid (e.g. z from -1.2 at 0.8 m) is computed as 2e-16, and the surface itself is occupied.
+_ON_SURFACE = 1e-6
 
 
 def field_samples(
@@ -55,7 +58,7 @@ def field_samples(
     nx, ny, nz = grid.shape
     xs, ys, zs = _axis_samples(grid, k)
     out = torch.full((nx, ny, nz, k, k, k), OCC3D_FREE, dtype=torch.uint8)
-    in_shell = (zs <= 0.0) & (zs >= -ground_shell)  # (Z, k)
+    in_shell = (zs <= _ON_SURFACE) & (zs >= -ground_shell)  # (Z, k); a sample on the surface is ground
     if ground_shell > 0 and bool(in_shell.any()):
         px = xs[:, None, :, None].expand(nx, ny, k, k)
         py = ys[None, :, None, :].expand(nx, ny, k, k)
