@@ -38,6 +38,7 @@ __all__ = [
     "parse_readout",
     "read_voxels",
     "training_prior",
+    "vote_points",
 ]
 
 
@@ -162,8 +163,23 @@ def depth_lift(
     uv = torch.stack(torch.broadcast_tensors(cols[None, :].double(), rows[:, None].double()), -1).reshape(1, -1, 2)
     pts = unproject_from_image(uv.expand(n, -1, 2), z.reshape(n, -1), intrinsics.double(), cam_to_ego.double())
     pts, cls, z = pts.reshape(-1, 3), cls.reshape(-1), z.reshape(-1)
-    keep = (z > 0) & (cls >= 0) & (cls < num_classes) & (cls != free) & grid.contains(pts)
-    idx = grid.coord_to_index(pts[keep])
+    keep = z > 0
+    return vote_points(pts[keep], cls[keep], grid, free, num_classes)
+
+
+def vote_points(points: Tensor, classes: Tensor, grid: GridSpec, free: int, num_classes: int) -> Tensor:
+    """Voxelise classed points: each voxel takes the most frequent class of the points in it, free where none.
+
+    Args:
+        points: ``(P, 3)`` ego-frame points; classes: ``(P,)`` ids (points whose id is outside
+            ``0..num_classes-1`` or is ``free`` are skipped, as are points outside the grid).
+
+    Returns:
+        ``(X, Y, Z)`` int64 class ids.
+    """
+    cls = classes.long()
+    keep = (cls >= 0) & (cls < num_classes) & (cls != free) & grid.contains(points)
+    idx = grid.coord_to_index(points[keep])
     nx, ny, nz = grid.shape
     flat = (idx[:, 0] * ny + idx[:, 1]) * nz + idx[:, 2]
     counts = torch.zeros(nx * ny * nz, num_classes, dtype=torch.int64)

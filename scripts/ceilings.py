@@ -47,6 +47,7 @@ def _table(report: dict[str, Any]) -> str:
         rows = [(f"floor: {k}", v) for k, v in report["floor"][mask].items()]
         rows += [(f"ideal field: {k}", v) for k, v in report["ideal"][mask].items()]
         rows += [(f"perfect depth: {k}", v) for k, v in report["perfect_depth"].get(mask, {}).items()]
+        rows += [("one LiDAR sweep, voxelised", report["lidar_sweep"][mask])]
         for name, v in rows:
             lines.append(f"{mask:<8} {name:<34} {v['IoU']:8.2f} {v['mIoU']:7.2f}")
     lines.append("")

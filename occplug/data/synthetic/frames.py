@@ -113,12 +113,15 @@ class FrameLabels:
         mask_camera: ``(X, Y, Z)`` bool for the first ``num_cameras`` cameras of the rig.
         mask_lidar: ``(X, Y, Z)`` bool, as :attr:`Frame.mask_lidar`.
         ego_to_world: ``(4, 4)`` float64 pose in the scene's world frame.
+        points_ego: ``(P, 3)`` the LiDAR returns in the ego frame; point_labels: ``(P,)`` their classes.
     """
 
     voxel_labels: Tensor
     mask_camera: Tensor
     mask_lidar: Tensor
     ego_to_world: Tensor
+    points_ego: Tensor
+    point_labels: Tensor
 
 
 def frame_labels(
@@ -134,7 +137,9 @@ def frame_labels(
     prims = scene.primitives_at(frame_index / config.fps).transformed(invert_pose(ego_to_world))
     lidar, labels, points_ego = _lidar_and_labels(config, scene, frame_index, prims, ego_to_world)
     mask = rig_camera_mask(config, labels, n)
-    return FrameLabels(labels, mask, lidar_mask(config.grid, lidar.origin, points_ego), ego_to_world)
+    return FrameLabels(
+        labels, mask, lidar_mask(config.grid, lidar.origin, points_ego), ego_to_world, points_ego, lidar.labels
+    )
 
 
 def rig_camera_mask(config: SyntheticWorldConfig, labels: Tensor, num_cameras: int) -> Tensor:

@@ -5,7 +5,8 @@ and returns, per mask, the **floor** (predictions that look at no image: all fre
 frequent occupied class, the per-voxel most frequent class of the training split), the **ideal-field
 ceiling** (:mod:`.field` read through each readout), the **perfect-depth ceiling**
 (:func:`occplug.ceilings.depth_lift` of the true depth and 2D classes, at a feature stride) and the
-**history headroom** (:func:`occplug.ceilings.history_headroom`). :func:`object_pixel_heights` reports
+**history headroom** (:func:`occplug.ceilings.history_headroom`), and what one LiDAR sweep gives away:
+its returns voxelised with their classes (``lidar_sweep``: the geometry a LiDAR branch starts from). :func:`object_pixel_heights` reports
 how tall the agents appear in the images, per class. ``python scripts/ceilings.py`` prints both.
 
 Masks: ``camera`` (the rig's ``mask_camera``), ``camera1`` (the front camera's alone), ``lidar``
@@ -21,7 +22,16 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from occplug.ceilings import Headroom, Scorer, depth_lift, history_headroom, parse_readout, read_voxels, training_prior
+from occplug.ceilings import (
+    Headroom,
+    Scorer,
+    depth_lift,
+    history_headroom,
+    parse_readout,
+    read_voxels,
+    training_prior,
+    vote_points,
+)
 from occplug.data.classes import OCC3D_CLASSES, OCC3D_FREE
 from occplug.geometry import invert_pose, project_to_image
 
@@ -96,7 +106,7 @@ def measure(
 
     Returns:
         ``{"world": ..., "frames": n, "floor": {mask: {name: {IoU, mIoU}}}, "ideal": {mask: {readout: ...}},
-        "perfect_depth": {mask: {"rig" | "front": ...}}, "headroom": {protocol: {counts, shares}},
+        "perfect_depth": {mask: {"rig" | "front": ...}}, "lidar_sweep": {mask: ...}, "headroom": {protocol: {counts, shares}},
         "protocol": ...}``, scores in percent.
     """
     bad = sorted(set(masks) - set(MASKS))
@@ -110,6 +120,7 @@ def measure(
         "per-voxel training prior": lambda lab: prior,
     }
     floor = {m: {name: _scorer() for name in floors} for m in masks}
+    sweep = {m: _scorer() for m in masks}
     ideal = {m: {r.name: _scorer() for r in parsed} for m in masks}
     lifts = {m: {"rig": _scorer(), "front": _scorer()} for m in masks} if depth_stride else {}
     headroom = {name: Headroom() for name in HEADROOM_PROTOCOLS}
@@ -133,9 +144,11 @@ def measure(
             for m, v in per_mask.items():
                 seen[m].append(v)
             poses.append(lab.ego_to_world)
+            lidar_pred = vote_points(lab.points_ego, lab.point_labels, config.grid, OCC3D_FREE, _NUM_CLASSES)
             for m in masks:
                 for name, predict in floors.items():
                     floor[m][name].update(predict(labels), labels, per_mask[m])
+                sweep[m].update(lidar_pred, labels, per_mask[m])
             by_k: dict[int, Tensor] = {}
             for r in parsed:
                 if r.k not in by_k:
@@ -168,6 +181,7 @@ def measure(
         "floor": {m: {k: v.compute() for k, v in d.items()} for m, d in floor.items()},
         "ideal": {m: {k: v.compute() for k, v in d.items()} for m, d in ideal.items()},
         "perfect_depth": {m: {k: v.compute() for k, v in d.items()} for m, d in lifts.items()},
+        "lidar_sweep": {m: v.compute() for m, v in sweep.items()},
         "headroom": {k: {**vars(v), **{f"share_{a}": b for a, b in v.shares().items()}} for k, v in headroom.items()},
     }
 
