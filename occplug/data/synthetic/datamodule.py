@@ -29,7 +29,8 @@ class SyntheticDataModule(ReaderDataModule):
     validation splits up front (in parallel processes, with a progress bar); ``setup("test")`` the test split.
 
     Args:
-        preset: ``tiny`` (tests), ``default`` (a CPU run of minutes), ``occ3d`` (Occ3D size) or
+        preset: ``tiny`` (tests), ``default`` (a CPU run of minutes), ``aligned`` (the default world, ground on
+            voxel centres), ``testbed`` (the calibrated test bed of issue 52), ``occ3d`` (Occ3D size) or
             ``long_range`` (scene, LiDAR and pseudo depth to 250 m).
         grid: ``{range, voxel_size}`` of the label grid, replacing the preset's.
         seed: world seed.
