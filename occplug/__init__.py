@@ -47,6 +47,8 @@ PUBLIC_MODULES: tuple[str, ...] = (
     "occplug.data",  # classes, labelled points, class statistics, the data modules
     "occplug.data.synthetic",  # the synthetic world and its writers of real-format trees
     "occplug.metrics",  # mIoU, RayIoU, SSC metrics and their building blocks
+    "occplug.ceilings",  # floors and ceilings of a protocol: readouts, perfect-depth lift, history headroom
+    "occplug.data.synthetic.testbed",  # scripts: the synthetic world's floors, ceilings, headroom, pixel heights
     "occplug.testing",  # fixtures, conformance check, run_config
     "occplug.run.runner",  # scripts: load_config, build_run, fit, evaluate, load_checkpoint
     "occplug.run.training",  # scripts: the optimiser and schedule a config builds

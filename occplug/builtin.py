@@ -37,6 +37,7 @@ def occplug_register_components(registry: Registry) -> None:
     registry.add("view_transform", "backward_projection", c.BackwardProjection)
     registry.add("depth_net", "plain", c.PlainDepthNet)
     registry.add("depth_net", "camera_aware", c.CameraAwareDepthNet)
+    registry.add("depth_net", "oracle_depth", c.OracleDepthNet)
     registry.add("scene", "dense_voxels", c.DenseVoxels)
     registry.add("scene", "dense_voxels_history", DenseVoxelsHistory)
     registry.add("head", "voxel_classifier", c.VoxelClassifier)

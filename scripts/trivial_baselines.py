@@ -2,7 +2,8 @@
 
 Prints Occ3D mIoU / geometric IoU (camera mask) for: every voxel ``free``; every voxel the most
 frequent occupied class; and the per-voxel most frequent class of the training split (a
-"prior map" in the ego frame). A trained model must beat all three to have learnt anything.
+"prior map" in the ego frame). A trained model must beat all three to have learnt anything. ``scripts/ceilings.py`` prints the same
+floors beside the protocol's ceilings, under every evaluation mask.
 
     python scripts/trivial_baselines.py [--preset default]
 """
@@ -13,6 +14,7 @@ import argparse
 
 import torch
 
+from occplug.ceilings import training_prior
 from occplug.data import collate_frames
 from occplug.data.synthetic import SyntheticDataModule
 from occplug.metrics import Occ3DMIoU
@@ -25,15 +27,9 @@ def main() -> None:
     dm = SyntheticDataModule(preset=args.preset)
     names, free = dm.class_names, dm.free_label
     train, val = dm.dataset("train"), dm.dataset("val")
-    counts = torch.zeros(*dm.grid.shape, len(names), dtype=torch.int64)
-    for i in range(len(train)):
-        labels = train[i].voxel_labels.long()
-        counts.scatter_add_(-1, labels[..., None], torch.ones_like(labels)[..., None])
-    prior = counts.argmax(-1)
-    totals = counts.sum((0, 1, 2))
-    occupied = totals.clone()
-    occupied[free] = -1
-    most_frequent = int(occupied.argmax())
+    prior, most_frequent = training_prior(
+        (train[i].voxel_labels for i in range(len(train))), num_classes=len(names), free=free
+    )
     predictors = {
         "all free": lambda b: torch.full_like(b.voxel_labels, free, dtype=torch.long),
         f"all {names[most_frequent]}": lambda b: torch.full_like(b.voxel_labels, most_frequent, dtype=torch.long),

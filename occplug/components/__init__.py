@@ -10,6 +10,7 @@ registry name             kind                class
 ``voxel_points``          point_encoder       :class:`VoxelPoints`
 ``plain``                 depth_net           :class:`PlainDepthNet`
 ``camera_aware``          depth_net           :class:`CameraAwareDepthNet`
+``oracle_depth``          depth_net           :class:`OracleDepthNet`
 ``dense_voxels``          scene               :class:`DenseVoxels`
 ``voxel_classifier``      head                :class:`VoxelClassifier`
 ``voxel_ce``              supervision         :class:`VoxelCrossEntropy`
@@ -17,7 +18,7 @@ registry name             kind                class
 ========================  ==================  ==========================
 """
 
-from .depth_nets import CameraAwareDepthNet, DepthAndContext, DepthNet, PlainDepthNet
+from .depth_nets import CameraAwareDepthNet, DepthAndContext, DepthNet, OracleDepthNet, PlainDepthNet
 from .depth_supervision import LidarDepthSupervision
 from .encoders import SmallCNN, TimmEncoder
 from .heads import VoxelClassifier
@@ -35,6 +36,7 @@ __all__ = [
     "DepthNet",
     "LSSViewTransform",
     "LidarDepthSupervision",
+    "OracleDepthNet",
     "PlainDepthNet",
     "SmallCNN",
     "TimmEncoder",

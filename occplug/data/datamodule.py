@@ -125,11 +125,11 @@ class OccDataModule(L.LightningDataModule):
                 f"data.label_fraction: {type(self).__name__}'s training set ({type(dataset).__name__}) cannot hide "
                 "voxel labels (it has no 'unlabelled' attribute; see occplug.data.pipeline.PipelineDataset)"
             )
-        n = len(dataset)  # type: ignore[arg-type]
-        dataset.unlabelled = self.label_cut.unlabelled(n)  # type: ignore[attr-defined]
+        n, scenes = len(dataset), getattr(dataset, "scenes", None)  # type: ignore[arg-type]
+        dataset.unlabelled = self.label_cut.unlabelled(n, scenes)  # type: ignore[attr-defined]
         if self.label_cut.subset == "all":
             return dataset
-        return SubsetDataset(dataset, self.label_cut.selected(n))
+        return SubsetDataset(dataset, self.label_cut.selected(n, scenes))
 
     #: Copy batches into pinned (page-locked) memory in the loader, for faster host-to-GPU copies.
     pin_memory: bool = False

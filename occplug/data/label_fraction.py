@@ -7,6 +7,10 @@ same on every rank and in every run. An unlabelled frame keeps its images, LiDAR
 its voxel labels are overwritten with the ignore label and ``Frame.has_voxel_labels`` is False before any
 label source, augmentation or loss sees it (visibility masks are kept: they describe the sensors).
 
+``data.label_unit: scene`` labels whole scenes instead: ``k = ceil(f * S)`` of the ``S`` training scenes,
+chosen by the same interval rule over the scene order, keep every frame's labels and the other scenes
+none (so an unlabelled frame is a whole scene away from any label, not half a second).
+
 ``data.subset: all | labelled | unlabelled`` restricts the training split to one side of that cut.
 Validation, test and predict splits are never cut.
 """
@@ -19,11 +23,14 @@ from collections.abc import Sequence
 from torch.utils.data import Dataset
 
 from .frame import Frame
+from .sequences import SceneIndex
 
-__all__ = ["SUBSETS", "LabelCut", "SubsetDataset", "labelled_indices", "strip_voxel_labels"]
+__all__ = ["LABEL_UNITS", "SUBSETS", "LabelCut", "SubsetDataset", "labelled_indices", "strip_voxel_labels"]
 
 #: The values of ``data.subset``.
 SUBSETS: tuple[str, ...] = ("all", "labelled", "unlabelled")
+#: The values of ``data.label_unit``.
+LABEL_UNITS: tuple[str, ...] = ("frame", "scene")
 
 
 def labelled_indices(n: int, fraction: float) -> list[int]:
@@ -59,37 +66,49 @@ class LabelCut:
     Args:
         fraction: in (0, 1].
         subset: ``all``, ``labelled`` or ``unlabelled``.
+        unit: ``frame`` (interval sampling of frames) or ``scene`` (of whole scenes).
     """
 
-    def __init__(self, fraction: float = 1.0, subset: str = "all") -> None:
+    def __init__(self, fraction: float = 1.0, subset: str = "all", unit: str = "frame") -> None:
         if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or not 0.0 < fraction <= 1.0:
             raise ValueError(f"data.label_fraction: expected a number in (0, 1], got {fraction!r}")
         if subset not in SUBSETS:
             raise ValueError(f"data.subset: expected one of {', '.join(SUBSETS)}, got {subset!r}")
         if subset == "unlabelled" and fraction == 1.0:
             raise ValueError("data.subset: 'unlabelled' with data.label_fraction 1.0 selects no frame")
+        if unit not in LABEL_UNITS:
+            raise ValueError(f"data.label_unit: expected one of {', '.join(LABEL_UNITS)}, got {unit!r}")
         self.fraction = float(fraction)
         self.subset = subset
+        self.unit = unit
 
     @property
     def active(self) -> bool:
         """Whether the cut changes the split at all."""
         return self.fraction < 1.0 or self.subset != "all"
 
-    def unlabelled(self, n: int) -> frozenset[int]:
-        """The indices (of ``n``) whose voxel labels are hidden."""
-        return frozenset(range(n)) - frozenset(labelled_indices(n, self.fraction))
+    def unlabelled(self, n: int, scenes: SceneIndex | None = None) -> frozenset[int]:
+        """The indices (of ``n``) whose voxel labels are hidden; ``unit: scene`` needs the ``scenes``."""
+        if self.unit == "frame":
+            return frozenset(range(n)) - frozenset(labelled_indices(n, self.fraction))
+        if scenes is None:
+            raise ValueError("data.label_unit: 'scene' needs a training set with a scene structure ('scenes')")
+        kept = labelled_indices(len(scenes.items), self.fraction)
+        return frozenset(range(n)) - frozenset(i for s in kept for i in scenes.items[s])
 
-    def selected(self, n: int) -> list[int]:
+    def selected(self, n: int, scenes: SceneIndex | None = None) -> list[int]:
         """The indices of ``n`` the training split keeps, in order."""
         if self.subset == "all":
             return list(range(n))
-        hidden = self.unlabelled(n)
+        hidden = self.unlabelled(n, scenes)
         return [i for i in range(n) if (i in hidden) == (self.subset == "unlabelled")]
 
     def describe(self) -> dict[str, float | str]:
         """What ``metrics.json`` records."""
-        return {"label_fraction": self.fraction, "subset": self.subset}
+        out: dict[str, float | str] = {"label_fraction": self.fraction, "subset": self.subset}
+        if self.unit != "frame":
+            out["label_unit"] = self.unit
+        return out
 
 
 class SubsetDataset(Dataset[Frame]):

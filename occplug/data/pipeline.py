@@ -283,6 +283,7 @@ class ReaderDataModule(OccDataModule):
         label_fraction: the share of training frames that keep their voxel labels, in (0, 1]
             (:mod:`occplug.data.label_fraction`).
         subset: ``all``, ``labelled`` or ``unlabelled``: the training frames used.
+        label_unit: ``frame`` (interval sampling of frames) or ``scene`` (of whole scenes).
     """
 
     def __init__(self, *, grid: GridSpec | dict, class_names: Sequence[str], free_label: int, ignore_label: int | None,
@@ -291,10 +292,10 @@ class ReaderDataModule(OccDataModule):
                  sequential: bool | dict = False, augment: str | dict | None = None, pseudo_labels: dict | None = None,
                  cache_dir: str | None = None, pseudo: PseudoLabeler | None = None,
                  label_sources: dict | None = None, transforms: list | None = None, fields: dict | None = None,
-                 label_fraction: float = 1.0, subset: str = "all") -> None:
+                 label_fraction: float = 1.0, subset: str = "all", label_unit: str = "frame") -> None:
         super().__init__(grid=grid, batch_size=batch_size, num_workers=num_workers, class_names=class_names,
                          free_label=free_label, ignore_label=ignore_label)
-        self.label_cut = LabelCut(label_fraction, subset)
+        self.label_cut = LabelCut(label_fraction, subset, label_unit)
         if batch_size < 1 or num_workers < 0:
             raise ValueError(f"batch_size must be >= 1 and num_workers >= 0, got {batch_size} and {num_workers}")
         self.pin_memory = bool(pin_memory)

@@ -26,6 +26,10 @@ SPLITS = ("train", "val", "test")
 # cache key so that, e.g., adding scenes reuses the frames already generated.
 _SELECTION_KNOBS = ("train_scenes", "val_scenes", "test_scenes", "adjacent_offsets")
 
+# Knobs added after worlds were cached, with the value that reproduces the world from before them:
+# left out of the cache key at that value, so caches of the earlier worlds stay valid.
+_LATER_KNOBS: dict[str, Any] = {"lidar_range_noise": 0.0, "lidar_dropout": 0.0, "ego_lane_speed_offset": [0.0, 0.0]}
+
 
 @dataclass(frozen=True)
 class SyntheticWorldConfig:
@@ -44,12 +48,20 @@ class SyntheticWorldConfig:
         lidar_elevation_deg: ``(lowest, highest)`` beam elevation, degrees (nuScenes: -30, +10).
         lidar_azimuth_steps: firings per revolution.
         lidar_max_range: metres; returns beyond it are dropped.
+        lidar_range_noise: standard deviation of each return's range error, metres (0: exact;
+            nuScenes' HDL-32E: about 0.02).
+        lidar_dropout: probability that a return is lost (0: none; the ``nuscenes_lidar``
+            preset: 0.1). Labels come from the exact solids either way; ``mask_lidar`` from the
+            corrupted returns, as Occ3D's from the real ones.
         grid: the label grid in the ego frame.
         label_subsamples: ``k``: voxel classes are voted by ``k**3`` sub-samples per voxel.
         camera_mask_scale: ray density of ``mask_camera`` relative to the image resolution
             (2.0: 2 x 2 rays per pixel; 0.5: every other pixel row and column).
         adjacent_offsets: frame offsets loaded into ``Frame.adjacent`` (e.g. ``(-1, 1)``).
         vehicle_density: moving vehicles per 100 m of each traffic lane.
+        ego_lane_speed_offset: ``(lo, hi)`` m/s: the ego lane's traffic drives ``d ~ U(lo, hi)``
+            faster than the ego ahead of it and ``d`` slower behind it (one ``d`` per scene);
+            ``(0, 0)``: at the ego's own speed, so it keeps its place in the ego frame.
         parked_density: parked vehicles per 100 m of each parking strip.
         pedestrian_density: pedestrians per 100 m of each sidewalk.
         cyclist_density: bicycles per 100 m of each bike lane.
@@ -71,11 +83,14 @@ class SyntheticWorldConfig:
     lidar_elevation_deg: tuple[float, float] = (-30.0, 10.0)
     lidar_azimuth_steps: int = 720
     lidar_max_range: float = 60.0
+    lidar_range_noise: float = 0.0
+    lidar_dropout: float = 0.0
     grid: GridSpec = field(default_factory=lambda: GridSpec((-24.0, -24.0, -1.0, 24.0, 24.0, 5.4), 0.8))
     label_subsamples: int = 4
     camera_mask_scale: float = 1.0
     adjacent_offsets: tuple[int, ...] = ()
     vehicle_density: float = 4.0
+    ego_lane_speed_offset: tuple[float, float] = (0.0, 0.0)
     parked_density: float = 7.0
     pedestrian_density: float = 6.0
     cyclist_density: float = 2.0
@@ -99,6 +114,15 @@ class SyntheticWorldConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.image_noise < 0:
             raise ValueError(f"image_noise must be >= 0, got {self.image_noise}")
+        if self.lidar_range_noise < 0:
+            raise ValueError(f"lidar_range_noise must be >= 0, got {self.lidar_range_noise}")
+        if not 0 <= self.lidar_dropout < 1:
+            raise ValueError(f"lidar_dropout must be in [0, 1), got {self.lidar_dropout}")
+        lo, hi = self.ego_lane_speed_offset
+        if not 0 <= lo <= hi:
+            raise ValueError(
+                f"ego_lane_speed_offset must be (lo, hi) with 0 <= lo <= hi, got {self.ego_lane_speed_offset}"
+            )
         if self.camera_mask_scale <= 0:
             raise ValueError(f"camera_mask_scale must be positive, got {self.camera_mask_scale}")
 
@@ -114,7 +138,7 @@ class SyntheticWorldConfig:
         """A copy with some knobs changed (sequences are converted to tuples, grids to GridSpec)."""
         if "grid" in changes and not isinstance(changes["grid"], GridSpec):
             changes["grid"] = GridSpec.from_config(changes["grid"])
-        for name in ("image_size", "lidar_elevation_deg", "adjacent_offsets"):
+        for name in ("image_size", "lidar_elevation_deg", "adjacent_offsets", "ego_lane_speed_offset"):
             if name in changes:
                 changes[name] = tuple(changes[name])
         return dataclasses.replace(self, **changes)
@@ -132,7 +156,11 @@ class SyntheticWorldConfig:
 
     def cache_key(self) -> str:
         """A short hash of everything that changes a frame's content, plus :data:`CODE_VERSION`."""
-        content = {k: v for k, v in self.to_dict().items() if k not in _SELECTION_KNOBS}
+        content = {
+            k: v
+            for k, v in self.to_dict().items()
+            if k not in _SELECTION_KNOBS and not (k in _LATER_KNOBS and v == _LATER_KNOBS[k])
+        }
         text = json.dumps({"code": CODE_VERSION, "world": content}, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -143,7 +171,15 @@ def _check_split(split: str) -> str:
     return split
 
 
-#: The named worlds: ``tiny`` (tests, seconds), ``default`` (a CPU run of minutes), ``occ3d``
+# The default grid moved down by 0.2 m: z = 0 (the ground surface) is the centre of a voxel layer, as in
+# Occ3D (0.4 m voxels from z = -1.0: ground layer [-0.2, 0.2)); the default grid puts it 0.2 m below the
+# centre of [-0.2, 0.6).
+_ALIGNED_GRID = GridSpec((-24.0, -24.0, -1.2, 24.0, 24.0, 5.2), 0.8)
+
+#: The named worlds: ``tiny`` (tests, seconds), ``default`` (a CPU run of minutes), ``aligned`` (the default
+#: world on a grid whose ground surface lies on voxel centres), ``testbed`` (``aligned`` plus nuScenes-like
+#: LiDAR noise and dropout, ego-lane traffic at its own speeds, 16-frame evaluation scenes and 192 x 352
+#: images: the calibrated test bed of issue 52), ``occ3d``
 #: (Occ3D-nuScenes size: 200 x 200 x 16 voxels at 0.4 m, 256 x 704 images; for GPUs), ``long_range``
 #: (range experiments: the town reaches 260 m beyond the ego's path, the LiDAR 250 m with beams up
 #: to +5 degrees, and the synthetic pseudo depth is kept to the LiDAR range; labels on a
@@ -164,6 +200,15 @@ PRESETS: dict[str, SyntheticWorldConfig] = {
         world_margin=50.0,
     ),
     "default": SyntheticWorldConfig(),
+    "aligned": SyntheticWorldConfig(grid=_ALIGNED_GRID),
+    "testbed": SyntheticWorldConfig(
+        grid=_ALIGNED_GRID,
+        eval_frames_per_scene=16,
+        image_size=(192, 352),
+        lidar_range_noise=0.02,
+        lidar_dropout=0.1,
+        ego_lane_speed_offset=(1.0, 4.0),
+    ),
     "occ3d": SyntheticWorldConfig(
         train_scenes=64,
         val_scenes=16,

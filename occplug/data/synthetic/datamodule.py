@@ -29,15 +29,20 @@ class SyntheticDataModule(ReaderDataModule):
     validation splits up front (in parallel processes, with a progress bar); ``setup("test")`` the test split.
 
     Args:
-        preset: ``tiny`` (tests), ``default`` (a CPU run of minutes), ``occ3d`` (Occ3D size) or
+        preset: ``tiny`` (tests), ``default`` (a CPU run of minutes), ``aligned`` (the default world, ground on
+            voxel centres), ``testbed`` (the calibrated test bed of issue 52), ``occ3d`` (Occ3D size) or
             ``long_range`` (scene, LiDAR and pseudo depth to 250 m).
         grid: ``{range, voxel_size}`` of the label grid, replacing the preset's.
         seed: world seed.
         train_scenes, val_scenes, test_scenes: scenes per split.
         frames_per_scene: frames of every scene (train and evaluation splits alike).
+        eval_frames_per_scene: frames of every val/test scene, replacing ``frames_per_scene``'s value
+            there (a stream needs long evaluation scenes: e.g. 16).
         image_size: ``[H, W]`` of every camera.
         num_cameras: 1..6 (front, front-right, front-left, back, back-left, back-right).
         lidar_beams: LiDAR rings.
+        lidar_range_noise, lidar_dropout: LiDAR range error (metres, standard deviation) and the share of
+            returns lost (see :class:`~occplug.data.synthetic.SyntheticWorldConfig`).
         fps: frame rate, Hz.
         image_noise: standard deviation of the cameras' per-pixel sensor noise (images in [0, 1]; default
             world 0.01): a harder world, where one frame's images say less.
@@ -59,6 +64,7 @@ class SyntheticDataModule(ReaderDataModule):
         label_fraction, subset: label-efficient training: the share of training frames that keep their
             voxel labels (interval sampling) and which side of that cut trains (``all``, ``labelled``,
             ``unlabelled``); see :mod:`occplug.data.label_fraction`.
+        label_unit: ``frame`` (interval sampling of frames) or ``scene`` (whole scenes keep or lose labels).
 
     Attributes:
         world_config: the resolved :class:`~occplug.data.synthetic.SyntheticWorldConfig`.
@@ -73,9 +79,12 @@ class SyntheticDataModule(ReaderDataModule):
         val_scenes: Annotated[int | None, NonNegative] = None,
         test_scenes: Annotated[int | None, NonNegative] = None,
         frames_per_scene: Annotated[int | None, Positive] = None,
+        eval_frames_per_scene: Annotated[int | None, Positive] = None,
         image_size: Annotated[list[Annotated[int, Range(low=4)]] | None, Length(exact=2)] = None,
         num_cameras: Annotated[int | None, Range(low=1, high=6)] = None,
         lidar_beams: Annotated[int | None, Positive] = None,
+        lidar_range_noise: Annotated[float | None, NonNegative] = None,
+        lidar_dropout: Annotated[float | None, NonNegative] = None,
         fps: Annotated[float | None, Positive] = None,
         image_noise: Annotated[float | None, NonNegative] = None,
         adjacent_offsets: list[int] | None = None,
@@ -92,6 +101,7 @@ class SyntheticDataModule(ReaderDataModule):
         fields: dict | None = None,
         label_fraction: Annotated[float, Fraction] = 1.0,
         subset: str = "all",
+        label_unit: str = "frame",
     ) -> None:
         knobs = {
             "grid": grid,
@@ -100,10 +110,12 @@ class SyntheticDataModule(ReaderDataModule):
             "val_scenes": val_scenes,
             "test_scenes": test_scenes,
             "frames_per_scene": frames_per_scene,
-            "eval_frames_per_scene": frames_per_scene,
+            "eval_frames_per_scene": frames_per_scene if eval_frames_per_scene is None else eval_frames_per_scene,
             "image_size": image_size,
             "num_cameras": num_cameras,
             "lidar_beams": lidar_beams,
+            "lidar_range_noise": lidar_range_noise,
+            "lidar_dropout": lidar_dropout,
             "fps": fps,
             "image_noise": image_noise,
             "adjacent_offsets": adjacent_offsets,
@@ -141,6 +153,7 @@ class SyntheticDataModule(ReaderDataModule):
             fields=fields,
             label_fraction=label_fraction,
             subset=subset,
+            label_unit=label_unit,
         )
         self.preset = preset
         self.world_config: SyntheticWorldConfig = config

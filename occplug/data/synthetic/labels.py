@@ -22,6 +22,7 @@ after static structures).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import torch
 from torch import Tensor
@@ -32,7 +33,16 @@ from occplug.geometry import GridSpec, camera_rays, observed_mask, traversed_mas
 from .primitives import BOX, CYLINDER, Primitives, overlaps_voxels
 from .world import Agents, GroundMap
 
-__all__ = ["GROUND_SCORE", "SOLID_WEIGHT", "agent_boxes", "camera_mask", "lidar_mask", "voxel_labels"]
+__all__ = [
+    "GROUND_SCORE",
+    "SOLID_WEIGHT",
+    "agent_boxes",
+    "camera_mask",
+    "inside_solid",
+    "lidar_mask",
+    "solid_blocks",
+    "voxel_labels",
+]
 
 #: Score of the ground's class in its voxel layer.
 GROUND_SCORE = 0.15
@@ -66,7 +76,7 @@ def _ground_layer(grid: GridSpec, ground: GroundMap, ego_to_world: Tensor, k: in
     return layer, counts.argmax(-1).reshape(nx, ny)
 
 
-def _inside_one(prims: Primitives, p: int, points: Tensor) -> Tensor:
+def inside_solid(prims: Primitives, p: int, points: Tensor) -> Tensor:
     """``(...)`` bool: points ``(..., 3)`` (float64) inside solid ``p``."""
     c, h = prims.center[p].double(), prims.half[p].double()
     yaw = float(prims.yaw[p])
@@ -81,6 +91,47 @@ def _inside_one(prims: Primitives, p: int, points: Tensor) -> Tensor:
     if kind == CYLINDER:
         return (u[..., :2].square().sum(-1) <= 1) & (u[..., 2].abs() <= 1)
     return u.square().sum(-1) <= 1
+
+
+def solid_blocks(
+    prims: Primitives, grid: GridSpec, k: int, touching: bool = True
+) -> Iterator[tuple[int, tuple[slice, slice, slice], Tensor, Tensor]]:
+    """The voxel block of each solid that may meet the grid, in the solids' order.
+
+    Yields ``(p, block, touch, points)``: ``p`` the solid's row, ``block`` the ``(X, Y, Z)`` slices
+    of the voxels its bounding box covers, ``touch`` ``(x, y, z)`` bool: voxels of the block the
+    solid meets (exact; all True with ``touching=False``), and ``points`` ``(x, y, z, k, k, k, 3)``
+    float64 sub-sample centres of the block's voxels. Solids meeting no voxel are skipped.
+    """
+    lo, hi = prims.aabb()
+    lower = torch.tensor(grid.lower)
+    upper = torch.tensor(grid.upper)
+    size = torch.tensor(grid.voxel_size, dtype=torch.float64)
+    shape = torch.tensor(grid.shape)
+    relevant = ((lo <= upper) & (hi >= lower)).all(-1)
+    samples = _axis_samples(grid, k)
+    for p in torch.nonzero(relevant).squeeze(1).tolist():
+        i0 = torch.floor((lo[p].double() - lower.double()) / size).long().clamp(min=0)
+        i1 = torch.minimum(torch.floor((hi[p].double() - lower.double()) / size).long(), shape - 1)
+        if (i1 < i0).any():
+            continue
+        sl = tuple(slice(int(a), int(b) + 1) for a, b in zip(i0, i1, strict=True))
+        if touching:
+            axes = [lower.double()[a] + torch.arange(int(i0[a]), int(i1[a]) + 1) * size[a] for a in range(3)]
+            v_lo = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)  # lower corners of the block's voxels
+            touch = overlaps_voxels(prims, p, v_lo.float(), (v_lo + size).float())
+            if not touch.any():
+                continue
+        else:
+            touch = torch.ones(tuple(int(b - a) + 1 for a, b in zip(i0, i1, strict=True)), dtype=torch.bool)
+        xs, ys, zs = (samples[a][sl[a]] for a in range(3))
+        pts = torch.stack(
+            torch.broadcast_tensors(
+                xs[:, None, None, :, None, None], ys[None, :, None, None, :, None], zs[None, None, :, None, None, :]
+            ),
+            -1,
+        )
+        yield p, sl, touch, pts
 
 
 def voxel_labels(prims: Primitives, ground: GroundMap, ego_to_world: Tensor, grid: GridSpec, subsamples: int) -> Tensor:
@@ -104,32 +155,8 @@ def voxel_labels(prims: Primitives, ground: GroundMap, ego_to_world: Tensor, gri
         layer, classes = found
         labels[:, :, layer] = classes.to(torch.uint8)
         score[:, :, layer] = GROUND_SCORE
-    lo, hi = prims.aabb()
-    lower = torch.tensor(grid.lower)
-    upper = torch.tensor(grid.upper)
-    size = torch.tensor(grid.voxel_size, dtype=torch.float64)
-    shape = torch.tensor(grid.shape)
-    relevant = ((lo <= upper) & (hi >= lower)).all(-1)
-    samples = _axis_samples(grid, k)
-    for p in torch.nonzero(relevant).squeeze(1).tolist():
-        i0 = torch.floor((lo[p].double() - lower.double()) / size).long().clamp(min=0)
-        i1 = torch.minimum(torch.floor((hi[p].double() - lower.double()) / size).long(), shape - 1)
-        if (i1 < i0).any():
-            continue
-        sl = tuple(slice(int(a), int(b) + 1) for a, b in zip(i0, i1, strict=True))
-        axes = [lower.double()[a] + torch.arange(int(i0[a]), int(i1[a]) + 1) * size[a] for a in range(3)]
-        v_lo = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)  # lower corners of the block's voxels
-        touch = overlaps_voxels(prims, p, v_lo.float(), (v_lo + size).float())
-        if not touch.any():
-            continue
-        xs, ys, zs = (samples[a][sl[a]] for a in range(3))
-        pts = torch.stack(
-            torch.broadcast_tensors(
-                xs[:, None, None, :, None, None], ys[None, :, None, None, :, None], zs[None, None, :, None, None, :]
-            ),
-            -1,
-        )
-        fraction = _inside_one(prims, p, pts).flatten(3).float().mean(-1)
+    for p, sl, touch, pts in solid_blocks(prims, grid, k):
+        fraction = inside_solid(prims, p, pts).flatten(3).float().mean(-1)
         mine = SOLID_WEIGHT * (fraction + 0.5 / k**3)
         win = touch & (mine >= score[sl])
         score[sl] = torch.where(win, mine, score[sl])

@@ -4,8 +4,9 @@ ray casting against the scene's solids and ground plane (all in the ego frame)."
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -13,7 +14,7 @@ from occplug.geometry import camera_rays, lidar_ray_directions
 
 from .appearance import ground_albedo, lidar_reflectivity, shade, sky_color, solid_albedo
 from .primitives import Primitives, intersect_rays, local_normal
-from .world import GroundMap
+from .world import GroundMap, Scene
 
 __all__ = [
     "CAMERA_RIG",
@@ -21,6 +22,8 @@ __all__ = [
     "NO_SURFACE",
     "Surface",
     "camera_rig",
+    "corrupt_lidar",
+    "lidar_generator",
     "render_cameras",
     "render_lidar",
     "trace",
@@ -272,3 +275,35 @@ def render_lidar(
     intensity = (lidar_reflectivity(surface.label[keep], marking[keep]) * cos_inc).clamp(0, 1)
     points = torch.cat([d_l[keep] * t[:, None], intensity[:, None]], -1)
     return LidarSweep(points, surface.label[keep], origin)
+
+
+def lidar_generator(scene: Scene, frame_index: int) -> torch.Generator:
+    """The generator of frame ``frame_index``'s LiDAR corruption (a stream of its own: the image noise
+    and the scene draws are untouched, so switching corruption on changes nothing else)."""
+    state = np.random.SeedSequence([scene.seed, frame_index, 0x11DA4]).generate_state(2, np.uint64)
+    return torch.Generator().manual_seed(int(state[0]) % (1 << 62))
+
+
+def corrupt_lidar(sweep: LidarSweep, range_noise: float, dropout: float, generator: torch.Generator) -> LidarSweep:
+    """A sweep with Gaussian range noise and random dropout of returns.
+
+    Each return moves along its own ray by ``N(0, range_noise**2)`` metres (clamped to stay in front
+    of the sensor), then is dropped with probability ``dropout``; labels and intensities follow their
+    points. With both 0 the sweep is returned unchanged.
+
+    Args:
+        sweep: points ``(P, 4)`` in the LiDAR frame (the sensor at the origin).
+        range_noise: standard deviation, metres.
+        dropout: in ``[0, 1)``.
+        generator: seeds both draws.
+    """
+    if range_noise == 0 and dropout == 0:
+        return sweep
+    pts = sweep.points
+    xyz = pts[:, :3]
+    r = xyz.norm(dim=-1, keepdim=True)
+    noisy = r + range_noise * torch.randn(r.shape, generator=generator, dtype=r.dtype)
+    xyz = xyz * (noisy.clamp_min(1e-3) / r.clamp_min(1e-9))
+    keep = torch.rand(r.shape[0], generator=generator) >= dropout
+    points = torch.cat([xyz, pts[:, 3:]], -1)[keep]
+    return replace(sweep, points=points, labels=sweep.labels[keep])

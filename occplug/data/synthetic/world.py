@@ -746,10 +746,11 @@ def _add_traffic(
             speed = ego.speed if mine else float(rng.uniform(3.0, 11.0))
             span = speed * duration + 20
             lo, hi = (xa - span, xb + 20) if side < 0 else (xa - 20, xb + span)
+            ahead, behind = _ego_lane_speeds(rng, ego.speed, cfg.ego_lane_speed_offset) if mine else (speed, speed)
             for x, label in b.fill_line(lo, hi, cfg.vehicle_density, 4.0, _TRAFFIC_MIX):
                 if mine and abs(x - ego.start[0]) < b.sizes_hint(label) / 2 + 9.0:
                     continue  # keep the ego's own slot free
-                b.agent(label, (x, y), heading, speed)
+                b.agent(label, (x, y), heading, ahead if x > ego.start[0] else behind)
         if road.bike and cfg.cyclist_density > 0:
             y = side * (n * lw + road.bike / 2)
             speed = float(rng.uniform(3.0, 6.0))
@@ -812,6 +813,16 @@ def _add_traffic(
                     road.cross_lane + float(rng.uniform(0.6, max(0.7, road.cross_sidewalk - 0.5)))
                 )
                 b.agent(PEDESTRIAN, (x, side * d), side * math.pi / 2, float(rng.uniform(0.8, 1.5)))
+
+
+def _ego_lane_speeds(rng: np.random.Generator, ego_speed: float, offset: tuple[float, float]) -> tuple[float, float]:
+    """Speeds of the ego lane's traffic ahead of and behind the ego: ``ego_speed +- d`` with one
+    ``d ~ U(offset)`` per scene (faster ahead, slower behind: nobody in the lane ever meets the ego
+    or another car); ``offset == (0, 0)`` draws nothing and gives the ego's speed to both."""
+    if offset[0] == 0 and offset[1] == 0:
+        return ego_speed, ego_speed
+    d = float(rng.uniform(offset[0], offset[1]))
+    return ego_speed + d, max(0.0, ego_speed - d)
 
 
 def _path_extent(ego: EgoPath, duration: float) -> tuple[float, float, float, float]:
