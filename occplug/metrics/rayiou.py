@@ -53,6 +53,12 @@ Details where this follows the reference code rather than a plain reading of the
   anisotropic ones. The grid's voxel size therefore changes only the voxelisation, never the rays.
 * **Labels other than free are occupied**, an ignore label (255) too, as in the reference; a
   ground-truth ray stopping at such a voxel is evaluated but counts for no class.
+* **Predicted ids outside the taxonomy** (anything but ``0..K-1``, e.g. 255 or a negative id) are scored
+  as the reference scores them: the voxel is occupied (it stops the predicted ray and counts for the
+  class-agnostic ``RayIoU_geometry``) and the ray has no class (it is in no class's ``N_pred`` and no
+  true positive). A prediction that sets every car voxel to 255 therefore loses the car class only.
+  This differs on purpose from ``occ3d_miou`` and ``ssc``, which refuse such ids
+  (:func:`~occplug.metrics.base.check_class_ids`).
 * The reference reports fractions; values here are in **percent**, like the other occplug metrics.
 
 Known, negligible differences: the reference rounds directions and origins to float32 and, when a
@@ -82,7 +88,7 @@ from occplug.data.nuscenes.format import OCC3D_GRID
 from occplug.geometry import GridSpec
 from occplug.geometry.raycast import first_hits
 
-from .base import OccMetric, check_class_ids, excluded_class_ids, group_class_ids
+from .base import OccMetric, excluded_class_ids, group_class_ids
 
 __all__ = [
     "QueryRays",
@@ -240,7 +246,9 @@ class RayIoU(OccMetric):
     ``geo_tp`` ``(len(thresholds),)``, summed over ranks.
 
     ``update(pred, batch)`` reads ``batch.voxel_labels`` and the origins from
-    ``batch.sequence_lidar_origins`` (else ``batch.lidar_to_ego``, else the ego origin).
+    ``batch.sequence_lidar_origins`` (else ``batch.lidar_to_ego``, else the ego origin); predicted ids
+    outside ``0..K-1`` are occupied with no class (module docstring); non-finite origins raise
+    ``ValueError``.
 
     Args:
         num_classes: ``K``, ids ``0..K-1`` including ``free_label``.
@@ -328,11 +336,13 @@ class RayIoU(OccMetric):
         if pred.shape != target.shape:
             raise ValueError(f"prediction shape {tuple(pred.shape)} differs from label shape {tuple(target.shape)}")
         grid = self._grid_for(target.shape[1:])
-        check_class_ids(pred, self.num_classes, "rayiou")
         if self._directions is None or self._directions.device != target.device:
             self._directions = query_ray_directions(device=target.device)
         for b in range(target.shape[0]):
-            origins = select_origins(self._origins(batch, b), self.origin_limit, self.max_origins)
+            sequence = self._origins(batch, b)
+            if not bool(torch.isfinite(sequence).all()):
+                raise ValueError(f"rayiou: sample {batch.token[b]!r} has non-finite LiDAR origins (NaN or inf)")
+            origins = select_origins(sequence, self.origin_limit, self.max_origins)
             self.origins_used += origins.shape[0]
             self.samples += 1
             rays = cast_query_rays(pred[b], target[b], grid, origins, self.free_label, self._directions)
