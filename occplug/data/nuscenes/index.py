@@ -426,9 +426,10 @@ def build_index(
         The index file.
 
     Raises:
-        FormatError: a missing table or file, a broken reference, a scene in no split (one line naming the file).
+        FormatError: a missing table or file, a broken reference, a scene in no split, a scene the split
+            names that the tables lack (one line naming the file, as ``occplug data check`` words it).
     """
-    index = collect_index(root, version, occ_root, splits, sweeps, progress)
+    index = collect_index(root, version, occ_root, splits, sweeps, progress, split_scenes_present=True)
     if check_files or occ_root is not None:
         root = Path(root)
         for rec in index.samples:
@@ -466,10 +467,12 @@ def collect_index(
     sweeps: int = 10,
     progress: bool = True,
     progress_delay: float = 0.0,
+    split_scenes_present: bool = False,
 ) -> NuScenesIndex:
     """What :func:`build_index` writes, built in memory from the tables only (no data file is opened).
 
-    Args: as :func:`build_index`; ``progress_delay``: seconds before the progress bar appears.
+    Args: as :func:`build_index`; ``progress_delay``: seconds before the progress bar appears;
+        ``split_scenes_present``: refuse a split list naming a scene the tables lack (before any sample is read).
 
     Returns:
         The index; its ``path`` is the folder of tables (``root / version``).
@@ -486,6 +489,8 @@ def collect_index(
             raise FormatError(f"{occ}: no such Occ3D folder")
         occ_gts = occ / "gts" if (occ / "gts").is_dir() else occ
     scene_split = _scene_splits(tables, version, splits)
+    if split_scenes_present:
+        _require_split_scenes(tables, version, splits, scene_split)
     channel_of = {}
     for cs in tables.rows["calibrated_sensor"]:
         sensor = tables.get(
@@ -674,6 +679,33 @@ def split_lists(version: str, splits: str | Path) -> tuple[dict[str, set[str]], 
     if source == "official":
         return official_splits(version), f"the official {version} split"
     return _check_split_file(Path(source)), source
+
+
+def missing_split_scenes(
+    lists: dict[str, set[str]], present: dict[str, Sequence[str]]
+) -> tuple[list[tuple[str, str]], int]:
+    """``([(split, scene)], named)``: the scenes the split lists name that ``present`` (an index's
+    ``meta["splits"]``) lacks in that split, in split then name order, and how many scenes the lists name."""
+    missing = [
+        (split, name)
+        for split in sorted(lists)
+        for name in sorted(lists[split])
+        if name not in set(present.get(split, ()))
+    ]
+    return missing, sum(len(names) for names in lists.values())
+
+
+def _require_split_scenes(tables: _Tables, version: str, splits: str | Path, scene_split: dict[str, str]) -> None:
+    """Raise the line ``occplug data check nuscenes`` reports for a scene the split lists name but the tables lack."""
+    lists, where = split_lists(version, splits)
+    present = {split: [n for n, s in scene_split.items() if s == split] for split in lists}
+    missing, named = missing_split_scenes(lists, present)
+    if missing:
+        split, name = missing[0]
+        raise FormatError(
+            f"{tables.folder / 'scene.json'}: scene {name} of the {split} split is missing "
+            f"({len(missing)} of {named} scenes of {where} affected)"
+        )
 
 
 def _scene_splits(tables: _Tables, version: str, splits: str | Path) -> dict[str, str]:
