@@ -76,7 +76,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Annotated, NamedTuple
+from typing import Annotated, Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -89,6 +89,9 @@ from occplug.geometry import GridSpec
 from occplug.geometry.raycast import first_hits
 
 from .base import OccMetric, excluded_class_ids, group_class_ids
+
+#: The ray walks RayIoU can cast with (see :func:`~occplug.geometry.raycast.first_hits`).
+RayKernel = Literal["auto", "torch", "numba"]
 
 __all__ = [
     "QueryRays",
@@ -154,7 +157,13 @@ class QueryRays(NamedTuple):
 
 
 def cast_query_rays(
-    pred: Tensor, gt: Tensor, grid: GridSpec, origins: Tensor, free_label: int, directions: Tensor | None = None
+    pred: Tensor,
+    gt: Tensor,
+    grid: GridSpec,
+    origins: Tensor,
+    free_label: int,
+    directions: Tensor | None = None,
+    kernel: RayKernel = "auto",
 ) -> QueryRays:
     """Cast every query ray from every origin through a prediction and its ground truth.
 
@@ -166,6 +175,8 @@ def cast_query_rays(
         origins: ``(T, 3)`` ray origins in the ego frame, metres.
         free_label: the id of empty space; every other id is occupied.
         directions: ``(D, 3)`` unit directions; default :func:`query_ray_directions`.
+        kernel: the ray walk (:func:`~occplug.geometry.raycast.first_hits`): ``auto``, ``torch`` (the
+            pure-PyTorch reference) or ``numba`` (compiled, CPU, the same results bit for bit).
 
     Returns:
         :class:`QueryRays` with the class of the first occupied voxel of each ray and the depth at
@@ -179,7 +190,7 @@ def cast_query_rays(
     o = origins[:, None, :].expand(-1, directions.shape[0], 3).reshape(-1, 3)
     d = directions.expand(origins.shape[0], -1, -1).reshape(-1, 3)
     labels = torch.stack([pred.to(device), gt]).reshape(2, -1).long()
-    hits = first_hits((labels != free_label).reshape(2, *grid.shape), grid, o, d, math.inf)
+    hits = first_hits((labels != free_label).reshape(2, *grid.shape), grid, o, d, math.inf, kernel=kernel)
     strides = torch.tensor([grid.shape[1] * grid.shape[2], grid.shape[2], 1], device=device)
     found = hits.index[..., 0] >= 0
     flat = (hits.index.clamp_min(0) * strides).sum(-1)
@@ -263,6 +274,8 @@ class RayIoU(OccMetric):
         dynamic_classes, static_classes: class names of the two groups, replacing the taxonomy's
             (both or neither; as ``occ3d_miou``).
         exclude_classes: semantic class names the ``*_excl`` keys leave out (none: no such keys).
+        kernel: the ray walk: ``auto`` (the compiled one for CPU tensors when numba is installed, else
+            the pure-PyTorch one), ``torch`` or ``numba``; the scores do not depend on it.
     """
 
     def __init__(
@@ -278,8 +291,10 @@ class RayIoU(OccMetric):
         dynamic_classes: Sequence[str] | None = None,
         static_classes: Sequence[str] | None = None,
         exclude_classes: Sequence[str] = (),
+        kernel: RayKernel = "auto",
     ) -> None:
         super().__init__()
+        self.kernel = kernel
         self.num_classes = num_classes
         self.class_names = list(class_names) if class_names else [f"class_{i}" for i in range(num_classes)]
         if len(self.class_names) != num_classes:
@@ -345,7 +360,7 @@ class RayIoU(OccMetric):
             origins = select_origins(sequence, self.origin_limit, self.max_origins)
             self.origins_used += origins.shape[0]
             self.samples += 1
-            rays = cast_query_rays(pred[b], target[b], grid, origins, self.free_label, self._directions)
+            rays = cast_query_rays(pred[b], target[b], grid, origins, self.free_label, self._directions, self.kernel)
             gt, pr, tp = rayiou_counts(rays, self.num_classes, self.free_label, self.thresholds)
             self.gt_count += gt
             self.pred_count += pr

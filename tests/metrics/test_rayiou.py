@@ -245,6 +245,20 @@ def test_prediction_ids_outside_the_taxonomy_are_occupied_with_no_class():
         Occ3DMIoU(num_classes=5, free_label=4, mask="none").update(torch.where(labels == 1, 255, labels)[None], batch)
 
 
+def test_the_compiled_and_the_pure_pytorch_walks_give_the_same_counts():
+    pytest.importorskip("numba")
+    labels, pred, origins = random_scene(5)
+    batch = make_batch(labels[None], sequence_lidar_origins=[origins])
+    states = []
+    for kernel in ("torch", "numba", "auto"):
+        m = RayIoU(num_classes=5, free_label=4, grid=SMALL_GRID, kernel=kernel)
+        m.update(pred[None], batch)
+        states.append([m.gt_count, m.pred_count, m.tp, m.geo_tp, m.geo_pred_count])
+    assert int(states[0][0].sum()) > 0
+    for other in states[1:]:
+        assert all(torch.equal(a, b) for a, b in zip(states[0], other, strict=True))
+
+
 def test_non_finite_origins_are_refused():
     labels, _, origins = random_scene(1)
     for bad in (math.nan, math.inf):
