@@ -377,7 +377,7 @@ class _SkipWalk(_Walk):
         self.kill(~(t_jump < self.t_stop))
 
 
-def _use_numba(kernel: str, device: torch.device) -> bool:
+def _use_numba(kernel: str, device: torch.device, grids: int) -> bool:
     from . import raycast_numba
 
     if kernel == "torch":
@@ -389,7 +389,7 @@ def _use_numba(kernel: str, device: torch.device) -> bool:
         return True
     if kernel != "auto":
         raise ValueError(f"first_hits: kernel must be 'auto', 'torch' or 'numba', got {kernel!r}")
-    return device.type == "cpu" and raycast_numba.available()
+    return device.type == "cpu" and grids <= raycast_numba.MAX_GRIDS and raycast_numba.available()
 
 
 def first_hits(
@@ -431,7 +431,7 @@ def first_hits(
     exit_ = entry.clone()
     if count == 0 or grids == 0:
         return RayHits(index, entry, exit_)
-    if _use_numba(kernel, device):
+    if _use_numba(kernel, device, grids):
         from .raycast_numba import first_hits_numba
 
         walk = _Walk(grid, origins, directions, _as_distances(max_distance, count, device))

@@ -21,7 +21,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["available", "first_hits_numba"]
+__all__ = ["MAX_GRIDS", "available", "first_hits_numba"]
+
+#: The most grids one compiled walk casts through at once (one bit each of an int64 code).
+MAX_GRIDS = 62
 
 
 @functools.cache
@@ -39,8 +42,8 @@ def first_hits_numba(occupied: Tensor, walk_state, out_index: Tensor, out_entry:
     first hit of every ray of ``walk_state`` (a :class:`~occplug.geometry.raycast._Walk` just built) in
     each of the ``G`` grids of ``occupied`` ``(G, X, Y, Z)`` bool."""
     grids = occupied.shape[0]
-    if grids > 62:
-        raise ValueError(f"first_hits: the compiled walk handles at most 62 grids at once, got {grids}")
+    if grids > MAX_GRIDS:
+        raise ValueError(f"first_hits: the compiled walk handles at most {MAX_GRIDS} grids at once, got {grids}")
     flat_occ = occupied.reshape(grids, -1).to(torch.int64)
     bits = (flat_occ << torch.arange(grids)[:, None]).sum(0)
     shape = occupied.shape[1:]
