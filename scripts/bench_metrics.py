@@ -116,6 +116,9 @@ def main() -> None:
         "on the same sample (see scripts/sparseocc_caster.py; nothing of it is part of occplug)",
     )
     parser.add_argument("--json", metavar="OUT", help="also write the timings to this JSON file")
+    parser.add_argument(
+        "--device", default="cpu", help="also time the pure-PyTorch walk on this device (e.g. cuda; default: CPU only)"
+    )
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -161,6 +164,23 @@ def main() -> None:
         record.update(numba_s=fast, numba_first_use_s=first_use, rayiou=fast_score)
     else:
         print("RayIoU, compiled walk: numba is not installed (pip install occplug[fast]); only the reference ran")
+
+    if args.device != "cpu":
+        device = torch.device(args.device)
+        metric = RayIoU(grid=OCC3D_GRID, kernel="torch").to(device)
+        on_device, device_pred = batch.to(device), pred.to(device)
+
+        def update() -> None:
+            metric.update(device_pred[None], on_device)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+
+        device_time, _ = timed(update, args.repeats)
+        metric.reset()
+        update()
+        score = float(metric.compute()["RayIoU"])
+        print(f"RayIoU, pure-PyTorch walk on {device}: {device_time:.3f} s/sample; RayIoU {score:.4f}")
+        record.update(device=str(device), device_s=device_time, device_rayiou=score)
 
     o = origins[:, None].expand(-1, directions.shape[0], 3).reshape(-1, 3)
     d = directions.repeat(origins.shape[0], 1)
