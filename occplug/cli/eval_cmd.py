@@ -32,8 +32,11 @@ what ``occplug predict`` wrote (the val split). Where each sample belongs, first
 A sample whose split none of them tells (a scene in no list, the flat ``DIR/<token>/`` layout) is one
 error line suggesting ``--splits`` (``--index`` for the flat layout) or ``--split all``.
 
-Every sample is checked before anything is written: a missing or mismatched file is one error line
-naming the first offending token and how many samples are affected (exit code 2). A prediction for a
+Every sample is checked before anything is written: a missing or mismatched file, a ground-truth class
+id outside the taxonomy (255 is the ignore label), a predicted id outside it for ``miou`` / ``ssc``
+(RayIoU scores such an id as occupied with no class, as SparseOcc's scorer does) or a non-finite
+RayIoU origin is one error line naming the file, the first offending token and how many samples are
+affected (exit code 2). A prediction for a
 ground-truth sample outside the split is ignored; one with no ground truth at all is an error.
 """
 
@@ -66,6 +69,8 @@ from .errors import UsageError
 METRICS = ("miou", "rayiou", "ssc")
 #: ``--split`` choices (``all``: every ground-truth sample).
 EVAL_SPLITS = ("train", "val", "test", "all")
+#: The ground-truth id every metric ignores (Occ3D's and SemanticKITTI's 255); any other id must be a class.
+IGNORE_LABEL = 255
 #: The split record ``occplug data synth`` writes at the root of its trees (read as ``--splits`` when present).
 TREE_SPLITS = "splits.json"
 
@@ -99,9 +104,10 @@ the first that applies:
 A sample none of them places is an error; pass --splits FILE (flat layout: --index DIR) or
 --split all.
 
-A missing or mismatched file (a missing prediction inside the split included) is one error line
-naming the first offending token and the number of samples affected (exit code 2); nothing is
-written then.
+A missing or mismatched file (a missing prediction inside the split included), a ground-truth class
+id outside the taxonomy (255 = ignore), a predicted id outside it for miou / ssc (rayiou scores it as
+occupied with no class, as SparseOcc does) or a non-finite origin is one error line naming the file,
+the first offending token and the number of samples affected (exit code 2); nothing is written then.
 """
 
 
@@ -378,6 +384,47 @@ def _index_origins(path: Path, tokens: list[str]) -> dict[str, Tensor]:
     return {t: torch.from_numpy(index.sequence_lidar_origins(position[t])) for t in tokens}
 
 
+def _check_finite_origins(origins: dict[str, Tensor], source: str, samples: int) -> None:
+    """Raise one line naming the first token whose RayIoU origins hold NaN or inf."""
+    bad = [t for t, o in origins.items() if not bool(torch.isfinite(o).all())]
+    if bad:
+        row = next(r for r in origins[bad[0]] if not bool(torch.isfinite(r).all()))
+        raise UsageError(
+            f"{source}: token {bad[0]} has a non-finite origin ({', '.join(f'{v:g}' for v in row.tolist())}); "
+            f"expected finite metres ({len(bad)} of {samples} samples affected)"
+        )
+
+
+def _label_problem(labels: Tensor, layout: _Layout, path: Path) -> str | None:
+    """Why ``labels`` cannot be scored (a class id outside the taxonomy, the ignore label aside), or None."""
+    ids = torch.unique(labels).long()
+    bad = ids[((ids < 0) | (ids >= len(layout.class_names))) & (ids != IGNORE_LABEL)]
+    if bad.numel():
+        return (
+            f"{path}: ground-truth class id {int(bad[0])} is outside the taxonomy "
+            f"(0..{len(layout.class_names) - 1}, {IGNORE_LABEL} = ignore)"
+        )
+    return None
+
+
+def _prediction_problem(pred: Tensor, metrics: dict, layout: _Layout, path: Path) -> str | None:
+    """Why a confusion-matrix metric cannot score ``pred`` (an id outside the taxonomy), or None.
+
+    RayIoU scores such ids (occupied, no class, as SparseOcc's scorer does), so RayIoU alone never refuses.
+    """
+    strict = [name for name in metrics if name != "rayiou"]
+    if not strict or not pred.numel():
+        return None
+    low, high = int(pred.min()), int(pred.max())
+    count = len(layout.class_names)
+    if low >= 0 and high < count:
+        return None
+    return (
+        f"{path}: predicted class id {low if low < 0 else high} is outside 0..{count - 1}, which --metric "
+        f"{' and '.join(strict)} cannot score (--metric rayiou alone scores it as occupied with no class)"
+    )
+
+
 def _batch(token: str, fields: dict[str, Tensor], origins: Tensor, device: torch.device) -> Batch:
     """A one-sample Batch holding just what the metrics read."""
     eye3 = torch.eye(3)[None, None]
@@ -447,6 +494,8 @@ def evaluate_folder(args: argparse.Namespace) -> tuple[dict[str, dict[str, float
                 "notice: RayIoU casts from one fixed origin per sample; the leaderboard casts from the "
                 "LiDAR positions of each sample's sequence (--index DIR or --origins FILE)"
             )
+        source = f"--origins {args.origins}" if args.origins else f"--index {args.index}"
+        _check_finite_origins(origins, source, len(tokens))
         single = torch.tensor([args.origin or layout.origin], dtype=torch.float64)
         origins = {t: origins.get(t, single) for t in tokens}
     first_error, errors = None, 0
@@ -457,6 +506,12 @@ def evaluate_folder(args: argparse.Namespace) -> tuple[dict[str, dict[str, float
             pred = read_prediction(preds[token], shape)
         except FormatError as exc:
             first_error, errors = first_error or f"token {token}: {exc}", errors + 1
+            continue
+        problem = _label_problem(fields["voxel_labels"], layout, layout.files[token]) or _prediction_problem(
+            pred, metrics, layout, preds[token]
+        )
+        if problem:
+            first_error, errors = first_error or f"token {token}: {problem}", errors + 1
             continue
         if "rayiou" in metrics and shape != layout.grid.shape:
             first_error = first_error or (
@@ -501,6 +556,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         check.input_path("--index", args.index, "nuScenes index")
     if args.json:
         check.output_file("--json", args.json)
+    if args.origin is not None and not all(math.isfinite(v) for v in args.origin):
+        raise UsageError(f"--origin: expected three finite numbers (metres), got {' '.join(map(str, args.origin))}")
     results, tables, count = evaluate_folder(args)
     for table in tables.values():
         print(table)

@@ -23,7 +23,7 @@ Semantics shared by every function here
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import torch
 from torch import Tensor
@@ -377,6 +377,21 @@ class _SkipWalk(_Walk):
         self.kill(~(t_jump < self.t_stop))
 
 
+def _use_numba(kernel: str, device: torch.device, grids: int) -> bool:
+    from . import raycast_numba
+
+    if kernel == "torch":
+        return False
+    if kernel == "numba":
+        if device.type != "cpu" or not raycast_numba.available():
+            why = "numba is not installed (pip install occplug[fast])" if device.type == "cpu" else "CPU tensors only"
+            raise ValueError(f"first_hits: kernel 'numba' needs {why}")
+        return True
+    if kernel != "auto":
+        raise ValueError(f"first_hits: kernel must be 'auto', 'torch' or 'numba', got {kernel!r}")
+    return device.type == "cpu" and grids <= raycast_numba.MAX_GRIDS and raycast_numba.available()
+
+
 def first_hits(
     occupied: Tensor,
     grid: GridSpec,
@@ -384,6 +399,7 @@ def first_hits(
     directions: Tensor,
     max_distance: float | Tensor,
     skip: bool = True,
+    kernel: Literal["auto", "torch", "numba"] = "auto",
 ) -> RayHits:
     """:func:`first_hit` through ``G`` grids at once, with entry and exit distances.
 
@@ -400,7 +416,11 @@ def first_hits(
         directions: ``(R, 3)`` **unit** ray directions.
         max_distance: a number or ``(R,)`` tensor, metres: only voxels entered at
             ``t < max_distance`` are considered.
-        skip: jump across free space (same results, faster in open scenes).
+        skip: jump across free space (same results, faster in open scenes; the torch walk only).
+        kernel: ``torch``: the pure-PyTorch walk (the reference, any device); ``numba``: the compiled
+            per-ray loop of :mod:`occplug.geometry.raycast_numba` (CPU tensors, needs ``numba``; the
+            same results bit for bit); ``auto``: ``numba`` for CPU tensors when it is installed, else
+            ``torch``.
 
     Returns:
         :class:`RayHits`; ``index[g]`` and ``entry[g]`` equal :func:`first_hit` on ``occupied[g]``.
@@ -410,6 +430,12 @@ def first_hits(
     entry = torch.full((grids, count), torch.inf, dtype=torch.float64, device=device)
     exit_ = entry.clone()
     if count == 0 or grids == 0:
+        return RayHits(index, entry, exit_)
+    if _use_numba(kernel, device, grids):
+        from .raycast_numba import first_hits_numba
+
+        walk = _Walk(grid, origins, directions, _as_distances(max_distance, count, device))
+        first_hits_numba(occupied.to(torch.bool), walk, index, entry, exit_)
         return RayHits(index, entry, exit_)
     flat_occ = occupied.reshape(grids, -1).to(torch.bool)
     # one lookup table: bit g = occupied in grid g, the rest = clearance of the union; trash slot last

@@ -87,8 +87,10 @@ def evaluation_mask(batch: Batch, mask: EvalMask) -> Tensor | None:
 def check_class_ids(pred: Tensor, num_classes: int, who: str) -> None:
     """Raise a clear error when a prediction holds an id outside ``0..num_classes-1`` (e.g. 255).
 
-    The reference scorers fail on such ids too; clamping them would silently count them as the
-    last class.
+    The confusion-matrix metrics (``occ3d_miou``, ``ssc``) call it: their reference scorers index a
+    ``K x K`` matrix with the id, which fails or miscounts, and clamping would silently count it as the
+    last class. RayIoU does not: like SparseOcc's scorer it treats such a voxel as occupied with no
+    class (:mod:`occplug.metrics.rayiou`).
     """
     if pred.numel() and (int(pred.min()) < 0 or int(pred.max()) >= num_classes):
         bad = int(pred.min()) if int(pred.min()) < 0 else int(pred.max())

@@ -53,6 +53,12 @@ Details where this follows the reference code rather than a plain reading of the
   anisotropic ones. The grid's voxel size therefore changes only the voxelisation, never the rays.
 * **Labels other than free are occupied**, an ignore label (255) too, as in the reference; a
   ground-truth ray stopping at such a voxel is evaluated but counts for no class.
+* **Predicted ids outside the taxonomy** (anything but ``0..K-1``, e.g. 255 or a negative id) are scored
+  as the reference scores them: the voxel is occupied (it stops the predicted ray and counts for the
+  class-agnostic ``RayIoU_geometry``) and the ray has no class (it is in no class's ``N_pred`` and no
+  true positive). A prediction that sets every car voxel to 255 therefore loses the car class only.
+  This differs on purpose from ``occ3d_miou`` and ``ssc``, which refuse such ids
+  (:func:`~occplug.metrics.base.check_class_ids`).
 * The reference reports fractions; values here are in **percent**, like the other occplug metrics.
 
 Known, negligible differences: the reference rounds directions and origins to float32 and, when a
@@ -70,7 +76,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Annotated, NamedTuple
+from typing import Annotated, Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -82,7 +88,10 @@ from occplug.data.nuscenes.format import OCC3D_GRID
 from occplug.geometry import GridSpec
 from occplug.geometry.raycast import first_hits
 
-from .base import OccMetric, check_class_ids, excluded_class_ids, group_class_ids
+from .base import OccMetric, excluded_class_ids, group_class_ids
+
+#: The ray walks RayIoU can cast with (see :func:`~occplug.geometry.raycast.first_hits`).
+RayKernel = Literal["auto", "torch", "numba"]
 
 __all__ = [
     "QueryRays",
@@ -148,7 +157,13 @@ class QueryRays(NamedTuple):
 
 
 def cast_query_rays(
-    pred: Tensor, gt: Tensor, grid: GridSpec, origins: Tensor, free_label: int, directions: Tensor | None = None
+    pred: Tensor,
+    gt: Tensor,
+    grid: GridSpec,
+    origins: Tensor,
+    free_label: int,
+    directions: Tensor | None = None,
+    kernel: RayKernel = "auto",
 ) -> QueryRays:
     """Cast every query ray from every origin through a prediction and its ground truth.
 
@@ -160,6 +175,8 @@ def cast_query_rays(
         origins: ``(T, 3)`` ray origins in the ego frame, metres.
         free_label: the id of empty space; every other id is occupied.
         directions: ``(D, 3)`` unit directions; default :func:`query_ray_directions`.
+        kernel: the ray walk (:func:`~occplug.geometry.raycast.first_hits`): ``auto``, ``torch`` (the
+            pure-PyTorch reference) or ``numba`` (compiled, CPU, the same results bit for bit).
 
     Returns:
         :class:`QueryRays` with the class of the first occupied voxel of each ray and the depth at
@@ -173,7 +190,7 @@ def cast_query_rays(
     o = origins[:, None, :].expand(-1, directions.shape[0], 3).reshape(-1, 3)
     d = directions.expand(origins.shape[0], -1, -1).reshape(-1, 3)
     labels = torch.stack([pred.to(device), gt]).reshape(2, -1).long()
-    hits = first_hits((labels != free_label).reshape(2, *grid.shape), grid, o, d, math.inf)
+    hits = first_hits((labels != free_label).reshape(2, *grid.shape), grid, o, d, math.inf, kernel=kernel)
     strides = torch.tensor([grid.shape[1] * grid.shape[2], grid.shape[2], 1], device=device)
     found = hits.index[..., 0] >= 0
     flat = (hits.index.clamp_min(0) * strides).sum(-1)
@@ -240,7 +257,9 @@ class RayIoU(OccMetric):
     ``geo_tp`` ``(len(thresholds),)``, summed over ranks.
 
     ``update(pred, batch)`` reads ``batch.voxel_labels`` and the origins from
-    ``batch.sequence_lidar_origins`` (else ``batch.lidar_to_ego``, else the ego origin).
+    ``batch.sequence_lidar_origins`` (else ``batch.lidar_to_ego``, else the ego origin); predicted ids
+    outside ``0..K-1`` are occupied with no class (module docstring); non-finite origins raise
+    ``ValueError``.
 
     Args:
         num_classes: ``K``, ids ``0..K-1`` including ``free_label``.
@@ -255,6 +274,8 @@ class RayIoU(OccMetric):
         dynamic_classes, static_classes: class names of the two groups, replacing the taxonomy's
             (both or neither; as ``occ3d_miou``).
         exclude_classes: semantic class names the ``*_excl`` keys leave out (none: no such keys).
+        kernel: the ray walk: ``auto`` (the compiled one for CPU tensors when numba is installed, else
+            the pure-PyTorch one), ``torch`` or ``numba``; the scores do not depend on it.
     """
 
     def __init__(
@@ -270,8 +291,10 @@ class RayIoU(OccMetric):
         dynamic_classes: Sequence[str] | None = None,
         static_classes: Sequence[str] | None = None,
         exclude_classes: Sequence[str] = (),
+        kernel: RayKernel = "auto",
     ) -> None:
         super().__init__()
+        self.kernel = kernel
         self.num_classes = num_classes
         self.class_names = list(class_names) if class_names else [f"class_{i}" for i in range(num_classes)]
         if len(self.class_names) != num_classes:
@@ -328,14 +351,16 @@ class RayIoU(OccMetric):
         if pred.shape != target.shape:
             raise ValueError(f"prediction shape {tuple(pred.shape)} differs from label shape {tuple(target.shape)}")
         grid = self._grid_for(target.shape[1:])
-        check_class_ids(pred, self.num_classes, "rayiou")
         if self._directions is None or self._directions.device != target.device:
             self._directions = query_ray_directions(device=target.device)
         for b in range(target.shape[0]):
-            origins = select_origins(self._origins(batch, b), self.origin_limit, self.max_origins)
+            sequence = self._origins(batch, b)
+            if not bool(torch.isfinite(sequence).all()):
+                raise ValueError(f"rayiou: sample {batch.token[b]!r} has non-finite LiDAR origins (NaN or inf)")
+            origins = select_origins(sequence, self.origin_limit, self.max_origins)
             self.origins_used += origins.shape[0]
             self.samples += 1
-            rays = cast_query_rays(pred[b], target[b], grid, origins, self.free_label, self._directions)
+            rays = cast_query_rays(pred[b], target[b], grid, origins, self.free_label, self._directions, self.kernel)
             gt, pr, tp = rayiou_counts(rays, self.num_classes, self.free_label, self.thresholds)
             self.gt_count += gt
             self.pred_count += pr

@@ -328,8 +328,10 @@ def test_synth_prints_the_check_command_and_it_passes_without_shape(layout, requ
     wrong = ["--shape", "200", "200", "16"]
     assert main([*command[1:], *wrong]) == 2
     line = one_error_line(capsys)
-    assert ("expected (200, 200, 16) (5 of 5 label files affected)" in line) if layout == "nuscenes" else (
-        "(640000 uint16 voxels of a (200, 200, 16) grid)" in line or "expected 80000 (640000 voxels" in line
+    assert (
+        ("expected (200, 200, 16) (5 of 5 label files affected)" in line)
+        if layout == "nuscenes"
+        else ("(640000 uint16 voxels of a (200, 200, 16) grid)" in line or "expected 80000 (640000 voxels" in line)
     ), line
     assert listing(tree) == before
 
@@ -385,3 +387,24 @@ def test_a_semantickitti_tree_without_a_record_is_checked_against_the_ssc_grid(k
         f"({count} uint16 voxels of a (256, 256, 32) grid) (5 of 20 voxel files)"
     )
     assert check_kitti(tree, kitti_split) == 0  # told the grid, it passes
+
+
+def test_prepare_refuses_a_split_naming_a_missing_scene_as_check_does(nuscenes, tmp_path, capsys):
+    """A ``--splits`` file naming a scene the tables lack: ``data check`` and ``data prepare`` both exit 2 with the
+    same line, and prepare writes no index."""
+    splits = json.loads((nuscenes / "splits.json").read_text())
+    splits["val"] = [*splits["val"], "synth-val-0099"]
+    split_file = tmp_path / "splits.json"
+    split_file.write_text(json.dumps(splits))
+    expected = (
+        f"{nuscenes / 'v1.0-trainval' / 'scene.json'}: scene synth-val-0099 of the val split is missing "
+        f"(1 of {sum(map(len, splits.values()))} scenes of {split_file} affected)"
+    )
+    capsys.readouterr()
+    assert check_ns(nuscenes, "--splits", str(split_file)) == 2
+    assert one_error_line(capsys) == expected
+    out = tmp_path / "index"
+    prepare = ["data", "prepare", "nuscenes", "--root", str(nuscenes), "--version", "v1.0-trainval"]
+    assert main([*prepare, "--occ", str(nuscenes), "--out", str(out), "--splits", str(split_file)]) == 2
+    assert one_error_line(capsys) == expected
+    assert not (out / "nuscenes_index.npz").exists()

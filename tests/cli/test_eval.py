@@ -316,3 +316,44 @@ def test_eval_semantickitti_layout(tmp_path, capsys):
     assert 0 < got["IoU"] < 100
     assert run_eval(tmp_path / "gt", pred_dir, *grid, "--metric", "miou") == 2
     expect_error(capsys, "miou is the Occ3D metric")
+
+
+def test_labels_predictions_and_origins_outside_what_can_be_scored(occ3d_tree, tmp_path, capsys):
+    """Ground-truth ids outside the taxonomy and non-finite origins are refused in one line naming the file;
+    predicted ids outside it are one line for mIoU, while RayIoU scores them as SparseOcc does."""
+    gt, pred, origins, batch, preds = occ3d_tree
+    first, second = batch.token
+    out = tmp_path / "never.json"
+    label_file = next(gt.rglob(f"{second}/labels.npz"))
+    broken = batch.voxel_labels[1].clone()
+    broken[3, 4, 2] = 23
+    occ3d.write_labels(label_file, broken, batch.mask_lidar[1], batch.mask_camera[1])
+    for metric in ("miou", "rayiou"):
+        assert run_eval(gt, pred, "--metric", metric, *TINY_GRID, "--json", str(out)) == 2
+        expect_error(capsys, f"token {second}: {label_file}: ground-truth class id 23 is outside the taxonomy")
+    occ3d.write_labels(label_file, batch.voxel_labels[1], batch.mask_lidar[1], batch.mask_camera[1])
+    car = OCC3D_CLASSES.index("car")
+    unknown = torch.where(preds[0] == car, 255, preds[0])
+    assert (unknown == 255).any()
+    write_prediction(pred / f"{first}.npz", unknown)
+    assert run_eval(gt, pred, "--metric", "miou", "rayiou", *TINY_GRID, "--json", str(out)) == 2
+    expect_error(capsys, f"token {first}: {pred / (first + '.npz')}: predicted class id 255 is outside 0..17")
+    assert not out.exists()
+    assert run_eval(gt, pred, "--metric", "rayiou", "--origins", str(origins), *TINY_GRID, "--json", str(out)) == 0
+    expected = RayIoU(class_names=OCC3D_CLASSES, grid={"range": [-16, -16, -1, 16, 16, 5.4], "voxel_size": 0.8})
+    expected.update(torch.stack([unknown, preds[1]]), batch)
+    got = json.loads(out.read_text())["metrics"]["rayiou"]
+    assert got["RayIoU"] == pytest.approx(float(expected.compute()["RayIoU"]), abs=1e-4)
+    assert got["RayIoU_car"] < 100 and got["RayIoU_geometry"] > got["RayIoU"]
+    out.unlink()
+    with np.load(origins) as data:
+        arrays = dict(data)
+    for bad in (math.nan, math.inf):
+        arrays[second] = arrays[second].copy()
+        arrays[second][0, 1] = bad
+        np.savez(tmp_path / "bad_origins.npz", **arrays)
+        assert run_eval(gt, pred, "--metric", "rayiou", "--origins", str(tmp_path / "bad_origins.npz"), *TINY_GRID) == 2
+        expect_error(capsys, f"--origins {tmp_path / 'bad_origins.npz'}: token {second} has a non-finite origin")
+    assert run_eval(gt, pred, "--metric", "rayiou", "--origin", "0.9", "nan", "1.8", *TINY_GRID) == 2
+    expect_error(capsys, "--origin: expected three finite numbers")
+    assert not out.exists()

@@ -504,3 +504,36 @@ def test_eval_takes_rayiou_origins_from_the_prepared_index(tree, tmp_path, capsy
     assert "notice: RayIoU casts from one fixed origin per sample" in capsys.readouterr().err
     single = json.loads((tmp_path / "one.json").read_text())["metrics"]["rayiou"]
     assert single["RayIoU"] != pytest.approx(by_index["RayIoU"], abs=1e-3)
+
+
+def test_rayiou_origin_of_the_sample_is_its_calibration_exactly_and_face_rays_start_on_its_side(tree):
+    """The LiDAR sits at y = 0, a voxel face of the grid: the sample's own origin must be the calibration
+    translation exactly (a pose round trip leaves y at about +-1e-14, and a ray in the plane y = 0 then
+    starts in the row below the face, as it does for sample 3 of this tree with the old arithmetic)."""
+    from occplug.data.classes import OCC3D_CLASSES, OCC3D_FREE
+    from occplug.metrics import cast_query_rays, query_ray_directions
+
+    index = read_index(tree / "index")
+    ego, lidar = index.arrays["ego_to_global"], index.arrays["lidar_to_ego"]
+    grid = TINY.grid
+    face_row = grid.shape[1] // 2  # y in [0, voxel): the side the floor rule selects for y = 0
+    assert grid.lower[1] + face_row * grid.voxel_size[1] == 0.0
+    directions = query_ray_directions()
+    in_face = directions[:, 1] == 0  # azimuth 0: the rays lying in the plane y = 0
+    assert int(in_face.sum()) == 39
+    car = OCC3D_CLASSES.index("car")
+    labels = torch.full(grid.shape, OCC3D_FREE, dtype=torch.int64)
+    labels[:, face_row] = car  # only the row on the +y side of the face is occupied
+    frames = {f.token: f for split in ("train", "val") for f in module(tree).dataset(split)}
+    for s, record in enumerate(index.samples):
+        members = index.scene_members()[record["scene"]]
+        origins = index.sequence_lidar_origins(s)
+        own = origins[members.index(s)]
+        assert own.tolist() == lidar[s, :3, 3].tolist() and own[1] == 0.0, s
+        assert frames[record["token"]].sequence_lidar_origins[members.index(s)].tolist() == own.tolist()
+        for row, j in zip(origins, members, strict=True):  # every frame: the composition to 1e-12 m
+            r_s, r_j = ego[s, :3, :3].astype(np.longdouble), ego[j, :3, :3].astype(np.longdouble)
+            exact = r_s.T @ (r_j @ lidar[j, :3, 3] + ego[j, :3, 3] - ego[s, :3, 3])
+            assert np.abs(row - exact.astype(np.float64)).max() < 1e-12, (s, j)
+        rays = cast_query_rays(labels, labels, grid, torch.from_numpy(own)[None], OCC3D_FREE, directions)
+        assert (rays.gt_class[in_face] == car).all(), f"sample {s}: rays in the face plane missed the +y row"

@@ -286,7 +286,7 @@ def sparse_case(seed, rays=1200):
 @pytest.mark.parametrize("seed", range(3))
 def test_first_hits_match_reference_in_several_grids(seed):
     grid, occ, origins, directions, t_max = sparse_case(seed)
-    hits = first_hits(occ, grid, origins, directions, t_max)
+    hits = first_hits(occ, grid, origins, directions, t_max, kernel="torch")
     assert hits.index.shape == (2, origins.shape[0], 3) and hits.exit.dtype == torch.float64
     found = 0
     for g in range(2):
@@ -301,7 +301,7 @@ def test_first_hits_match_reference_in_several_grids(seed):
             assert abs(float(hits.entry[g, r]) - t) < 1e-9
             assert abs(float(hits.exit[g, r]) - reference_exit(grid, o, d, voxel)) < 1e-9
     assert found > origins.shape[0] // 8  # not vacuous
-    plain = first_hits(occ, grid, origins, directions, t_max, skip=False)
+    plain = first_hits(occ, grid, origins, directions, t_max, skip=False, kernel="torch")
     assert all(torch.equal(a, b) for a, b in zip(hits, plain, strict=True))  # skipping changes nothing
     assert torch.equal(hits.index[1], first_hit(occ[1], grid, origins, directions, t_max)[0])
 
@@ -317,12 +317,66 @@ def test_skipping_lands_exactly_on_ties():
     origins = torch.tensor([s for s in starts for _ in steps], dtype=torch.float64)
     directions = torch.tensor(steps * len(starts), dtype=torch.float64)
     directions = directions / directions.norm(dim=-1, keepdim=True)
-    skipped = first_hits(occ[None], grid, origins, directions, math.inf)
-    plain = first_hits(occ[None], grid, origins, directions, math.inf, skip=False)
+    skipped = first_hits(occ[None], grid, origins, directions, math.inf, kernel="torch")
+    plain = first_hits(occ[None], grid, origins, directions, math.inf, skip=False, kernel="torch")
     assert all(torch.equal(a, b) for a, b in zip(skipped, plain, strict=True))
     single = first_hit(occ, grid, origins, directions, math.inf)
     assert torch.equal(skipped.index[0], single[0]) and torch.equal(skipped.entry[0], single[1])
     assert (skipped.index[0, :, 0] >= 0).sum() > 2 * len(steps)
+
+
+def tie_case():
+    """Unit voxels, origins on voxel centres, faces and lattice points, directions through voxel edges and
+    corners and along faces: ties everywhere (the case of :func:`test_skipping_lands_exactly_on_ties`)."""
+    grid = GridSpec((0, 0, 0, 48, 48, 12), 1.0)
+    occ = torch.rand(grid.shape, generator=torch.Generator().manual_seed(0)) < 0.01
+    occ[[0, -1]] = True
+    steps = [(a, b, c) for a in (-2, -1, 0, 1, 2) for b in (-1, 0, 1, 3) for c in (-1, 0, 1) if (a, b, c) != (0, 0, 0)]
+    starts = [(24.5, 24.5, 6.5), (24.0, 24.0, 6.0), (3.5, 40.0, 2.5), (47.5, 0.5, 11.5), (10.0, 24.0, 6.0)]
+    origins = torch.tensor([s for s in starts for _ in steps], dtype=torch.float64)
+    directions = torch.tensor(steps * len(starts), dtype=torch.float64)
+    return grid, occ[None], origins, directions / directions.norm(dim=-1, keepdim=True), math.inf
+
+
+@pytest.mark.parametrize("case", ["sparse-0", "sparse-1", "sparse-2", "random-0", "random-5", "ties"])
+def test_compiled_walk_equals_the_torch_walk_bit_for_bit(case):
+    pytest.importorskip("numba")
+    if case == "ties":
+        grid, occ, origins, directions, t_max = tie_case()
+    elif case.startswith("sparse"):
+        grid, occ, origins, directions, t_max = sparse_case(int(case[-1]))
+    else:
+        grid, one, origins, directions, t_max = random_case(int(case[-1]), rays=3000)
+        occ = torch.stack([one, one.flip(0), torch.zeros_like(one)])  # the empty grid: every ray runs to its end
+    fast = first_hits(occ, grid, origins, directions, t_max, kernel="numba")
+    for skip in (True, False):
+        reference = first_hits(occ, grid, origins, directions, t_max, skip=skip, kernel="torch")
+        for name, a, b in zip(fast._fields, fast, reference, strict=True):
+            assert torch.equal(a, b), f"{name} differs (skip={skip})"
+    assert (fast.index[..., 0] >= 0).sum() > origins.shape[0] // 20  # not vacuous
+    auto = first_hits(occ, grid, origins.float(), directions.float(), t_max)  # auto picks the compiled walk
+    assert all(
+        torch.equal(a, b)
+        for a, b in zip(
+            auto, first_hits(occ, grid, origins.float(), directions.float(), t_max, kernel="torch"), strict=True
+        )
+    )
+
+
+def test_kernel_choice_is_checked(monkeypatch):
+    from occplug.geometry import raycast_numba
+
+    grid, occ, origins, directions, t_max = sparse_case(0)
+    with pytest.raises(ValueError, match="kernel must be 'auto', 'torch' or 'numba'"):
+        first_hits(occ, grid, origins, directions, t_max, kernel="cuda")
+    monkeypatch.setattr(raycast_numba, "available", lambda: False)
+    with pytest.raises(ValueError, match="numba is not installed"):
+        first_hits(occ, grid, origins, directions, t_max, kernel="numba")
+    fallback = first_hits(occ, grid, origins, directions, t_max)  # auto without numba: the torch walk
+    assert all(
+        torch.equal(a, b)
+        for a, b in zip(fallback, first_hits(occ, grid, origins, directions, t_max, kernel="torch"), strict=True)
+    )
 
 
 def test_clearance_is_the_capped_chebyshev_distance():

@@ -26,16 +26,23 @@ from ..check import CheckSummary, DataCheckError, Findings, progress_bar, read_g
 from ..classes import OCC3D_CLASSES
 from ..formats import FormatError
 from .format import read_labels
-from .index import NuScenesIndex, collect_index, read_index, split_lists
+from .index import NuScenesIndex, collect_index, missing_split_scenes, read_index, split_lists
 
 __all__ = ["check_index", "check_nuscenes"]
 
 _PCD_POINT = 20  # bytes of a nuScenes .pcd.bin point (5 float32)
 
 
-def check_nuscenes(root: str | Path, version: str, occ_root: str | Path | None = None, splits: str | Path = "official",
-                   sweeps: int = 10, lidar: bool = True, shape: Sequence[int] | None = None,
-                   progress: bool = True) -> CheckSummary:
+def check_nuscenes(
+    root: str | Path,
+    version: str,
+    occ_root: str | Path | None = None,
+    splits: str | Path = "official",
+    sweeps: int = 10,
+    lidar: bool = True,
+    shape: Sequence[int] | None = None,
+    progress: bool = True,
+) -> CheckSummary:
     """Check a nuScenes tree (with Occ3D labels under ``occ_root``) without writing anything.
 
     Args:
@@ -58,14 +65,10 @@ def check_nuscenes(root: str | Path, version: str, occ_root: str | Path | None =
     lists, where = split_lists(version, splits)
     findings = Findings()
     scene_file = Path(root) / version / "scene.json"
-    present = {split: set(names) for split, names in index.meta["splits"].items()}
-    for split in sorted(lists):
-        for name in sorted(lists[split]):
-            findings.check(f"scenes of {where}")
-            if name not in present.get(split, ()):
-                findings.add(
-                    f"scenes of {where}", scene_file, f"scene {name} of the {split} split is missing", "missing"
-                )
+    missing, named = missing_split_scenes(lists, index.meta["splits"])
+    findings.check(f"scenes of {where}", named)
+    for split, name in missing:
+        findings.add(f"scenes of {where}", scene_file, f"scene {name} of the {split} split is missing", "missing")
     splits_seen, checked, notes = _check_index_files(
         index, Path(root), None if occ_root is None else Path(occ_root), shape, lidar, findings, progress
     )

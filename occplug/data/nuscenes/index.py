@@ -24,7 +24,9 @@ The index ``<out>/nuscenes_index.npz`` (``numpy.savez_compressed``, no pickles) 
   ``(S, N, 4, 4)``: each camera in the **LiDAR keyframe's ego frame**, i.e.
   ``inv(E_lidar) @ E_cam @ C_cam`` with each sample data's own ego pose, exact for the ego motion
   between the camera's and the LiDAR's timestamps; ``intrinsics`` ``(S, N, 3, 3)``;
-  ``image_hw`` ``(S, N, 2)`` int32; ``lidar_origin`` ``(S, 3)`` float64 global LiDAR positions.
+  ``image_hw`` ``(S, N, 2)`` int32; ``lidar_origin`` ``(S, 3)`` float64 global LiDAR positions (kept
+  for older readers; RayIoU's origins are composed from the poses, see
+  :meth:`NuScenesIndex.sequence_lidar_origins`).
 * boxes, concatenated over samples with ``box_offsets`` ``(S + 1,)``: ``boxes`` ``(M, 9)``
   float64 in the ego frame (centre, length, width, height, yaw, vx, vy as ``Frame.boxes``;
   nuScenes stores sizes as width, length, height), ``box_labels`` (Occ3D ids by category,
@@ -323,11 +325,50 @@ class NuScenesIndex:
 
     def sequence_lidar_origins(self, sample: int) -> np.ndarray:
         """``(S, 3)`` float64: the LiDAR positions of every sample of ``sample``'s scene, in ``sample``'s
-        ego frame (metres) -- the origins RayIoU casts its query rays from."""
-        scene = self.samples[sample]["scene"]
-        origins = self.arrays["lidar_origin"][self.scene_members()[scene]]
-        ego = self.arrays["ego_to_global"][sample]
-        return (origins - ego[:3, 3]) @ ego[:3, :3]
+        ego frame (metres) -- the origins RayIoU casts its query rays from.
+
+        The sample's own row is its calibration translation exactly (``lidar_to_ego[:3, 3]``, e.g.
+        nuScenes' y = 0.0, a voxel face of the Occ3D grid), never a round trip through the global frame,
+        whose rounding (about 1e-14 m) decides on which side of that face a ray starts. Another frame
+        ``j``'s LiDAR is ``R_s^T R_j l_j + R_s^T (t_j - t_s)`` (``R, t`` the ego poses, ``l`` the
+        calibration translation): the global translations are differenced before anything is rotated,
+        so no rounding of their large magnitudes enters, and a frame whose ego pose equals the
+        sample's exactly (a parked ego) gets its calibration translation exactly too.
+        """
+        return lidar_origins_in_ego(
+            self.arrays["ego_to_global"],
+            self.arrays["lidar_to_ego"],
+            self.scene_members()[self.samples[sample]["scene"]],
+            sample,
+        )
+
+
+def lidar_origins_in_ego(
+    ego_to_global: np.ndarray, lidar_to_ego: np.ndarray, members: Sequence[int], sample: int
+) -> np.ndarray:
+    """``(len(members), 3)`` float64: the LiDAR position of each of ``members`` in ``sample``'s ego frame.
+
+    Args:
+        ego_to_global: ``(S, 4, 4)`` float64 ego poses of all samples.
+        lidar_to_ego: ``(S, 4, 4)`` float64 LiDAR calibrations of all samples.
+        members: the samples whose origins are wanted (a scene's, in temporal order).
+        sample: the sample whose ego frame they are expressed in.
+
+    See :meth:`NuScenesIndex.sequence_lidar_origins` for the arithmetic (exact for ``sample`` itself
+    and for frames with the same ego pose).
+    """
+    members = np.asarray(members, dtype=np.int64)
+    ref = ego_to_global[sample]
+    rot = ego_to_global[members, :3, :3]
+    same = (rot == ref[:3, :3]).all(axis=(1, 2))
+    relative = np.where(same[:, None, None], np.eye(3), ref[:3, :3].T @ rot)
+    moved = (ego_to_global[members, :3, 3] - ref[:3, 3]) @ ref[:3, :3]
+    lidar = lidar_to_ego[members, :3, 3]
+    out = np.einsum("sij,sj->si", relative, lidar) + moved
+    # R^T R l with R equal is not l in floating point: where the rotation is the sample's, rotate nothing
+    out[same] = lidar[same] + moved[same]
+    out[members == sample] = lidar_to_ego[sample, :3, 3]
+    return out
 
 
 def index_path(path: str | Path) -> Path:
@@ -385,9 +426,10 @@ def build_index(
         The index file.
 
     Raises:
-        FormatError: a missing table or file, a broken reference, a scene in no split (one line naming the file).
+        FormatError: a missing table or file, a broken reference, a scene in no split, a scene the split
+            names that the tables lack (one line naming the file, as ``occplug data check`` words it).
     """
-    index = collect_index(root, version, occ_root, splits, sweeps, progress)
+    index = collect_index(root, version, occ_root, splits, sweeps, progress, split_scenes_present=True)
     if check_files or occ_root is not None:
         root = Path(root)
         for rec in index.samples:
@@ -425,10 +467,12 @@ def collect_index(
     sweeps: int = 10,
     progress: bool = True,
     progress_delay: float = 0.0,
+    split_scenes_present: bool = False,
 ) -> NuScenesIndex:
     """What :func:`build_index` writes, built in memory from the tables only (no data file is opened).
 
-    Args: as :func:`build_index`; ``progress_delay``: seconds before the progress bar appears.
+    Args: as :func:`build_index`; ``progress_delay``: seconds before the progress bar appears;
+        ``split_scenes_present``: refuse a split list naming a scene the tables lack (before any sample is read).
 
     Returns:
         The index; its ``path`` is the folder of tables (``root / version``).
@@ -445,6 +489,8 @@ def collect_index(
             raise FormatError(f"{occ}: no such Occ3D folder")
         occ_gts = occ / "gts" if (occ / "gts").is_dir() else occ
     scene_split = _scene_splits(tables, version, splits)
+    if split_scenes_present:
+        _require_split_scenes(tables, version, splits, scene_split)
     channel_of = {}
     for cs in tables.rows["calibrated_sensor"]:
         sensor = tables.get(
@@ -633,6 +679,33 @@ def split_lists(version: str, splits: str | Path) -> tuple[dict[str, set[str]], 
     if source == "official":
         return official_splits(version), f"the official {version} split"
     return _check_split_file(Path(source)), source
+
+
+def missing_split_scenes(
+    lists: dict[str, set[str]], present: dict[str, Sequence[str]]
+) -> tuple[list[tuple[str, str]], int]:
+    """``([(split, scene)], named)``: the scenes the split lists name that ``present`` (an index's
+    ``meta["splits"]``) lacks in that split, in split then name order, and how many scenes the lists name."""
+    missing = [
+        (split, name)
+        for split in sorted(lists)
+        for name in sorted(lists[split])
+        if name not in set(present.get(split, ()))
+    ]
+    return missing, sum(len(names) for names in lists.values())
+
+
+def _require_split_scenes(tables: _Tables, version: str, splits: str | Path, scene_split: dict[str, str]) -> None:
+    """Raise the line ``occplug data check nuscenes`` reports for a scene the split lists name but the tables lack."""
+    lists, where = split_lists(version, splits)
+    present = {split: [n for n, s in scene_split.items() if s == split] for split in lists}
+    missing, named = missing_split_scenes(lists, present)
+    if missing:
+        split, name = missing[0]
+        raise FormatError(
+            f"{tables.folder / 'scene.json'}: scene {name} of the {split} split is missing "
+            f"({len(missing)} of {named} scenes of {where} affected)"
+        )
 
 
 def _scene_splits(tables: _Tables, version: str, splits: str | Path) -> dict[str, str]:
