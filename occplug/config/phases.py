@@ -279,7 +279,8 @@ def phase_specs(config: dict[str, Any]) -> list[PhaseSpec]:
         where = f"phases.{name}"
         if not _NAME.fullmatch(name) or name in RESERVED:
             raise ConfigError(
-                f"{where}: a phase name is letters, digits, '_' and '-', and not one of {', '.join(sorted(RESERVED))}"
+                f"phases: phase name {name!r}: a phase name is letters, digits, '_' and '-' (nothing else, no "
+                f"trailing newline), and not one of {', '.join(sorted(RESERVED))}"
             )
         overlay = {} if overlay is None else overlay
         if not isinstance(overlay, dict):
