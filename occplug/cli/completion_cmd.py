@@ -110,19 +110,26 @@ _occplug_place_of() {  # the index of the component place dotted key $1 is, or r
     return 1
 }
 
+_occplug_filter() {  # COMPREPLY: the words after $1 that start with $1 (compgen -W, the same in bash and zsh)
+    local prefix=$1 w
+    shift
+    COMPREPLY=()
+    for w in "$@"; do [[ "$w" == "$prefix"* ]] && COMPREPLY+=("$w"); done
+}
+
 _occplug_complete() {
     [[ -n "${ZSH_VERSION:-}" ]] && emulate -L ksh  # 0-based arrays and word splitting, as in bash
-    local line=${COMP_LINE:0:COMP_POINT} cur="" prev="" cmd="" w i _occplug_found=""
+    local line=${COMP_LINE:0:$COMP_POINT} cur="" prev="" cmd="" w i _occplug_found=""
     local -a words cands
     cands=()
     set -f
     words=($line)
     set +f
     if [[ "$line" != *[[:space:]] && ${#words[@]} -gt 0 ]]; then
-        cur=${words[${#words[@]}-1]}
-        words=("${words[@]:0:${#words[@]}-1}")
+        cur=${words[$((${#words[@]} - 1))]}
+        words=("${words[@]:0:$((${#words[@]} - 1))}")
     fi
-    ((${#words[@]} > 0)) && prev=${words[${#words[@]}-1]}
+    ((${#words[@]} > 0)) && prev=${words[$((${#words[@]} - 1))]}
     for ((i = 1; i < ${#words[@]}; i++)); do
         w=${words[i]}
         [[ "$w" == -* || "$w" == *=* ]] && continue
@@ -131,13 +138,14 @@ _occplug_complete() {
     if [[ "$prev" == "-c" || "$prev" == "--config" ]]; then
         cands=($_occplug_configs)
         for w in configs/*.yaml configs/*/*.yaml; do [[ -e "$w" ]] && cands+=("$w" "${w#configs/}"); done
-        COMPREPLY=($(compgen -W "${cands[*]}" -- "$cur") $(compgen -f -- "$cur"))
+        _occplug_filter "$cur" "${cands[@]}"
+        [[ -z "${ZSH_VERSION:-}" ]] && COMPREPLY+=($(compgen -f -- "$cur"))  # zsh: complete -o default lists files
         return 0
     fi
     if [[ "$cur" == *=* ]]; then  # KEY=VALUE: the registered names of KEY's kind when KEY ends in .type
         local key=${cur%%=*}
         if [[ "$key" == *.type ]] && _occplug_place_of "${key%.type}"; then
-            COMPREPLY=($(compgen -W "${_occplug_place_names[_occplug_found]}" -- "${cur#*=}"))
+            _occplug_filter "${cur#*=}" ${_occplug_place_names[_occplug_found]}
         fi
         return 0
     fi
@@ -147,11 +155,11 @@ _occplug_complete() {
         if [[ "$w" == -* ]]; then options+=" $w"; else subcommands+=" $w"; fi
     done
     if [[ "$cur" == -* ]]; then
-        COMPREPLY=($(compgen -W "$options" -- "$cur"))
+        _occplug_filter "$cur" $options
         return 0
     fi
     if [[ -n "$subcommands" || "$cmd" == "" ]]; then
-        COMPREPLY=($(compgen -W "$subcommands" -- "$cur"))
+        _occplug_filter "$cur" $subcommands
         return 0
     fi
     [[ " $options " == *" -c "* ]] || return 0  # no config, no overrides: files (complete -o default)
@@ -163,7 +171,7 @@ _occplug_complete() {
             if _occplug_place_of "$parent.$w"; then cands+=("$parent.$w."); else cands+=("$parent.$w="); fi
         done
     fi
-    COMPREPLY=($(compgen -W "${cands[*]}" -- "$cur"))
+    _occplug_filter "$cur" "${cands[@]}"
     type compopt > /dev/null 2>&1 && compopt -o nospace 2> /dev/null
     return 0
 }
