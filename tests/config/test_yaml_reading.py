@@ -229,3 +229,12 @@ def test_a_phase_name_with_a_trailing_newline_is_refused(tmp_path):
     with pytest.raises(ConfigError, match="phase name 'teacher\\\\n'"):
         validate(compose([str(path)]).resolved(), get_registry())
     phase_specs({**base, "phases": {"teacher": {}}})  # the same name without the newline is fine
+
+
+def test_data_synth_knobs_read_as_config_overrides_do(tmp_path, capsys):
+    out = tmp_path / "w"
+    assert main(["data", "synth", "--preset", "tiny", "--out", str(out), "image_noise=.inf"]) == 2
+    assert _error_line(capsys) == "error: data.image_noise: expected a finite number, got float inf"
+    assert main(["data", "synth", "--preset", "tiny", "--out", str(out), "image_size=[1e+2, 64]"]) == 2
+    assert _error_line(capsys).startswith("error: data.image_size: expected list[int] or null, got list [100.0, 64]")
+    assert not out.exists()
