@@ -28,6 +28,9 @@ from typing import Any
 from ruamel.yaml import YAML
 from ruamel.yaml.comments import CommentedMap, CommentedSeq
 from ruamel.yaml.error import MarkedYAMLError, YAMLError
+from ruamel.yaml.nodes import ScalarNode
+from ruamel.yaml.resolver import VersionedResolver
+from ruamel.yaml.scalarstring import SingleQuotedScalarString
 
 from .errors import ConfigError
 
@@ -71,7 +74,21 @@ def _dumper() -> YAML:
     y = YAML(typ="rt", pure=True)  # round-trip mode: block mappings with flow lists of scalars, key order kept
     y.width = 120
     y.representer.add_representer(type(None), lambda r, _: r.represent_scalar("tag:yaml.org,2002:null", "null"))
+    y.representer.add_representer(float, _represent_float)
     return y
+
+
+def _represent_float(representer: Any, value: float) -> Any:
+    """``1.0e-20``, not ``1e-20``: a mantissa with a dot, which YAML 1.1 readers also take for a float."""
+    if value != value:
+        text = ".nan"
+    elif value in (float("inf"), float("-inf")):
+        text = ".inf" if value > 0 else "-.inf"
+    else:
+        text = repr(value)
+        if "e" in text and "." not in text:
+            text = text.replace("e", ".0e", 1)
+    return representer.represent_scalar("tag:yaml.org,2002:float", text)
 
 
 def styled(value: Any) -> Any:
@@ -80,8 +97,10 @@ def styled(value: Any) -> Any:
     styled, perhaps with comments) stay as they are."""
     if isinstance(value, (CommentedMap, CommentedSeq)):
         return value
+    if isinstance(value, str):
+        return _quoted_for_yaml_1_1(value)
     if isinstance(value, Mapping):
-        out = CommentedMap((k, styled(v)) for k, v in value.items())
+        out = CommentedMap((styled(k), styled(v)) for k, v in value.items())
         out.fa.set_block_style()
         return out
     if isinstance(value, (list, tuple)):
@@ -193,9 +212,20 @@ def read_yaml(path: str | Path) -> Any:
     return parse_yaml(text, str(path))
 
 
+_YAML_1_1 = VersionedResolver(version=(1, 1))
+
+
+def _quoted_for_yaml_1_1(text: str) -> str:
+    """``text``, quoted where a YAML 1.1 reader (PyYAML's ``safe_load``, scripts reading a run's ``config.yaml``)
+    would take it for something else (``yes``, ``on``, ``1:30``); YAML 1.2's own cases the dumper quotes."""
+    if _YAML_1_1.resolve(ScalarNode, text, (True, False)) != "tag:yaml.org,2002:str":
+        return SingleQuotedScalarString(text)
+    return text
+
+
 def dump_yaml(data: Any) -> str:
     """``data`` (plain containers; tuples become lists) as YAML 1.2 text that :func:`parse_yaml` reads back
-    equal."""
+    equal, and a YAML 1.1 reader too (strings such as ``yes`` quoted)."""
     stream = io.StringIO()
     _dumper().dump(styled(data), stream)
     return stream.getvalue()

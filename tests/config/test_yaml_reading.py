@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 import pytest
+import yaml
 
 from occplug.cli import main
 from occplug.config import ConfigError, compose, phase_specs, read_config, validate
@@ -55,8 +56,13 @@ def test_yaml_1_2_booleans_and_strings():
         "d": 15,
         "e": 17,
     }
-    tricky = {"s": ["1e-3", "yes", "null", ".inf", "~", "0o17", ""], "n": [1e-3, 2e-4, 0.5, 1e300, None, True]}
+    tricky = {
+        "s": ["1e-3", "yes", "On", "1:30", "null", ".inf", "~", "0o17", ""],
+        "n": [1e-3, 2e-4, 0.5, 1e300, 2e-20, -1.5e-7, None, True],
+        "no": "key",
+    }
     assert parse_yaml(dump_yaml(tricky), "dump") == tricky
+    assert yaml.safe_load(dump_yaml(tricky)) == tricky  # a YAML 1.1 reader (a script on a run's config.yaml) too
 
 
 def test_config_validate_accepts_a_paper_learning_rate_end_to_end(tmp_path, capsys):
