@@ -249,13 +249,14 @@ def _references(text: str) -> list[str]:
 
 
 def _target(ref: str, at: tuple[Any, ...]) -> tuple[Any, ...] | None:
-    """The absolute path a reference at ``at`` (the referring leaf's path) names, or None."""
+    """The absolute path a reference names, made in the node at path ``at`` (the referring value's parent), or
+    None."""
     if not ref:
         return None
-    dots = len(ref) - len(ref.lstrip("."))
-    base: tuple[Any, ...] = at[: len(at) - dots] if dots else ()
-    if dots and len(at) < dots:
+    dots = len(ref) - len(ref.lstrip("."))  # ``.x``: a key of the same node, ``..x``: of its parent, ...
+    if dots and len(at) < dots - 1:
         return None
+    base: tuple[Any, ...] = at[: len(at) - dots + 1] if dots else ()
     rest = ref[dots:].replace("[", ".").replace("]", "")
     return base + tuple(p for p in rest.split(".") if p)
 

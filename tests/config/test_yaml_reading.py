@@ -130,6 +130,12 @@ def test_an_interpolation_chain_is_bounded_in_depth():
         check_interpolations(chain)
     ok = {"k0": 1, **{f"k{i}": f"${{k{i - 1}}}" for i in range(1, MAX_INTERPOLATION_DEPTH + 1)}}
     check_interpolations(ok)  # the bound itself is allowed
+    relative = {"m": {"k0": 1, **{f"k{i}": f"${{.k{i - 1}}}" for i in range(1, MAX_INTERPOLATION_DEPTH + 2)}}}
+    with pytest.raises(ConfigError, match=rf"^m.k{MAX_INTERPOLATION_DEPTH + 1}: interpolations nest"):
+        check_interpolations(relative)  # relative references (${.key}, ${..key}) are followed too
+    up = {"k0": 1, "m": {f"k{i}": f"${{..k{i - 1}}}" if i == 1 else f"${{.k{i - 1}}}" for i in range(1, 40)}}
+    with pytest.raises(ConfigError, match=rf"^m.k{MAX_INTERPOLATION_DEPTH + 1}: interpolations nest"):
+        check_interpolations(up)
 
 
 def test_ordinary_interpolations_still_resolve():
