@@ -8,6 +8,9 @@ element; :class:`Length` bounds a list's length.
 Each constraint can also list values that violate it (:meth:`Constraint.violations`), so a test
 generated from the registry proves every declared rule is enforced.
 
+Beyond the declared rules, config validation holds every number in range by default: a float finite, an int
+within 64 bits (:func:`occplug.config.validate.out_of_range`).
+
 A leaf module (it imports nothing of occplug), so data modules and metrics declare rules without an
 import circle through the config package. It is the constraints' one home: plugins import them from here.
 """
@@ -28,6 +31,7 @@ __all__ = [
     "Range",
     "UnitInterval",
     "constraints_of",
+    "describe_rules",
     "violated",
 ]
 
@@ -181,6 +185,15 @@ def violated(value: Any, annotation: Any) -> str | None:
             if problem is not None:
                 return f"every element {problem}"
     return None
+
+
+def describe_rules(annotation: Any) -> str:
+    """The rules declared on ``annotation`` in words (``"> 0"``, ``"every element in [0, 1]"``), or ``""``."""
+    parts = [rule.describe() for rule in constraints_of(annotation)]
+    element = _element_annotation(annotation)
+    if element is not None and (inner := describe_rules(element)):
+        parts.append(f"every element {inner}")
+    return ", ".join(parts)
 
 
 def _with_type(rule: Constraint, value: Any) -> str:

@@ -20,7 +20,17 @@ from .errors import UsageError
 __all__ = ["COMMANDS", "add_config_args", "build_parser", "main"]
 
 #: Modules under ``occplug.cli`` that add sub-commands, in help order.
-COMMANDS = ("run", "plugins_cmd", "config_cmd", "data_cmd", "eval_cmd", "viz_cmd", "export_cmd", "bench_cmd")
+COMMANDS = (
+    "run",
+    "plugins_cmd",
+    "config_cmd",
+    "data_cmd",
+    "eval_cmd",
+    "viz_cmd",
+    "export_cmd",
+    "bench_cmd",
+    "completion_cmd",
+)
 
 
 def add_config_args(p: argparse.ArgumentParser) -> None:

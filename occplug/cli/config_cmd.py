@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
-
-import yaml
+import json
 
 from occplug.config import compose, validate
+from occplug.config.defaults import annotated_yaml
 from occplug.config.phases import PHASE_KEYS, phase_specs
+from occplug.config.yamlio import dump_yaml
 from occplug.plugins import get_registry
 
 from . import add_config_args
@@ -22,6 +23,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     add_config_args(show)
     show.add_argument("--explain", metavar="KEY", help="say which file or override set KEY")
     show.add_argument("--no-validate", action="store_true", help="print without validating")
+    show.add_argument(
+        "--defaults",
+        action="store_true",
+        help="also print every component argument the config leaves out, each with its type, rule and default",
+    )
     show.set_defaults(func=cmd_show)
     check = actions.add_parser(
         "validate", help="check the composed config (components, arguments, query heads); builds nothing"
@@ -46,12 +52,15 @@ def cmd_show(args: argparse.Namespace) -> int:
         for k, origin in sorted(hits.items()):
             print(f"{k}: set by {origin}")
         return 0
-    print(yaml.safe_dump(resolved, sort_keys=False, default_flow_style=None), end="")
+    registry = get_registry()
+    show = (lambda cfg: annotated_yaml(cfg, registry)) if args.defaults else dump_yaml
+    print(show(resolved), end="")
     specs = phase_specs(resolved)
     for i, spec in enumerate(specs, 1):  # each phase's whole config, as fit runs it
         own = {k: spec.overlay[k] for k in PHASE_KEYS if k in spec.overlay}
-        print(f"---\n# phase {i}/{len(specs)}: {spec.name}" + (f" ({yaml.safe_dump(own, default_flow_style=True).strip()})" if own else ""))
-        print(yaml.safe_dump(spec.config, sort_keys=False, default_flow_style=None), end="")
+        settings = f" ({json.dumps(own)})" if own else ""
+        print(f"---\n# phase {i}/{len(specs)}: {spec.name}{settings}")
+        print(show(spec.config), end="")
     return 0
 
 

@@ -6,10 +6,9 @@ from __future__ import annotations
 
 import argparse
 
-import yaml
-
 from occplug.config import ConfigError
 from occplug.config.validate import validate_component
+from occplug.config.yamlio import parse_yaml
 from occplug.plugins import get_registry
 
 from . import paths as check
@@ -234,7 +233,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         key, sep, raw = item.partition("=")
         if not sep or not key:
             raise ConfigError(f"'{item}': expected key=value (a synthetic data-module argument)")
-        node[key] = yaml.safe_load(raw) if raw.strip() else None
+        node[key] = parse_yaml(raw, f"'{item}'") if raw.strip() else None  # YAML 1.2, as config overrides
     registry = get_registry()
     validate_component(node, "data", "data", registry)
     if args.pseudo is not None and args.format == "frames":

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from occplug.config.defaults import Argument, arguments
 from occplug.kinds import KINDS
 from occplug.plugins import get_registry, plugin_reports
 
@@ -14,7 +15,9 @@ from .errors import UsageError
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     plugins = sub.add_parser("plugins", help="list installed plugins and their components")
     plugins.add_argument("--json", action="store_true", help="print JSON")
-    plugins.add_argument("--kind", help="only components of this kind")
+    plugins.add_argument(
+        "--kind", help="only components of this kind, each with its constructor arguments (name, type, rule, default)"
+    )
     plugins.set_defaults(func=cmd_plugins)
 
 
@@ -31,6 +34,11 @@ def cmd_plugins(args: argparse.Namespace) -> int:
                 d["components"] = {k: v for k, v in d["components"].items() if k == args.kind}
             # where each component's code is, so a config's `type:` reaches it in one step
             d["sources"] = {k: {n: registry.get(k, n).source for n in names} for k, names in d["components"].items()}
+            if args.kind:  # what a config node of each component may set
+                d["arguments"] = {
+                    k: {n: [_argument_json(a) for a in arguments(registry.get(k, n).factory, k)] for n in names}
+                    for k, names in d["components"].items()
+                }
             out.append(d)
         print(json.dumps(out, indent=2))
         return 0
@@ -49,4 +57,19 @@ def cmd_plugins(args: argparse.Namespace) -> int:
             for name in r.components.get(kind, []):
                 entry = registry.get(kind, name)
                 print(f"  {kind:<15} {name:<{name_width}} {entry.source:<{width}}  {entry.summary}")
+                if args.kind:
+                    for arg in arguments(entry.factory, kind):
+                        print(f"      {arg.name}: {arg.describe()}")
     return 0
+
+
+def _argument_json(arg: Argument) -> dict[str, object]:
+    return {
+        "name": arg.name,
+        "type": arg.type,
+        "rule": arg.rule or None,
+        "required": arg.required,
+        "given": arg.given,
+        "default": arg.default if arg.representable else None,
+        "default_is_plain_data": arg.representable or arg.required,
+    }

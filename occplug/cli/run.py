@@ -6,8 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-import yaml
-
+from occplug.config import read_config
 from occplug.plugins import broken_plugins_warning
 from occplug.run import runner
 from occplug.run.phases import fit_phases
@@ -56,7 +55,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
             saved_path = run_dir / "config.yaml"
             if not saved_path.is_file():
                 raise UsageError(f"--resume {run_dir}: no config.yaml there (not an occplug run directory)")
-            saved = yaml.safe_load(saved_path.read_text())
+            saved = read_config(saved_path)  # YAML 1.2 within limits; one error line naming the file
             cfg = runner.load_config(args.config, args.overrides, saved=saved)
         else:
             if not args.config:

@@ -3,7 +3,7 @@
 from occplug.settings import make_settings, settings
 from occplug.slots import TOP_LEVEL, Slot
 
-from .compose import Composed, compose, resolve
+from .compose import Composed, compose, read_config, resolve
 from .errors import ConfigError
 from .phases import phase_specs
 from .refs import resolve_ref, search_path
@@ -17,6 +17,7 @@ __all__ = [
     "compose",
     "make_settings",
     "phase_specs",
+    "read_config",
     "resolve",
     "resolve_ref",
     "search_path",

@@ -7,10 +7,11 @@ Rules:
 2. Mappings deep-merge; lists and scalars replace.
 3. When a component node's ``type`` changes, its old arguments that the new component does not
    accept are dropped (no stale kwargs); those it accepts (e.g. ``grid``) carry over.
-4. Several ``-c`` files merge in order; ``key=value`` overrides (values parsed as YAML) apply
-   last; ``~key`` deletes a key.
+4. Several ``-c`` files merge in order; ``key=value`` overrides (values parsed as YAML 1.2, so
+   ``optimizer.lr=1e-3`` is a float) apply last; ``~key`` deletes a key.
 5. ``${...}`` interpolations resolve after everything is merged.
 
+Files and override values are read as YAML 1.2, with limits (:mod:`occplug.config.yamlio`).
 Every leaf remembers the file or override that last set it (``occplug config show --explain``).
 """
 
@@ -22,7 +23,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -31,8 +31,9 @@ from occplug.slots import component_params, slot_at
 
 from .errors import ConfigError
 from .refs import resolve_ref
+from .yamlio import check_interpolations, parse_yaml, read_yaml
 
-__all__ = ["Composed", "compose", "resolve"]
+__all__ = ["Composed", "compose", "read_config", "resolve"]
 
 
 @dataclass
@@ -45,28 +46,37 @@ class Composed:
 
     def resolved(self) -> dict[str, Any]:
         """The config with interpolations resolved (plain containers)."""
-        return resolve(self.data)
+        return resolve(self.data, self.sources)
 
 
-def resolve(data: dict[str, Any]) -> dict[str, Any]:
-    """Resolve ``${...}`` interpolations; raise :class:`ConfigError` on a broken one."""
+def resolve(data: dict[str, Any], sources: dict[str, str] | None = None) -> dict[str, Any]:
+    """Resolve ``${...}`` interpolations, within bounds (:func:`~occplug.config.yamlio.check_interpolations`).
+
+    Raises:
+        ConfigError: a broken interpolation, or one past the bounds; one line naming the key (and, given
+            ``sources``, the file or override that set it).
+    """
+    check_interpolations(data, sources)
     try:
         return OmegaConf.to_container(OmegaConf.create(data), resolve=True)  # type: ignore[return-value]
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", None)
-        raise ConfigError(f"{key + ': ' if key else ''}{str(exc).splitlines()[0]}") from None
+        where = (sources or {}).get(key or "")
+        suffix = f" (set by {where})" if where else ""
+        raise ConfigError(f"{key + ': ' if key else ''}{str(exc).splitlines()[0]}{suffix}") from None
+    except (MemoryError, RecursionError):
+        raise ConfigError("resolving the config's ${...} interpolations ran out of memory or depth") from None
 
 
-def _load_yaml(path: Path) -> dict[str, Any]:
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ConfigError(f"{path}:{where}: invalid YAML: {problem}") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
+def read_config(path: str | Path) -> dict[str, Any]:
+    """One config file (or a run's ``config.yaml``) as a mapping, read as YAML 1.2 within limits.
+
+    Raises:
+        ConfigError: one line naming the file (unreadable, not UTF-8, invalid YAML, a non-plain tag, an alias
+            bomb, not a mapping).
+    """
+    path = Path(path)
+    data = read_yaml(path)
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -85,7 +95,7 @@ class _Merger:
         if path in stack:
             chain = " -> ".join(str(p) for p in (*stack, path))
             raise ConfigError(f"{path}: circular base: {chain}")
-        body = _load_yaml(path)
+        body = read_config(path)
         bases = body.pop("base", None) or []
         if isinstance(bases, str):
             bases = [bases]
@@ -149,8 +159,8 @@ class _Merger:
         if key.startswith("+"):
             raise ConfigError(f"override '{item}': no '+' prefix needed, write {key[1:]}={raw}")
         try:
-            value = yaml.safe_load(raw) if raw.strip() else None
-        except yaml.YAMLError:
+            value = parse_yaml(raw, f"override '{item}'") if raw.strip() else None
+        except ConfigError:  # not YAML (an unbalanced bracket, a stray colon): the text itself
             value = raw
         parts = key.split(".")
         phases = self.data.get("phases")

@@ -58,7 +58,7 @@ PHASE_KEYS = ("freeze", "init_from", "pseudo_labels_from")
 #: Names a phase cannot take (files and folders of the run directory).
 RESERVED = frozenset({"pseudo_labels", "checkpoints", "logs", "tensorboard", "mlruns", "wandb"})
 
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]*$")
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")  # matched whole (fullmatch: no trailing newline slips past '$')
 
 
 @dataclass(frozen=True)
@@ -277,9 +277,10 @@ def phase_specs(config: dict[str, Any]) -> list[PhaseSpec]:
     for name, overlay in phases.items():
         name = str(name)
         where = f"phases.{name}"
-        if not _NAME.match(name) or name in RESERVED:
+        if not _NAME.fullmatch(name) or name in RESERVED:
             raise ConfigError(
-                f"{where}: a phase name is letters, digits, '_' and '-', and not one of {', '.join(sorted(RESERVED))}"
+                f"phases: phase name {name!r}: a phase name is letters, digits, '_' and '-' (nothing else, no "
+                f"trailing newline), and not one of {', '.join(sorted(RESERVED))}"
             )
         overlay = {} if overlay is None else overlay
         if not isinstance(overlay, dict):

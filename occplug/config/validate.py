@@ -4,12 +4,18 @@ Every component node is checked against its factory's constructor signature: an 
 (with the closest valid key), a missing required key, or a value of the wrong type is one
 :class:`ConfigError` line naming the full key path. An argument annotated with a group of settings
 (:func:`occplug.config.settings`) is checked the same way, field by field, down to any depth.
+
+Numbers are in range by default, wherever they sit (component arguments, settings, the optimizer,
+scheduler, trainer and checkpoint sections): a float is finite (``optimizer.lr=.inf`` is refused, not
+trained into NaN weights), an int fits in 64 bits, and the top-level ``seed`` is what NumPy and
+Lightning accept (``0 .. 2**32 - 1``).
 """
 
 from __future__ import annotations
 
 import collections.abc as cabc
 import inspect
+import math
 import typing
 from dataclasses import dataclass
 from typing import Any
@@ -26,9 +32,11 @@ from .errors import ConfigError
 __all__ = [
     "RUN_CONSTRAINTS",
     "OPTIMIZERS",
+    "SEED_RANGE",
     "SCHEDULERS",
     "UsedComponent",
     "check_type",
+    "out_of_range",
     "validate",
     "validate_component",
 ]
@@ -37,6 +45,29 @@ __all__ = [
 OPTIMIZERS = ("adamw", "adam", "sgd")
 #: Learning-rate schedules (``scheduler.type``).
 SCHEDULERS = ("none", "cosine", "constant", "step")
+
+
+#: The seeds ``lightning.seed_everything`` (and NumPy's legacy seeding) accept.
+SEED_RANGE = (0, 2**32 - 1)
+_INT64 = (-(2**63), 2**63 - 1)
+
+
+def out_of_range(value: Any) -> str | None:
+    """What is wrong with a number anywhere in ``value`` (lists and mappings searched), or None.
+
+    A float must be finite; an int must fit in a signed 64-bit integer (what every tensor and
+    generator takes).
+    """
+    if isinstance(value, float) and not math.isfinite(value):
+        return "a finite number"
+    if isinstance(value, int) and not isinstance(value, bool) and not _INT64[0] <= value <= _INT64[1]:
+        return "an int that fits in 64 bits"
+    items = value.values() if isinstance(value, dict) else value if isinstance(value, (list, tuple)) else ()
+    for item in items:
+        problem = out_of_range(item)
+        if problem is not None:
+            return ("every element " if isinstance(value, (list, tuple)) else "") + problem
+    return None
 
 
 def _describe(value: Any) -> str:
@@ -169,6 +200,8 @@ class _Validator:
                 raise ConfigError(f"{path}.{key}: expected {problem}, got {_describe(value)}")
             elif group is not None and isinstance(value, dict):
                 self.arguments(value, component_params(group), f"{path}.{key}", group.__name__, "setting")
+            elif (problem := out_of_range(value)) is not None:  # any float finite, any int within 64 bits
+                raise ConfigError(f"{path}.{key}: expected {problem}, got {_describe(value)}")
         missing = [k for k, (p, _) in params.items() if p.default is inspect.Parameter.empty and k not in node]
         missing = [k for k in missing if k not in given]
         if missing:
@@ -282,6 +315,8 @@ def _validate_kwargs(
             )
         if not check_type(val, params[key][1]):
             raise ConfigError(f"{section}.{key}: expected {_type_name(params[key][1])}, got {_describe(val)}")
+        if (problem := out_of_range(val)) is not None:
+            raise ConfigError(f"{section}.{key}: expected {problem}, got {_describe(val)}")
         _check_run_number(f"{section}.{key}", val)
 
 
@@ -331,6 +366,10 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
     v = _Validator(registry)
     if "seed" in config and not check_type(config["seed"], int):
         raise ConfigError(f"seed: expected int, got {_describe(config['seed'])}")
+    if "seed" in config and not SEED_RANGE[0] <= config["seed"] <= SEED_RANGE[1]:
+        raise ConfigError(
+            f"seed: expected an int in [0, 2**32 - 1] (what NumPy seeds), got {_describe(config['seed'])}"
+        )
     if "grid" in config:
         _validate_grid(config["grid"])
     if config.get("init_from") is not None:

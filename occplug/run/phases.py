@@ -30,10 +30,10 @@ from typing import Any
 
 import lightning as L
 import torch
-import yaml
 from lightning.pytorch.callbacks import Callback
 
 from occplug.config.phases import PhaseSpec, PseudoLabelsFrom, phase_specs
+from occplug.config.yamlio import dump_yaml
 from occplug.data.teacher_labels import DONE, META, write_teacher_file
 from occplug.interfaces.model import OccupancyModel
 from occplug.run import runner
@@ -244,8 +244,7 @@ def fit_phases(
         run_dir.mkdir(parents=True, exist_ok=True)
         runner.write_text_atomic(
             run_dir / "config.yaml",
-            "# resolved occplug config with phases; each phase's own config in <phase>/config.yaml\n"
-            + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None),
+            "# resolved occplug config with phases; each phase's own config in <phase>/config.yaml\n" + dump_yaml(cfg),
         )
         runner.write_text_atomic(run_dir / "plugins.json", json.dumps(runner.plugin_versions(), indent=2) + "\n")
     results: dict[str, dict[str, Any]] = {}

@@ -32,12 +32,12 @@ from typing import Any
 import lightning as L
 import numpy as np
 import torch
-import yaml
 from lightning.fabric.plugins import TorchCheckpointIO
 from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import BasePredictionWriter, Callback, ModelCheckpoint
 
 from occplug.config import ConfigError, compose, validate
+from occplug.config.defaults import run_config_text
 from occplug.data.datamodule import OccDataModule
 from occplug.data.formats import FormatError
 from occplug.errors import UserError
@@ -470,11 +470,7 @@ def fit(
     )
     if trainer.is_global_zero:
         run_dir.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(
-            run_dir / "config.yaml",
-            "# resolved occplug config; plugins and versions in plugins.json\n"
-            + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None),
-        )
+        write_text_atomic(run_dir / "config.yaml", run_config_text(cfg))  # every component argument, defaults too
         write_text_atomic(run_dir / "plugins.json", json.dumps(plugin_versions(), indent=2) + "\n")
     with data_errors(), warnings.catch_warnings():
         # the train loader does resume mid-epoch (OccDataModule.state_dict), through a path Lightning does not see
