@@ -36,6 +36,7 @@ def test_the_recipe_trains_a_step_from_a_timm_convnext_state_dict(tmp_path):
         "model.supervision.queries.points_per_sample=128",
         "model.supervision.queries.near_range=24.0",
         "model.supervision.queries.sky_rays=32",
+        "model.supervision.queries.pixel_stride=4",
         "trainer.precision=32-true",
         "trainer.max_steps=1",
         "trainer.limit_val_batches=0",
