@@ -158,13 +158,73 @@ def load_state_dict_file(path: str) -> dict[str, Tensor]:
     return state
 
 
+def _import_timm() -> Any:
+    """``import timm``, or a :class:`UserError` naming the install that works beside this torch."""
+    try:
+        import timm
+    except ImportError:
+        raise ImportError("the 'timm' encoder needs timm: pip install 'occplug[timm]'") from None
+    except Exception as exc:  # a torchvision built for another torch: RuntimeError
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise UserError(
+            f"the 'timm' encoder: timm does not import ({type(exc).__name__}: {first}); timm needs a torchvision "
+            f"built for this torch {torch.__version__} (PyPI's torchvision wheels need PyPI's torch: "
+            "pip install torch==2.14.1 torchvision==0.29.1)"
+        ) from None
+    return timm
+
+
+def _check_timm_state(state: dict[str, Any], model_name: str, weights: str) -> None:
+    """Raise a one-line :class:`UserError` unless ``state`` holds every tensor of timm's ``model_name``.
+
+    ``state`` is compared with the plain model (``timm.create_model(model_name)``, built on the meta
+    device: names and shapes only, no memory): every tensor outside the classifier (``pretrained_cfg
+    ["classifier"]``) must be in the file with its shape, and the file must hold nothing else. The
+    classifier's keys may be missing or of another shape (a file saved with ``num_classes=0`` or a
+    fine-tuned head).
+    """
+    timm = _import_timm()
+    with torch.device("meta"):
+        plain = timm.create_model(model_name, pretrained=False)
+    classifier = plain.pretrained_cfg.get("classifier") or ()
+    heads = tuple(f"{c}." for c in ((classifier,) if isinstance(classifier, str) else classifier))
+    own = {k: v for k, v in plain.state_dict().items() if not k.startswith(heads)}
+    given = {k: v for k, v in state.items() if not k.startswith(heads)}
+
+    def listed(keys: list[str]) -> str:
+        return ", ".join(keys[:3]) + (" ..." if len(keys) > 3 else "")
+
+    missing = [k for k in own if k not in given]
+    unexpected = [k for k in given if k not in own]
+    if missing or unexpected:
+        parts = [f"{len(missing)} missing key(s): {listed(missing)}"] if missing else []
+        parts += [f"{len(unexpected)} unexpected key(s): {listed(unexpected)}"] if unexpected else []
+        raise UserError(
+            f"model.encoder.weights: {weights} is not a state dict of timm's '{model_name}' "
+            f"({'; '.join(parts)}); expected a file saved as torch.save(timm.create_model('{model_name}').state_dict())"
+        )
+    for key, tensor in own.items():
+        if tuple(given[key].shape) != tuple(tensor.shape):
+            raise UserError(
+                f"model.encoder.weights: {weights}: {key} is {tuple(given[key].shape)} but timm's "
+                f"'{model_name}' has {tuple(tensor.shape)}"
+            )
+
+
 class TimmEncoder(ImageEncoder):
     """Any timm backbone (``features_only``) with a 1x1 conv neck to ``out_channels``.
 
-    Needs the optional dependency timm (``pip install 'occplug[timm]'``). Nothing is ever
-    downloaded: the backbone is built with ``pretrained=False`` and, if ``weights`` is given,
-    loaded from that local file. Classifier-head keys in the file (absent from a
-    ``features_only`` backbone) are ignored; a backbone key missing from the file is an error.
+    Needs the optional dependency timm (``pip install 'occplug[timm]'``; timm needs torchvision, and PyPI's
+    torchvision needs PyPI's torch: ``torch==2.14.1 torchvision==0.29.1``). Nothing is ever downloaded: the
+    backbone is built with ``pretrained=False`` or, if ``weights`` is given, through timm's own pretrained
+    path from that local file: ``timm.models.load_state_dict`` reads it (``weights_only=True``; ``.pth`` or
+    ``.safetensors``; a ``state_dict`` / ``model`` / EMA entry and ``module.`` prefixes unwrapped) and
+    ``timm.create_model(..., pretrained=True, pretrained_cfg_overlay={"state_dict": ...})`` loads it into the
+    plain model before timm wraps it in ``features_only`` (which renames ConvNeXt's ``stem.0`` to
+    ``stem_0``). So the file is what a user saves, ``torch.save(timm.create_model(name).state_dict(), path)``
+    (an ImageNet checkpoint of ``name``): every tensor outside the classifier must be there with its shape,
+    else a one-line :class:`~occplug.errors.UserError` (exit code 2 from the CLI) names the first keys; the
+    classifier's keys are not needed.
 
     Args:
         model_name: a timm model name, e.g. ``"resnet18"``, ``"convnext_tiny"``.
@@ -172,7 +232,7 @@ class TimmEncoder(ImageEncoder):
         feature_level: which of the backbone's feature levels to use (timm ``out_indices``
             semantics; ``-1`` is the deepest). ``stride`` is that level's
             ``feature_info.reduction()``.
-        weights: path to a local checkpoint holding the backbone's state dict, or None.
+        weights: path to a local file holding timm's state dict of ``model_name``, or None.
         freeze: keep the backbone's parameters fixed and its norm layers in eval mode (the neck
             still trains).
 
@@ -191,26 +251,24 @@ class TimmEncoder(ImageEncoder):
         freeze: bool = False,
     ) -> None:
         super().__init__()
-        try:
-            import timm
-        except ImportError:
-            raise ImportError("the 'timm' encoder needs timm: pip install 'occplug[timm]'") from None
+        timm = _import_timm()
         if weights is not None and not os.path.isfile(weights):
             raise FileNotFoundError(f"timm encoder weights file not found: {weights}")
         self.model_name = model_name
         self.freeze = bool(freeze)
         self.standardise = _Standardise()
-        self.backbone = timm.create_model(
-            model_name, pretrained=False, features_only=True, out_indices=(feature_level,)
-        )
-        if weights is not None:
-            state = load_state_dict_file(weights)
-            result = self.backbone.load_state_dict(state, strict=False)
-            if result.missing_keys:
-                shown = ", ".join(result.missing_keys[:5]) + (" ..." if len(result.missing_keys) > 5 else "")
-                raise ValueError(
-                    f"{weights} does not fit timm model '{model_name}': {len(result.missing_keys)} missing key(s): {shown}"
-                )
+        features = {"features_only": True, "out_indices": (feature_level,)}
+        if weights is None:
+            self.backbone = timm.create_model(model_name, pretrained=False, **features)
+        else:
+            try:
+                state = timm.models.load_state_dict(weights)
+            except Exception as exc:  # torch.load and safetensors raise many types
+                first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise UserError(f"model.encoder.weights: {weights} cannot be read as a state dict: {first}") from None
+            _check_timm_state(state, model_name, weights)
+            overlay = {"state_dict": state}
+            self.backbone = timm.create_model(model_name, pretrained=True, pretrained_cfg_overlay=overlay, **features)
         self.stride = int(self.backbone.feature_info.reduction()[-1])
         self.out_channels = int(out_channels)
         self.neck = nn.Conv2d(int(self.backbone.feature_info.channels()[-1]), self.out_channels, 1)

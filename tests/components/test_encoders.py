@@ -10,6 +10,7 @@ import torch
 
 from occplug.components import SmallCNN, TimmEncoder
 from occplug.components.encoders import load_state_dict_file
+from occplug.errors import UserError
 
 
 @pytest.mark.parametrize("stride", [4, 8, 16])
@@ -62,8 +63,21 @@ def test_weights_file_loading(tmp_path) -> None:
     torch.testing.assert_close(load_state_dict_file(str(tmp_path / "wrapped.pt")), state)
 
 
-def test_timm_encoder_shapes_weights_round_trip_and_freeze(tmp_path) -> None:
-    pytest.importorskip("timm")
+def test_timm_encoder_whose_timm_does_not_import_names_the_install(tmp_path, monkeypatch) -> None:
+    """PyPI's torchvision beside the CPU torch makes ``import timm`` raise RuntimeError: one line says what works."""
+    broken = tmp_path / "timm"
+    broken.mkdir()
+    (broken / "__init__.py").write_text("raise RuntimeError('operator torchvision::nms does not exist')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "timm", raising=False)
+    with pytest.raises(UserError) as info:
+        TimmEncoder(model_name="resnet18")
+    message = str(info.value)
+    assert "\n" not in message and "operator torchvision::nms does not exist" in message
+    assert "pip install torch==2.14.1 torchvision==0.29.1" in message
+
+
+def test_timm_encoder_shapes_and_freeze() -> None:
     torch.manual_seed(0)
     images = torch.rand(1, 2, 3, 64, 96)
     deep = TimmEncoder(model_name="resnet18", out_channels=16)
@@ -72,18 +86,8 @@ def test_timm_encoder_shapes_weights_round_trip_and_freeze(tmp_path) -> None:
     mid = TimmEncoder(model_name="resnet18", out_channels=16, feature_level=2)
     assert mid.stride == 8
     assert mid(images).shape == (1, 2, 16, 8, 12)
-
-    path = tmp_path / "backbone.pt"
-    torch.save(mid.backbone.state_dict(), path)
-    torch.manual_seed(1)  # a different random init, overwritten by the file
-    loaded = TimmEncoder(model_name="resnet18", out_channels=16, feature_level=2, weights=str(path))
-    loaded.neck.load_state_dict(mid.neck.state_dict())
-    mid.eval()
-    loaded.eval()
-    torch.testing.assert_close(loaded(images), mid(images), rtol=0, atol=0)
-
-    with pytest.raises(FileNotFoundError, match="missing.pt"):
-        TimmEncoder(model_name="resnet18", weights=str(tmp_path / "missing.pt"))
+    with pytest.raises(ValueError, match="divisible"):
+        mid(torch.rand(1, 1, 3, 60, 96))
 
     frozen = TimmEncoder(model_name="resnet18", out_channels=16, feature_level=1, freeze=True)
     frozen.train()
@@ -93,81 +97,63 @@ def test_timm_encoder_shapes_weights_round_trip_and_freeze(tmp_path) -> None:
     assert frozen.neck.weight.grad is not None
 
 
-class _FakeFeatureInfo:
-    def __init__(self, reductions: list[int], channels: list[int]) -> None:
-        self._reductions, self._channels = reductions, channels
+def _save(state: dict[str, torch.Tensor], path) -> str:
+    if str(path).endswith(".safetensors"):
+        from safetensors.torch import save_file
 
-    def reduction(self) -> list[int]:
-        return self._reductions
-
-    def channels(self) -> list[int]:
-        return self._channels
-
-
-class _FakeFeatures(torch.nn.Module):
-    """timm's ``features_only`` contract in miniature: three stride-2 stages, ``out_indices`` picks the outputs."""
-
-    def __init__(self, out_indices: tuple[int, ...]) -> None:
-        super().__init__()
-        widths = [3, 4, 8, 16]
-        self.stages = torch.nn.ModuleList(
-            torch.nn.Sequential(torch.nn.Conv2d(widths[i], widths[i + 1], 3, 2, 1), torch.nn.BatchNorm2d(widths[i + 1]))
-            for i in range(3)
-        )
-        self.picked = [range(3)[i] for i in out_indices]
-        self.feature_info = _FakeFeatureInfo([2 ** (i + 1) for i in self.picked], [widths[i + 1] for i in self.picked])
-
-    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
-        out = []
-        for i, stage in enumerate(self.stages):
-            x = stage(x)
-            if i in self.picked:
-                out.append(x)
-        return out
+        save_file({k: v.contiguous() for k, v in state.items()}, str(path))
+    else:
+        torch.save(state, path)
+    return str(path)
 
 
-def test_timm_wrapper_against_a_stand_in_timm(tmp_path, monkeypatch) -> None:
-    """The wrapper's own logic (no download, local weights, strict keys, stride, neck, freeze) where timm is absent.
+@pytest.mark.parametrize(
+    ("name", "level", "suffix"),
+    [("convnext_atto", 1, "pth"), ("convnext_atto", -1, "safetensors"), ("resnet18", 2, "pth")],
+)
+def test_a_timm_state_dict_saved_as_a_user_saves_it_loads(tmp_path, name, level, suffix) -> None:
+    """``torch.save(timm.create_model(name).state_dict(), f)`` (ImageNet's classifier included) loads into the
+    ``features_only`` backbone, whose names differ for ConvNeXt (``stem_0``); the features are timm's own."""
+    import timm
 
-    CI cannot install timm beside the CPU torch build (timm pulls torchvision, which pulls another torch),
-    so this stand-in holds timm's ``create_model(..., features_only=True, out_indices=...)`` contract.
-    """
-    import sys
-    import types
-
-    calls = []
-
-    def create_model(name: str, pretrained: bool, features_only: bool, out_indices: tuple[int, ...]) -> _FakeFeatures:
-        calls.append((name, pretrained, features_only, out_indices))
-        return _FakeFeatures(out_indices)
-
-    monkeypatch.setitem(sys.modules, "timm", types.SimpleNamespace(create_model=create_model))
     torch.manual_seed(0)
-    images = torch.rand(1, 2, 3, 16, 24)
-    deep = TimmEncoder(model_name="fake", out_channels=5)
-    assert calls[-1] == ("fake", False, True, (-1,))  # never pretrained=True: nothing is downloaded
-    assert deep.stride == 8 and deep(images).shape == (1, 2, 5, 2, 3)
-    mid = TimmEncoder(model_name="fake", out_channels=5, feature_level=1)
-    assert mid.stride == 4 and mid(images).shape == (1, 2, 5, 4, 6)
+    source = timm.create_model(name).eval()
+    path = _save(source.state_dict(), tmp_path / f"{name}.{suffix}")
+    torch.manual_seed(1)  # another random init, overwritten by the file
+    encoder = TimmEncoder(model_name=name, out_channels=8, feature_level=level, weights=path).eval()
+    if name.startswith("convnext"):
+        assert "stem_0.weight" in encoder.backbone.state_dict()  # the wrapper's names are not the file's
+    x = torch.rand(2, 3, 64, 96)
+    with torch.no_grad():
+        (expected,) = source.forward_intermediates(encoder.standardise(x), indices=[level], intermediates_only=True)
+        (got,) = encoder.backbone(encoder.standardise(x))
+    torch.testing.assert_close(got, expected, rtol=0, atol=0)
+    # a file without the classifier (saved with num_classes=0) loads too
+    headless = _save(timm.create_model(name, num_classes=0).state_dict(), tmp_path / f"headless.{suffix}")
+    TimmEncoder(model_name=name, feature_level=level, weights=headless)
 
-    path = tmp_path / "backbone.pt"
-    torch.save({"model": {**mid.backbone.state_dict(), "head.fc.weight": torch.zeros(2)}}, path)  # extra head keys
-    torch.manual_seed(1)
-    loaded = TimmEncoder(model_name="fake", out_channels=5, feature_level=1, weights=str(path))
-    loaded.neck.load_state_dict(mid.neck.state_dict())
-    mid.eval()
-    loaded.eval()
-    torch.testing.assert_close(loaded(images), mid(images), rtol=0, atol=0)
 
-    partial = tmp_path / "partial.pt"
-    torch.save({k: v for k, v in mid.backbone.state_dict().items() if not k.startswith("stages.2")}, partial)
-    with pytest.raises(ValueError, match=r"partial.pt does not fit timm model 'fake': \d+ missing key\(s\): stages.2"):
-        TimmEncoder(model_name="fake", weights=str(partial))
+def test_a_timm_file_of_another_model_is_one_error_line(tmp_path) -> None:
+    import timm
 
-    frozen = TimmEncoder(model_name="fake", out_channels=5, feature_level=1, freeze=True)
-    frozen.train()
-    assert not frozen.backbone.training and frozen.neck.training
-    frozen(images).sum().backward()
-    assert all(p.grad is None for p in frozen.backbone.parameters()) and frozen.neck.weight.grad is not None
-    with pytest.raises(ValueError, match="divisible"):
-        deep(torch.rand(1, 1, 3, 15, 24))
+    resnet = _save(timm.create_model("resnet18").state_dict(), tmp_path / "resnet18.pth")
+    with pytest.raises(UserError) as info:
+        TimmEncoder(model_name="convnext_atto", weights=resnet)
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"model.encoder.weights: {resnet} is not a state dict of timm's 'convnext_atto' (")
+    assert "missing key(s): stem.0.weight" in message and "unexpected key(s): conv1.weight" in message
+
+    state = timm.create_model("convnext_atto").state_dict()
+    partial = _save({k: v for k, v in state.items() if not k.startswith("stages.3")}, tmp_path / "partial.pth")
+    with pytest.raises(UserError, match=r"partial.pth is not a state dict .*\(\d+ missing key\(s\): stages.3"):
+        TimmEncoder(model_name="convnext_atto", weights=partial)
+    # same names, other widths: the first tensor whose shape differs
+    femto = _save(timm.create_model("convnext_femto").state_dict(), tmp_path / "femto.pth")
+    with pytest.raises(UserError, match=r"femto.pth: stem.0.weight is \(48, 3, 4, 4\) but timm's 'convnext_atto' has"):
+        TimmEncoder(model_name="convnext_atto", weights=femto)
+    (tmp_path / "junk.pth").write_bytes(b"not a checkpoint")
+    with pytest.raises(UserError, match=r"junk.pth cannot be read as a state dict"):
+        TimmEncoder(model_name="convnext_atto", weights=str(tmp_path / "junk.pth"))
+    with pytest.raises(FileNotFoundError, match="missing.pt"):
+        TimmEncoder(model_name="resnet18", weights=str(tmp_path / "missing.pt"))
