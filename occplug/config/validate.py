@@ -25,7 +25,6 @@ from .errors import ConfigError
 
 __all__ = [
     "RUN_CONSTRAINTS",
-    "OPTIMIZERS",
     "SCHEDULERS",
     "UsedComponent",
     "check_type",
@@ -33,8 +32,6 @@ __all__ = [
     "validate_component",
 ]
 
-#: Optimizer names a config may use (``optimizer.type``); never an import path.
-OPTIMIZERS = ("adamw", "adam", "sgd")
 #: Learning-rate schedules (``scheduler.type``).
 SCHEDULERS = ("none", "cosine", "constant", "step")
 
@@ -310,7 +307,13 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     from occplug.metrics.base import EvalMask
-    from occplug.run.training import OPTIMIZER_EXTRAS, optimizer_class, scheduler_factory
+    from occplug.run.training import (
+        OPTIMIZER_EXTRAS,
+        check_param_groups,
+        optimizer_class,
+        optimizer_names,
+        scheduler_factory,
+    )
 
     eval_masks = typing.get_args(EvalMask)
 
@@ -347,8 +350,9 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
             f"(one of: {', '.join(eval_masks)})"
         )
     if config.get("optimizer") is not None:
-        args = _validate_named_choice(config["optimizer"], "optimizer", OPTIMIZERS)
+        args = _validate_named_choice(config["optimizer"], "optimizer", optimizer_names())
         _validate_lr_scaling(args)
+        check_param_groups(config["optimizer"])
         args = {k: v for k, v in args.items() if k not in OPTIMIZER_EXTRAS}
         _validate_kwargs(args, "optimizer", optimizer_class(config["optimizer"]["type"]), {"params"})
     if config.get("scheduler") is not None:
