@@ -36,7 +36,7 @@ from lightning.pytorch.callbacks import Callback
 from occplug.config.phases import PhaseSpec, PseudoLabelsFrom, phase_specs
 from occplug.data.teacher_labels import DONE, META, write_teacher_file
 from occplug.interfaces.model import OccupancyModel
-from occplug.run import runner
+from occplug.run import preflight, runner
 from occplug.run.weights import init_from, init_from_config, matching
 from occplug.streams import find_streams, set_stream_stage
 
@@ -240,6 +240,7 @@ def fit_phases(
         )
     if not resume:
         check_phases(specs)
+    preflight.check_configs([(spec.name, spec.config) for spec in specs])  # DDP / precision: before writing
     if runner.is_rank_zero():
         run_dir.mkdir(parents=True, exist_ok=True)
         runner.write_text_atomic(

@@ -98,3 +98,12 @@ def test_fit_stops_before_writing(tmp_path, capsys, monkeypatch, overrides, expe
         monkeypatch.delenv(key, raising=False)
     monkeypatch.setattr("os.cpu_count", lambda: 4)
     assert fit_fails(tmp_path, capsys, BASELINE, *DDP2, *overrides).startswith(expected)
+
+
+def test_a_phased_run_stops_before_its_run_directory(tmp_path, capsys, monkeypatch):
+    """configs/semi/baseline_10pct.yaml (teacher, student with teacher pseudo labels, finetune): its last phase on
+    2 CPU processes with SyncBatchNorm is found before the teacher trains."""
+    monkeypatch.setattr("os.cpu_count", lambda: 4)
+    semi = str(ROOT / "configs" / "semi" / "baseline_10pct.yaml")
+    line = fit_fails(tmp_path, capsys, semi, *DDP2, "phases.finetune.trainer.sync_batchnorm=true")
+    assert line.startswith("error: phases.finetune: trainer.sync_batchnorm = True: SyncBatchNorm synchronises over")
