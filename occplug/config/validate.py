@@ -363,9 +363,9 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
     if config.get("trainer") is not None:
         trainer = config["trainer"]
         if isinstance(trainer, dict) and "loggers" in trainer:  # occplug's own key, not a Trainer argument
-            from occplug.run.loggers import check_logger_names
+            from occplug.run.loggers import check_loggers
 
-            check_logger_names(trainer["loggers"])
+            check_loggers(trainer["loggers"], check_type=check_type)
             trainer = {k: v for k, v in trainer.items() if k != "loggers"}
         _validate_kwargs(trainer, "trainer", L.Trainer, {"callbacks", "logger", "default_root_dir"}, TRAINER_EXTRAS)
     if config.get("checkpoint") is not None:

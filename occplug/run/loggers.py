@@ -121,9 +121,9 @@ def _allowed(name: str) -> dict[str, Any]:
     return allowed
 
 
-def _check_settings(name: str, settings: Any, key: str) -> dict[str, Any]:
-    from occplug.config.validate import check_type
-
+def _check_settings(
+    name: str, settings: Any, key: str, check_type: Callable[[Any, Any], bool] | None
+) -> dict[str, Any]:
     if settings is None:
         return {}
     if not isinstance(settings, dict):
@@ -140,13 +140,17 @@ def _check_settings(name: str, settings: Any, key: str) -> dict[str, Any]:
                 f"{key}.{arg}: unknown {name} logger argument{f'; did you mean {hint!r}?' if hint else ''} "
                 f"(see lightning.pytorch.loggers.{_CLASSES[name]})"
             )
-        if allowed[arg] is not inspect.Parameter.empty and not check_type(value, allowed[arg]):
+        hint = allowed[arg]
+        if check_type is not None and hint is not inspect.Parameter.empty and not check_type(value, hint):
             raise ConfigError(f"{key}.{arg}: {value!r} does not fit {_CLASSES[name]}'s {arg} argument")
     return dict(settings)
 
 
-def check_loggers(value: Any, key: str = "trainer.loggers") -> list[LoggerSpec]:
-    """``value`` as logger specs, each name known and each setting an argument of its logger.
+def check_loggers(
+    value: Any, key: str = "trainer.loggers", check_type: Callable[[Any, Any], bool] | None = None
+) -> list[LoggerSpec]:
+    """``value`` as logger specs, each name known and each setting an argument of its logger (and, given
+    ``check_type(value, annotation)`` -- the config validator's -- of its argument's type).
 
     Raises:
         ConfigError: one line naming the first bad entry (``trainer.loggers.1.wandb.projct: ...``).
@@ -171,7 +175,7 @@ def check_loggers(value: Any, key: str = "trainer.loggers") -> list[LoggerSpec]:
                 f"{key}.{i}: unknown logger {entry!r}{f'; did you mean {hint!r}?' if hint else ''} "
                 f"(one of: {', '.join(LOGGERS)})"
             )
-        checked = _check_settings(entry, settings, f"{key}.{i}.{entry}")
+        checked = _check_settings(entry, settings, f"{key}.{i}.{entry}", check_type)
         if entry in specs and checked and specs[entry].settings and checked != specs[entry].settings:
             raise ConfigError(f"{key}.{i}: {entry!r} is listed twice with different settings")
         if entry not in specs or checked:

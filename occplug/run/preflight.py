@@ -18,16 +18,14 @@ first as :class:`~occplug.run.checkpoints.RunError`.
 
 from __future__ import annotations
 
-import logging
 import os
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from occplug.errors import ConfigError
 from occplug.run.checkpoints import RunError
 
-__all__ = ["RunPlan", "check_configs", "check_plan", "check_run", "check_sequential_eval", "plan_of"]
+__all__ = ["RunPlan", "check_plan", "check_run", "check_sequential_eval", "plan_of"]
 
 
 @dataclass(frozen=True)
@@ -167,30 +165,3 @@ def check_run(
             problem = str(exc)
     if problem is not None:
         raise RunError(problem)
-
-
-def check_configs(phases: Sequence[tuple[str, dict[str, Any]]]) -> None:
-    """:func:`check_run` for each ``(phase name, config)`` of a phased run on a Trainer and data module built for
-    it alone, so that a mistake in any phase is found before the run directory is made (the line names the phase).
-    Lightning's start-up lines are held back here: the phase's own fit prints them."""
-    from occplug.run import runner
-
-    log = logging.getLogger("lightning.pytorch.utilities.rank_zero")
-    level = log.level
-    log.setLevel(logging.WARNING)
-    try:
-        for name, cfg in phases:
-            try:
-                trainer = runner._trainer(cfg, None, [])
-                try:  # a phase's data may name files an earlier phase writes (teacher labels): its own fit checks
-                    dm = runner.build_datamodule(cfg)
-                except (ValueError, TypeError, OSError):
-                    dm = None
-                if dm is not None:
-                    check_run(cfg, trainer, dm)
-                elif (problem := check_plan(plan_of(trainer, cfg))) is not None:
-                    raise RunError(problem)
-            except RunError as exc:
-                raise RunError(f"phases.{name}: {exc}") from None
-    finally:
-        log.setLevel(level)
