@@ -140,8 +140,8 @@ def _check_settings(
                 f"{key}.{arg}: unknown {name} logger argument{f'; did you mean {hint!r}?' if hint else ''} "
                 f"(see lightning.pytorch.loggers.{_CLASSES[name]})"
             )
-        hint = allowed[arg]
-        if check_type is not None and hint is not inspect.Parameter.empty and not check_type(value, hint):
+        annotation = allowed[arg]
+        if check_type is not None and annotation is not inspect.Parameter.empty and not check_type(value, annotation):
             raise ConfigError(f"{key}.{arg}: {value!r} does not fit {_CLASSES[name]}'s {arg} argument")
     return dict(settings)
 
@@ -202,10 +202,8 @@ def logger_arguments(spec: LoggerSpec, run_dir: Path) -> dict[str, Any]:
     run_dir = Path(run_dir)
     settings = dict(spec.settings)
     if spec.name == "csv":
-        defaults: dict[str, Any] = {
-            "save_dir": str(run_dir),
-            "name": "logs",
-        }  # logs/version_<n>/: resume never overwrites
+        # logs/version_<n>/: a resume never overwrites
+        defaults: dict[str, Any] = {"save_dir": str(run_dir), "name": "logs"}
     elif spec.name == "tensorboard":
         defaults = {"save_dir": str(run_dir), "name": "tensorboard", "default_hp_metric": False}
     elif spec.name == "mlflow":
