@@ -465,8 +465,7 @@ class OccModel(OccupancyModel):
             notice = batch_notice(spec, self.effective_batch)
             if notice:
                 print(notice, file=sys.stderr)
-        trainable = [p for p in self.parameters() if p.requires_grad]  # frozen phases leave some out
-        optimizer = build_optimizer(trainable, spec, self.effective_batch)
+        optimizer = build_optimizer(self, spec, self.effective_batch)  # trainable parameters only (frozen phases)
         total = int(self.trainer.estimated_stepping_batches) if self.trainer is not None else 1
         scheduler = build_scheduler(optimizer, self.hparams.get("scheduler"), max(total, 1))
         if scheduler is None:

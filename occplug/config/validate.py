@@ -31,7 +31,6 @@ from .errors import ConfigError
 
 __all__ = [
     "RUN_CONSTRAINTS",
-    "OPTIMIZERS",
     "SEED_RANGE",
     "SCHEDULERS",
     "UsedComponent",
@@ -41,8 +40,6 @@ __all__ = [
     "validate_component",
 ]
 
-#: Optimizer names a config may use (``optimizer.type``); never an import path.
-OPTIMIZERS = ("adamw", "adam", "sgd")
 #: Learning-rate schedules (``scheduler.type``).
 SCHEDULERS = ("none", "cosine", "constant", "step")
 
@@ -345,7 +342,13 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     from occplug.metrics.base import EvalMask
-    from occplug.run.training import OPTIMIZER_EXTRAS, optimizer_class, scheduler_factory
+    from occplug.run.training import (
+        OPTIMIZER_EXTRAS,
+        check_param_groups,
+        optimizer_class,
+        optimizer_names,
+        scheduler_factory,
+    )
 
     eval_masks = typing.get_args(EvalMask)
 
@@ -386,8 +389,9 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
             f"(one of: {', '.join(eval_masks)})"
         )
     if config.get("optimizer") is not None:
-        args = _validate_named_choice(config["optimizer"], "optimizer", OPTIMIZERS)
+        args = _validate_named_choice(config["optimizer"], "optimizer", optimizer_names())
         _validate_lr_scaling(args)
+        check_param_groups(config["optimizer"])
         args = {k: v for k, v in args.items() if k not in OPTIMIZER_EXTRAS}
         _validate_kwargs(args, "optimizer", optimizer_class(config["optimizer"]["type"]), {"params"})
     if config.get("scheduler") is not None:
@@ -398,9 +402,9 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
     if config.get("trainer") is not None:
         trainer = config["trainer"]
         if isinstance(trainer, dict) and "loggers" in trainer:  # occplug's own key, not a Trainer argument
-            from occplug.run.loggers import check_logger_names
+            from occplug.run.loggers import check_loggers
 
-            check_logger_names(trainer["loggers"])
+            check_loggers(trainer["loggers"], check_type=check_type)
             trainer = {k: v for k, v in trainer.items() if k != "loggers"}
         _validate_kwargs(trainer, "trainer", L.Trainer, {"callbacks", "logger", "default_root_dir"}, TRAINER_EXTRAS)
     if config.get("checkpoint") is not None:

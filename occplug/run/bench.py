@@ -1,9 +1,9 @@
 """Measuring models side by side on one machine (``occplug bench``; the CLI is :mod:`occplug.cli.bench_cmd`).
 
-Per model: parameters, inference latency per frame (median of the timed repeats after warm-up),
+Per model: parameters, inference latency per frame (median, min and max of the timed repeats after warm-up),
 peak memory of inference and of training (CUDA's peak allocation when the device is CUDA, else the
 process's peak resident set size), training step time (forward, backward and optimizer step of
-Lightning's loop, data loading excluded; median) and the accuracy its run directory recorded in
+Lightning's loop, data loading excluded; median, min and max) and the accuracy its run directory recorded in
 ``metrics.json`` (a config has none).
 
 Each model is measured in its own process (a process's peak memory only grows), started as
@@ -42,12 +42,14 @@ __all__ = [
     "BenchReport",
     "BenchRow",
     "BenchSettings",
+    "Spread",
     "Target",
     "code_commit",
     "environment",
     "evaluate_in_process",
     "fit_in_process",
     "interleave",
+    "make_row",
     "mean_std",
     "read_accuracy",
     "resolve_target",
@@ -194,9 +196,35 @@ class Target:
     accuracy: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class Spread:
+    """Minimum, median and maximum of a model's timed repeats (one run's spread: a machine whose speed drifts
+    between runs shows it here, beside the median)."""
+
+    min: float
+    median: float
+    max: float
+
+    @classmethod
+    def of(cls, values: Sequence[float]) -> Spread:
+        if not values:
+            raise ValueError("no timed repeats")
+        return cls(min(values), statistics.median(values), max(values))
+
+
+def _with_spread(median: float | None, low: float | None, high: float | None, digits: int) -> str:
+    if median is None:
+        return MISSING
+    if low is None or high is None:
+        return f"{median:.{digits}f}"
+    return f"{median:.{digits}f} ({low:.{digits}f}–{high:.{digits}f})"
+
+
 @dataclass
 class BenchRow:
-    """One table row. Times in milliseconds, memory in MiB; accuracy in percent (None: not recorded)."""
+    """One table row. Times in milliseconds (medians; ``*_min_ms`` / ``*_max_ms`` their spread over the
+    repeats, None in reports written before they were recorded), memory in MiB; accuracy in percent (None: not
+    recorded)."""
 
     model: str
     source: str
@@ -209,6 +237,10 @@ class BenchRow:
     IoU: float | None = None
     RayIoU: float | None = None
     eval_mask: str | None = None
+    latency_min_ms: float | None = None
+    latency_max_ms: float | None = None
+    train_step_min_ms: float | None = None
+    train_step_max_ms: float | None = None
 
 
 @dataclass
@@ -281,9 +313,9 @@ class BenchReport:
             f"machine: {self.machine}",
             f"device: {self.device}",
             "versions: " + ", ".join(f"{k} {v}" for k, v in self.versions.items()),
-            f"batch size {s['batch_size']}; latency: median of {s['repeats']} interleaved repeats after "
+            f"batch size {s['batch_size']}; latency: median (min–max) of {s['repeats']} interleaved repeats after "
             f"{s['warmup']} warm-up, per frame; train step: "
-            + (f"median of {s['train_repeats']}" if s["train_repeats"] else "not measured")
+            + (f"median (min–max) of {s['train_repeats']}" if s["train_repeats"] else "not measured")
             + f"; memory: {memory}",
             "",
             "| model | params | latency (ms/frame) | memory (MiB) | train step (ms) | train memory (MiB) "
@@ -292,10 +324,11 @@ class BenchReport:
         ]
         for r in self.rows:
             acc = [MISSING if v is None else f"{v:.2f}" for v in (r.mIoU, r.IoU, r.RayIoU)]
-            step = MISSING if r.train_step_ms is None else f"{r.train_step_ms:.1f}"
+            latency = _with_spread(r.latency_ms, r.latency_min_ms, r.latency_max_ms, 2)
+            step = _with_spread(r.train_step_ms, r.train_step_min_ms, r.train_step_max_ms, 1)
             train_memory = MISSING if r.train_memory_mib is None else f"{r.train_memory_mib:.0f}"
             lines.append(
-                f"| {r.model} | {_params(r.params)} | {r.latency_ms:.2f} | {r.memory_mib:.0f} | {step} "
+                f"| {r.model} | {_params(r.params)} | {latency} | {r.memory_mib:.0f} | {step} "
                 f"| {train_memory} | {' | '.join(acc)} | {r.eval_mask or MISSING} |"
             )
         return "\n".join(lines) + "\n"
@@ -502,26 +535,37 @@ def run_bench(
     finally:
         for w in workers:
             w.close()
-    rows = []
-    for t, info, lat, tr, st in zip(targets, ready, latency, train, stats, strict=True):
-        acc = t.accuracy
-        rows.append(
-            BenchRow(
-                model=t.name,
-                source=t.source,
-                params=int(info["params"]),
-                latency_ms=statistics.median(lat),
-                memory_mib=st["memory"] / 2**20,
-                train_step_ms=statistics.median(tr) if tr else None,
-                train_memory_mib=st["train_memory"] / 2**20 if tr else None,
-                mIoU=acc.get("mIoU"),
-                IoU=acc.get("IoU"),
-                RayIoU=acc.get("RayIoU"),
-                eval_mask=acc.get("eval_mask") if t.kind == "run" else None,
-            )
-        )
+    rows = [make_row(*parts) for parts in zip(targets, ready, latency, train, stats, strict=True)]
     shown = {k: v for k, v in asdict(settings).items() if k not in ("device",)}
     return BenchReport(machine, shown_device, versions, shown, rows)
+
+
+def make_row(
+    target: Target, info: dict[str, Any], latency: Sequence[float], train: Sequence[float], stats: dict[str, Any]
+) -> BenchRow:
+    """A model's row from its worker's answers: ``info`` (``params``), the timed ``latency`` and ``train``
+    repeats in ms (:func:`interleave`; no ``train`` repeats: inference only) and ``stats`` (peak memory in
+    bytes)."""
+    lat = Spread.of(latency)
+    step = Spread.of(train) if train else None
+    acc = target.accuracy
+    return BenchRow(
+        model=target.name,
+        source=target.source,
+        params=int(info["params"]),
+        latency_ms=lat.median,
+        memory_mib=stats["memory"] / 2**20,
+        train_step_ms=step.median if step else None,
+        train_memory_mib=stats["train_memory"] / 2**20 if step else None,
+        mIoU=acc.get("mIoU"),
+        IoU=acc.get("IoU"),
+        RayIoU=acc.get("RayIoU"),
+        eval_mask=acc.get("eval_mask") if target.kind == "run" else None,
+        latency_min_ms=lat.min,
+        latency_max_ms=lat.max,
+        train_step_min_ms=step.min if step else None,
+        train_step_max_ms=step.max if step else None,
+    )
 
 
 # ---------------------------------------------------------------------- the worker

@@ -23,6 +23,7 @@ something, and one batch runs through it (``runner.first_batch_check``).
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
@@ -36,7 +37,7 @@ from occplug.config.phases import PhaseSpec, PseudoLabelsFrom, phase_specs
 from occplug.config.yamlio import dump_yaml
 from occplug.data.teacher_labels import DONE, META, write_teacher_file
 from occplug.interfaces.model import OccupancyModel
-from occplug.run import runner
+from occplug.run import preflight, runner
 from occplug.run.weights import init_from, init_from_config, matching
 from occplug.streams import find_streams, set_stream_stage
 
@@ -225,6 +226,31 @@ def check_phases(specs: Sequence[PhaseSpec]) -> None:
             raise runner.RunError(f"{where}: {exc}") from None
 
 
+def _check_phase_settings(specs: Sequence[PhaseSpec]) -> None:
+    """:func:`occplug.run.preflight.check_run` for each phase on a Trainer and data module built for it alone, so
+    that a mistake in any phase is found before the run directory is made (the line names the phase). Lightning's
+    start-up lines are held back here: each phase's own fit prints them."""
+    log = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    level = log.level
+    log.setLevel(logging.WARNING)
+    try:
+        for spec in specs:
+            try:
+                trainer = runner._trainer(spec.config, None, [])
+                try:  # a phase's data may name files an earlier phase writes (teacher labels): its own fit checks
+                    dm = runner.build_datamodule(spec.config)
+                except (ValueError, TypeError, OSError):
+                    dm = None
+                if dm is not None:
+                    preflight.check_run(spec.config, trainer, dm)
+                elif (problem := preflight.check_plan(preflight.plan_of(trainer, spec.config))) is not None:
+                    raise runner.RunError(problem)
+            except runner.RunError as exc:
+                raise runner.RunError(f"phases.{spec.name}: {exc}") from None
+    finally:
+        log.setLevel(level)
+
+
 def fit_phases(
     cfg: dict[str, Any], run_dir: Path, resume: bool = False, callbacks: Sequence[Callback] = ()
 ) -> dict[str, float]:
@@ -240,6 +266,7 @@ def fit_phases(
         )
     if not resume:
         check_phases(specs)
+    _check_phase_settings(specs)  # DDP / precision mistakes of any phase, before anything is written
     if runner.is_rank_zero():
         run_dir.mkdir(parents=True, exist_ok=True)
         runner.write_text_atomic(

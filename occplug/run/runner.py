@@ -43,6 +43,7 @@ from occplug.data.formats import FormatError
 from occplug.errors import UserError
 from occplug.interfaces.model import OccupancyModel
 from occplug.plugins import get_registry, plugin_reports
+from occplug.run import preflight, ranks
 from occplug.run.checkpoints import RunError, load_checkpoint
 from occplug.run.loggers import build_loggers, quiet_lightning_tips
 from occplug.run.weights import init_from_config
@@ -389,18 +390,9 @@ RUN_DIR_ENV = "OCCPLUG_RANK_ZERO_RUN_DIR"
 
 
 def is_rank_zero() -> bool:
-    """Whether this process is global rank 0 as far as a launcher has announced ranks.
-
-    Reads what launchers set before any process group exists: ``RANK`` (torchrun), then
-    ``LOCAL_RANK`` with ``NODE_RANK``/``GROUP_RANK`` (Lightning's DDP re-launch sets these in the
-    processes it starts), then ``SLURM_PROCID``; a process no launcher started is rank 0.
-    """
-    env = os.environ
-    if "RANK" in env:
-        return int(env["RANK"]) == 0
-    if "LOCAL_RANK" in env:
-        return int(env["LOCAL_RANK"]) == 0 and int(env.get("NODE_RANK", env.get("GROUP_RANK", 0))) == 0
-    return int(env.get("SLURM_PROCID", 0)) == 0
+    """Whether this process is global rank 0 as far as a launcher has announced ranks
+    (:func:`occplug.run.ranks.is_rank_zero`: torchrun, SLURM, Lightning's own variables)."""
+    return ranks.is_rank_zero()
 
 
 def default_run_dir(refs: Sequence[str]) -> Path:
@@ -468,6 +460,7 @@ def fit(
     trainer = _trainer(
         cfg, run_dir, [checkpoint, *steps, info, *callbacks], logger, train_batches=train_batches_per_epoch(cfg, dm)
     )
+    preflight.check_run(cfg, trainer, dm, model)  # DDP / precision mistakes: one line, before anything is written
     if trainer.is_global_zero:
         run_dir.mkdir(parents=True, exist_ok=True)
         write_text_atomic(run_dir / "config.yaml", run_config_text(cfg))  # every component argument, defaults too
@@ -686,6 +679,7 @@ def evaluate(cfg: dict[str, Any], ckpt_path: Path, stage: str = "validate") -> E
     ckpt = load_checkpoint(ckpt_path)
     dm, model = restore_run(cfg, ckpt, ckpt_path)
     trainer = _trainer(cfg, None, [])
+    preflight.check_run(cfg, trainer, dm, splits=("val" if stage == "validate" else "test",))
     with data_errors():
         if stage == "validate":
             trainer.validate(model, datamodule=dm, verbose=False)

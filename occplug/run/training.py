@@ -1,4 +1,20 @@
-"""Optimizers and learning-rate schedules, named in configs by a fixed set of names."""
+"""Optimizers and learning-rate schedules, named in configs.
+
+``optimizer.type`` is any ``torch.optim`` optimizer by its lower-case class name (``adamw``, ``sgd``,
+``rmsprop``, ...), its arguments checked against the class's signature. Besides those arguments the node takes
+(:data:`OPTIMIZER_EXTRAS`) ``lr_scaling`` / ``reference_batch`` (:func:`scaled_lr`) and the parameter groups::
+
+    optimizer:
+      type: adamw
+      lr: 2.0e-4
+      weight_decay: 0.01
+      no_decay_norm_bias: true          # norm layers' weights and every bias: weight decay 0
+      param_groups:                     # by parameter-name prefix; the longest matching prefix wins
+        - {prefix: encoder, lr_mult: 0.1}
+        - {prefix: heads.occupancy, weight_decay: 0.0}
+
+Every trainable parameter lands in exactly one torch parameter group (:func:`parameter_groups`).
+"""
 
 from __future__ import annotations
 
@@ -9,12 +25,20 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
+from torch import nn
 from torch.optim import Optimizer
 from torch.optim.lr_scheduler import LambdaLR, LRScheduler, StepLR
+
+from occplug.errors import ConfigError
+from occplug.registry import closest
 
 __all__ = [
     "OPTIMIZER_EXTRAS",
     "EffectiveBatch",
+    "ParamGroupRule",
+    "check_param_groups",
+    "optimizer_names",
+    "parameter_groups",
     "base_lr",
     "batch_notice",
     "build_optimizer",
@@ -24,15 +48,21 @@ __all__ = [
     "scheduler_factory",
 ]
 
+#: Every optimizer ``torch.optim`` exports, by its lower-case class name.
 _OPTIMIZERS: dict[str, type[Optimizer]] = {
-    "adamw": torch.optim.AdamW,
-    "adam": torch.optim.Adam,
-    "sgd": torch.optim.SGD,
+    name.lower(): cls
+    for name, cls in sorted(vars(torch.optim).items())
+    if isinstance(cls, type) and issubclass(cls, Optimizer) and cls is not Optimizer
 }
 
 
+def optimizer_names() -> tuple[str, ...]:
+    """The names ``optimizer.type`` accepts: every ``torch.optim`` optimizer's class name, lower case."""
+    return tuple(_OPTIMIZERS)
+
+
 def optimizer_class(name: str) -> type[Optimizer]:
-    """The torch optimizer behind a config name (``adamw``, ``adam``, ``sgd``)."""
+    """The torch optimizer behind a config name (``adamw`` -> ``torch.optim.AdamW``, ``rmsprop``, ...)."""
     return _OPTIMIZERS[name]
 
 
@@ -89,7 +119,7 @@ def scheduler_factory(name: str) -> Callable[..., LRScheduler | None]:
 
 _DEFAULT_OPTIMIZER = {"type": "adamw", "lr": 1e-3}
 #: Keys of ``optimizer:`` read here, not passed to the torch optimizer.
-OPTIMIZER_EXTRAS = ("lr_scaling", "reference_batch")
+OPTIMIZER_EXTRAS = ("lr_scaling", "reference_batch", "param_groups", "no_decay_norm_bias")
 
 
 @dataclass(frozen=True)
@@ -146,14 +176,158 @@ def batch_notice(spec: dict[str, Any] | None, batch: EffectiveBatch) -> str | No
     )
 
 
-def build_optimizer(params: Any, spec: dict[str, Any] | None, batch: EffectiveBatch | None = None) -> Optimizer:
+def _default(cls: type[Optimizer], key: str) -> Any:
+    param = inspect.signature(cls).parameters.get(key)
+    return None if param is None or param.default is inspect.Parameter.empty else param.default
+
+
+@dataclass(frozen=True)
+class ParamGroupRule:
+    """One entry of ``optimizer.param_groups``: the parameters whose name is ``prefix`` or starts with
+    ``prefix.`` train at ``lr_mult x lr`` with ``weight_decay`` (None: the optimizer node's)."""
+
+    prefix: str
+    lr_mult: float = 1.0
+    weight_decay: float | None = None
+
+    def matches(self, name: str) -> bool:
+        return name == self.prefix or name.startswith(self.prefix + ".")
+
+
+def _number(value: Any, key: str, low: float, strict: bool) -> float:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or (value <= low if strict else value < low):
+        raise ConfigError(f"{key}: expected a number {'>' if strict else '>='} {low:g}, got {value!r}")
+    return float(value)
+
+
+def check_param_groups(spec: dict[str, Any] | None) -> list[ParamGroupRule]:
+    """The ``param_groups`` rules of an ``optimizer:`` node (and its ``no_decay_norm_bias`` switch), checked.
+
+    Raises:
+        ConfigError: one line naming the key (``optimizer.param_groups.1.lr_mult``) and what was expected.
+    """
+    spec = spec or {}
+    switch = spec.get("no_decay_norm_bias", False)
+    if not isinstance(switch, bool):
+        raise ConfigError(f"optimizer.no_decay_norm_bias: expected true or false, got {switch!r}")
+    raw = spec.get("param_groups") or []
+    if not isinstance(raw, (list, tuple)):
+        raise ConfigError(
+            f"optimizer.param_groups: expected a list of {{prefix, lr_mult, weight_decay}} mappings, got {raw!r}"
+        )
+    fields = ("prefix", "lr_mult", "weight_decay")
+    rules: list[ParamGroupRule] = []
+    for i, entry in enumerate(raw):
+        key = f"optimizer.param_groups.{i}"
+        if not isinstance(entry, dict):
+            raise ConfigError(f"{key}: expected a mapping {{prefix, lr_mult, weight_decay}}, got {entry!r}")
+        for name in entry:
+            if name not in fields:
+                hint = closest(str(name), list(fields))
+                raise ConfigError(
+                    f"{key}.{name}: unknown key{f'; did you mean {hint!r}?' if hint else ''} (keys: {', '.join(fields)})"
+                )
+        prefix = entry.get("prefix")
+        if not isinstance(prefix, str) or not prefix or prefix.startswith(".") or prefix.endswith("."):
+            raise ConfigError(f"{key}.prefix: expected a parameter-name prefix such as 'encoder', got {prefix!r}")
+        if prefix in (r.prefix for r in rules):
+            raise ConfigError(f"{key}.prefix: {prefix!r} is already the prefix of an earlier group")
+        decay = entry.get("weight_decay")
+        rules.append(
+            ParamGroupRule(
+                prefix,
+                _number(entry.get("lr_mult", 1.0), f"{key}.lr_mult", 0.0, strict=True),
+                None if decay is None else _number(decay, f"{key}.weight_decay", 0.0, strict=False),
+            )
+        )
+    optimizer = spec.get("type", "adamw")
+    if optimizer in _OPTIMIZERS and _default(_OPTIMIZERS[optimizer], "weight_decay") is None:
+        if switch or any(r.weight_decay is not None for r in rules):
+            raise ConfigError(f"optimizer: {optimizer!r} has no weight_decay, so no group can set or drop it")
+    return rules
+
+
+#: Module types whose weights ``no_decay_norm_bias`` keeps out of weight decay (every torch normalisation layer).
+NORM_LAYERS: tuple[type[nn.Module], ...] = (
+    nn.modules.batchnorm._NormBase,  # BatchNorm*d, SyncBatchNorm, InstanceNorm*d
+    nn.GroupNorm,
+    nn.LayerNorm,
+    nn.LocalResponseNorm,
+    *((nn.RMSNorm,) if hasattr(nn, "RMSNorm") else ()),
+)
+
+
+def parameter_groups(module: nn.Module, spec: dict[str, Any] | None, lr: float) -> list[dict[str, Any]]:
+    """Torch parameter groups of ``module``'s trainable parameters per the ``optimizer:`` node ``spec``.
+
+    A parameter goes to the rule with the longest matching prefix (else to the default group), then, with
+    ``no_decay_norm_bias``, to that group's no-decay half when it belongs to a normalisation layer
+    (:data:`NORM_LAYERS`) or its name ends in ``bias``. Each group is ``{"name", "params", "lr"}`` (+
+    ``"weight_decay"`` for optimizers that have one); empty groups are left out, and every trainable parameter
+    is in exactly one group.
+
+    Raises:
+        ConfigError: a rule's prefix matches no parameter of ``module`` (with the closest module name).
+    """
+    spec = dict(spec or _DEFAULT_OPTIMIZER)
+    rules = check_param_groups(spec)
+    cls = optimizer_class(spec.get("type", "adamw"))
+    base_decay = spec.get("weight_decay", _default(cls, "weight_decay"))
+    exclude = bool(spec.get("no_decay_norm_bias", False))
+    norm_params = {id(p) for m in module.modules() if isinstance(m, NORM_LAYERS) for p in m.parameters(recurse=False)}
+    groups: dict[tuple[int, bool], dict[str, Any]] = {}
+    names: list[str] = []
+    for name, param in module.named_parameters():
+        names.append(name)
+        if not param.requires_grad:  # frozen (a phase's freeze): in no group
+            continue
+        matching = [i for i, r in enumerate(rules) if r.matches(name)]
+        index = max(matching, key=lambda i: len(rules[i].prefix)) if matching else -1
+        no_decay = exclude and (id(param) in norm_params or name.endswith("bias"))
+        rule = rules[index] if index >= 0 else ParamGroupRule("", 1.0, None)
+        group = groups.get((index, no_decay))
+        if group is None:
+            label = rule.prefix or "default"
+            group = {"name": f"{label} (no decay)" if no_decay else label, "params": [], "lr": lr * rule.lr_mult}
+            if base_decay is not None:
+                group["weight_decay"] = (
+                    0.0 if no_decay else (base_decay if rule.weight_decay is None else rule.weight_decay)
+                )
+            groups[(index, no_decay)] = group
+        group["params"].append(param)
+    for i, rule in enumerate(rules):
+        if not any(rule.matches(name) for name in names):
+            raise ConfigError(
+                f"optimizer.param_groups.{i}.prefix: {rule.prefix!r} matches no parameter" + _hint(rule.prefix, names)
+            )
+    return [groups[k] for k in sorted(groups, key=lambda k: (k[0] < 0, k[0], k[1]))]
+
+
+def _hint(prefix: str, names: list[str]) -> str:
+    """The closest module path of ``names`` to ``prefix``, else the top-level modules."""
+    paths = {".".join(n.split(".")[:k]) for n in names for k in range(1, n.count(".") + 1)}
+    hint = closest(prefix, sorted(paths))
+    tops = sorted({n.split(".", 1)[0] for n in names})
+    return f"; did you mean {hint!r}?" if hint else f" (top-level modules: {', '.join(tops)})"
+
+
+def build_optimizer(
+    params: nn.Module | Any, spec: dict[str, Any] | None, batch: EffectiveBatch | None = None
+) -> Optimizer:
     """Build the optimizer of a config's ``optimizer:`` node (default: AdamW, lr 1e-3).
 
-    ``lr_scaling`` / ``reference_batch`` are read here (see :func:`scaled_lr`); every other key is
-    an argument of the torch optimizer.
+    ``params`` is a module (its trainable parameters, grouped by :func:`parameter_groups`) or an iterable of
+    parameters (one group; ``param_groups`` and ``no_decay_norm_bias`` need the names, so a module).
+    ``lr_scaling`` / ``reference_batch`` are read here (see :func:`scaled_lr`); every other key is an argument
+    of the torch optimizer.
     """
     spec = dict(spec or _DEFAULT_OPTIMIZER)
     lr = scaled_lr(spec, batch)
+    if isinstance(params, nn.Module):
+        params = parameter_groups(params, spec, lr)
+    elif spec.get("param_groups") or spec.get("no_decay_norm_bias"):
+        raise TypeError("optimizer.param_groups / no_decay_norm_bias group parameters by name: pass the module")
     for key in OPTIMIZER_EXTRAS:
         spec.pop(key, None)
     spec["lr"] = lr

@@ -12,14 +12,15 @@ import yaml
 
 from occplug.cli import main
 from occplug.run import runner
-from occplug.run.bench import BenchReport, BenchRow, interleave, mean_std, read_accuracy
+from occplug.run.bench import BenchReport, BenchRow, Spread, Target, interleave, make_row, mean_std, read_accuracy
 
 ROOT = Path(__file__).resolve().parents[2]
 BASELINE = str(ROOT / "configs" / "baseline.yaml")
 METRICS = {"mIoU": 12.5, "IoU": 40.25, "RayIoU": 9.75, "IoU_car": 3.0, "eval_mask": "camera", "global_step": 2}
 COLUMNS = [
     "model", "source", "params", "latency_ms", "memory_mib", "train_step_ms", "train_memory_mib",
-    "mIoU", "IoU", "RayIoU", "eval_mask",
+    "mIoU", "IoU", "RayIoU", "eval_mask", "latency_min_ms", "latency_max_ms", "train_step_min_ms",
+    "train_step_max_ms",
 ]  # fmt: skip
 
 
@@ -52,7 +53,8 @@ def test_one_row_per_model_with_every_column(measured):
     dm, model = runner.build_run(cfg)
     assert [r.params for r in report.rows] == [sum(p.numel() for p in model.parameters())] * 2
     for r in report.rows:
-        assert r.latency_ms > 0 and r.train_step_ms > 0
+        assert 0 < r.latency_min_ms <= r.latency_ms <= r.latency_max_ms
+        assert r.train_step_ms > 0 and r.train_step_min_ms == r.train_step_ms == r.train_step_max_ms  # one repeat
         assert r.memory_mib > 50 and r.train_memory_mib >= r.memory_mib  # peak RSS only grows
     markdown = report.to_markdown().splitlines()
     assert markdown[0].startswith("machine: ") and markdown[1].startswith("device: cpu")
@@ -107,6 +109,52 @@ def test_rounds_are_interleaved_and_alternate_order():
     out = interleave([Fake("a"), Fake("b")], "latency", 3)
     assert calls == [("a", 0), ("b", 0), ("b", 1), ("a", 1), ("a", 2), ("b", 2)]
     assert out == [[10.0, 20.0, 30.0], [11.0, 21.0, 31.0]]
+
+
+class FakeClock:
+    """A timer that advances only when told: each model's repeats take the given milliseconds."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_the_row_summarises_each_models_repeats_as_min_median_max():
+    clock = FakeClock()
+    durations = {"a": iter([30.0, 10.0, 20.0, 50.0, 40.0]), "b": iter([5.0, 7.0, 6.0, 9.0, 8.0])}
+
+    class Timed:
+        def __init__(self, name: str) -> None:
+            self.name = name
+
+        def request(self, command: str) -> dict:  # a worker timing one repeat with the clock
+            start = clock()
+            clock.now += next(durations[self.name]) / 1000.0
+            return {"ms": (clock() - start) * 1000.0}
+
+    workers = [Timed("a"), Timed("b")]
+    latency = interleave(workers, "latency", 3)
+    train = interleave(workers, "train", 2)
+    targets = [Target(n, f"{n}.yaml", "config", {}) for n in "ab"]
+    stats = {"memory": 2**20 * 100, "train_memory": 2**20 * 300}
+    rows = [make_row(t, {"params": 7}, lat, tr, stats) for t, lat, tr in zip(targets, latency, train, strict=True)]
+    spread = [(r.latency_min_ms, r.latency_ms, r.latency_max_ms) for r in rows]
+    assert spread == [pytest.approx((10.0, 20.0, 30.0)), pytest.approx((5.0, 6.0, 7.0))]
+    steps = [(r.train_step_min_ms, r.train_step_ms, r.train_step_max_ms) for r in rows]
+    assert steps == [pytest.approx((40.0, 45.0, 50.0)), pytest.approx((8.0, 8.5, 9.0))]  # even count: mean of two
+    assert (rows[0].memory_mib, rows[0].train_memory_mib) == (100.0, 300.0)
+    report = BenchReport("host", "cpu", {}, {"repeats": 3, "warmup": 0, "train_repeats": 2, "batch_size": 1}, rows)
+    assert report.to_markdown().splitlines()[-2] == (
+        "| a | 7 | 20.00 (10.00–30.00) | 100 | 45.0 (40.0–50.0) | 300 | — | — | — | — |"
+    )
+    assert BenchReport.from_csv(report.to_csv()) == report
+    inference_only = make_row(targets[0], {"params": 7}, [3.0], [], stats)
+    assert inference_only.train_step_ms is None and inference_only.train_step_min_ms is None
+    assert Spread.of([2.0, 1.0]) == Spread(1.0, 1.5, 2.0)
+    with pytest.raises(ValueError):
+        Spread.of([])
 
 
 def test_markdown_of_a_known_report():
