@@ -14,6 +14,7 @@ import circle through the config package. It is the constraints' one home: plugi
 
 from __future__ import annotations
 
+import difflib
 import math
 import typing
 from dataclasses import dataclass
@@ -27,6 +28,9 @@ __all__ = [
     "Positive",
     "Range",
     "UnitInterval",
+    "check_choices",
+    "choices_of",
+    "describe_choices",
     "constraints_of",
     "violated",
 ]
@@ -188,3 +192,45 @@ def _with_type(rule: Constraint, value: Any) -> str:
         return rule.describe()
     kind = "an int" if isinstance(value, int) and not isinstance(value, bool) else "a number"
     return f"{kind} {rule.describe()}"
+
+
+def choices_of(annotation: Any) -> tuple[Any, ...]:
+    """The values of the ``Literal`` in ``annotation`` (inside ``Annotated`` / a union), or ``()``."""
+    origin = typing.get_origin(annotation)
+    if origin is typing.Literal:
+        return typing.get_args(annotation)
+    if origin is typing.Annotated:
+        return choices_of(typing.get_args(annotation)[0])
+    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+        return tuple(c for arg in typing.get_args(annotation) for c in choices_of(arg))
+    return ()
+
+
+def describe_choices(choices: tuple[Any, ...]) -> str:
+    """``"'add' or 'concat'"``: the ``repr`` of each choice, the last joined by "or"."""
+    words = [repr(c) for c in choices]
+    return words[0] if len(words) == 1 else f"{', '.join(words[:-1])} or {words[-1]}"
+
+
+def check_choices(func: Any, who: str, **values: Any) -> None:
+    """Check each ``name=value`` against the ``Literal`` annotating ``func``'s parameter ``name``.
+
+    The annotation is the one list of choices (config validation reads the same one), so a constructor
+    checks a directly passed value without a second list::
+
+        def __init__(self, fusion: Literal["add", "concat"] = "add"):
+            check_choices(StreamAggregation.__init__, "StreamAggregation", fusion=fusion)
+
+    Raises:
+        ValueError: ``"{who} {name} must be 'add' or 'concat', got 'ad'; did you mean 'add'?"`` (one line).
+        TypeError: a named parameter that is not ``Literal``-annotated (a programming error).
+    """
+    hints = typing.get_type_hints(func, include_extras=True)
+    for name, value in values.items():
+        allowed = choices_of(hints.get(name))
+        if not allowed:
+            raise TypeError(f"check_choices: {who} parameter {name!r} is not annotated with a Literal")
+        if not any(type(value) is type(c) and value == c for c in allowed):
+            near = difflib.get_close_matches(str(value), [c for c in allowed if isinstance(c, str)], n=1)
+            hint = f"; did you mean {near[0]!r}?" if near and isinstance(value, str) else ""
+            raise ValueError(f"{who} {name} must be {describe_choices(allowed)}, got {value!r}{hint}")

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from occplug.constraints import Length, NonNegative, Positive
+from occplug.constraints import Length, NonNegative, Positive, check_choices
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, project_to_image
 from occplug.interfaces import Lifted, ViewTransform
@@ -170,17 +170,14 @@ class LSSViewTransform(ViewTransform):
         depth_net: Annotated[dict | DepthNet | None, Slot("depth_net")] = None,
     ) -> None:
         super().__init__()
-        if splat not in ("fast", "reference"):
-            raise ValueError(f"lss splat must be 'fast' or 'reference', got {splat!r}")
+        check_choices(LSSViewTransform.__init__, "lss", splat=splat)
         self.grid = GridSpec.from_config(grid)
         self.image_stride = int(image_stride)
         self.out_channels = int(out_channels)
         self.splat_mode = splat
         self.register_buffer("depth_centers", depth_bin_centers(depth_bins), persistent=False)
         self.num_depth_bins = int(self.depth_centers.shape[0])
-        self.depth_net = build_depth_net(
-            depth_net, in_channels, self.num_depth_bins, self.out_channels, hidden=hidden
-        )
+        self.depth_net = build_depth_net(depth_net, in_channels, self.num_depth_bins, self.out_channels, hidden=hidden)
         #: the public splatter doing the frustum geometry, the plans and the pooling.
         self.splatter = FrustumSplatter(self.grid, self.image_stride, mode=splat)
 

@@ -14,7 +14,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
-from occplug.constraints import NonNegative, Positive, Range, UnitInterval, violated
+from occplug.constraints import NonNegative, Positive, Range, UnitInterval, choices_of, violated
 from occplug.geometry import GridSpec
 from occplug.kinds import given_arguments
 from occplug.registry import Registry, closest
@@ -64,6 +64,12 @@ def _type_name(annotation: Any) -> str:
     if is_settings(annotation):
         return f"a mapping of {annotation.__name__}"
     return getattr(annotation, "__name__", str(annotation))
+
+
+def _near(value: Any, annotation: Any) -> str:
+    """``"; did you mean 'x'?"`` for a string close to one of ``annotation``'s ``Literal`` choices, else ``""``."""
+    hint = closest(value, [c for c in choices_of(annotation) if isinstance(c, str)]) if isinstance(value, str) else None
+    return f"; did you mean {hint!r}?" if hint else ""
 
 
 def check_type(value: Any, annotation: Any) -> bool:
@@ -164,7 +170,9 @@ class _Validator:
             if slot is not None:
                 self.slot(value, slot, f"{path}.{key}")
             elif not check_type(value, annotation):
-                raise ConfigError(f"{path}.{key}: expected {_type_name(annotation)}, got {_describe(value)}")
+                raise ConfigError(
+                    f"{path}.{key}: expected {_type_name(annotation)}, got {_describe(value)}{_near(value, annotation)}"
+                )
             elif (problem := violated(value, annotation)) is not None:
                 raise ConfigError(f"{path}.{key}: expected {problem}, got {_describe(value)}")
             elif group is not None and isinstance(value, dict):

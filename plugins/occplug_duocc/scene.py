@@ -11,7 +11,7 @@ is halved as in the paper) and return a :class:`StreamVoxelScene` on that coarse
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import torch
 from torch import Tensor, nn
@@ -189,7 +189,7 @@ class DuOccStream(_DuOccVoxels):
         fpn_blocks: Annotated[list[Annotated[int, Positive]], Length(exact=3)] = [1, 1, 1],  # noqa: B006
         num_classes: Annotated[int, Positive] = 18,
         stream: bool = True,
-        fusion: str = "add",
+        fusion: Literal["add", "concat"] = "add",
         refine: bool = True,
         occupied_head: bool = True,
         forecast_head: bool = True,
