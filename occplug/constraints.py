@@ -23,6 +23,7 @@ from typing import Any
 __all__ = [
     "Constraint",
     "Fraction",
+    "LabelIds",
     "Length",
     "NonNegative",
     "Positive",
@@ -137,6 +138,29 @@ def _num(x: float) -> str:
     return str(int(x)) if float(x).is_integer() else str(x)
 
 
+@dataclass(frozen=True)
+class LabelIds(Constraint):
+    """A list of label ids of the run's classes: every id ``< count``.
+
+    Declared as ``LabelIds()`` beside the elements' own rule (``tuple[Annotated[int, NonNegative], ...]``): the
+    class count is the data module's, unknown where the rule is declared. Config validation reads the data
+    module's classes (its ``class_names`` class attribute) and checks the rule with ``count`` filled in, so a class
+    id the data set does not have is one line before anything is built. With ``count`` None it admits every list.
+    """
+
+    count: int | None = None
+
+    def holds(self, value: Any) -> bool:
+        return self.count is None or all(not isinstance(v, int) or v < self.count for v in value)
+
+    def describe(self) -> str:
+        count = "the data set's" if self.count is None else f"the data set's {self.count}"
+        return f"label ids of {count} classes" + ("" if self.count is None else f" (0 to {self.count - 1})")
+
+    def violations(self) -> list[Any]:
+        return [] if self.count is None else [[self.count]]
+
+
 def constraints_of(annotation: Any) -> list[Constraint]:
     """The constraints declared on ``annotation`` itself (``Annotated[..., C]``, also inside ``X | None``)."""
     if typing.get_origin(annotation) is typing.Annotated:
@@ -188,7 +212,7 @@ def violated(value: Any, annotation: Any) -> str | None:
 
 
 def _with_type(rule: Constraint, value: Any) -> str:
-    if isinstance(rule, Length):
+    if isinstance(rule, (Length, LabelIds)):
         return rule.describe()
     kind = "an int" if isinstance(value, int) and not isinstance(value, bool) else "a number"
     return f"{kind} {rule.describe()}"

@@ -14,7 +14,16 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
-from occplug.constraints import NonNegative, Positive, Range, UnitInterval, choices_of, violated
+from occplug.constraints import (
+    LabelIds,
+    NonNegative,
+    Positive,
+    Range,
+    UnitInterval,
+    choices_of,
+    constraints_of,
+    violated,
+)
 from occplug.geometry import GridSpec
 from occplug.kinds import given_arguments
 from occplug.registry import Registry, closest
@@ -125,9 +134,11 @@ class UsedComponent:
 
 
 class _Validator:
-    def __init__(self, registry: Registry) -> None:
+    def __init__(self, registry: Registry, class_count: int | None = None) -> None:
         self.registry = registry
         self.used: list[UsedComponent] = []
+        #: how many classes the run's data module has, where it declares them (checks :class:`LabelIds`)
+        self.class_count = class_count
 
     def node(self, node: Any, kind: str, path: str) -> None:
         if isinstance(node, str) and kind == "metric":
@@ -173,7 +184,7 @@ class _Validator:
                 raise ConfigError(
                     f"{path}.{key}: expected {_type_name(annotation)}, got {_describe(value)}{_near(value, annotation)}"
                 )
-            elif (problem := violated(value, annotation)) is not None:
+            elif (problem := violated(value, self.with_classes(annotation))) is not None:
                 raise ConfigError(f"{path}.{key}: expected {problem}, got {_describe(value)}")
             elif group is not None and isinstance(value, dict):
                 self.arguments(value, component_params(group), f"{path}.{key}", group.__name__, "setting")
@@ -182,6 +193,12 @@ class _Validator:
         if missing:
             what = "argument" if noun == "parameter" else noun
             raise ConfigError(f"{path}: {label} is missing required {what}(s): {', '.join(missing)}")
+
+    def with_classes(self, annotation: Any) -> Any:
+        """``annotation`` with its :class:`LabelIds` rule bounded by the run's class count, where both are known."""
+        if self.class_count is None or LabelIds() not in constraints_of(annotation):
+            return annotation
+        return typing.Annotated[annotation, LabelIds(self.class_count)]
 
     def slot(self, value: Any, slot: Slot, path: str) -> None:
         if slot.mapping:
@@ -336,7 +353,7 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
     for required in ("data", "model"):
         if required not in config:
             raise ConfigError(f"{required}: missing section (every config needs 'data:' and 'model:')")
-    v = _Validator(registry)
+    v = _Validator(registry, _class_count(config.get("data"), registry))
     if "seed" in config and not check_type(config["seed"], int):
         raise ConfigError(f"seed: expected int, got {_describe(config['seed'])}")
     if "grid" in config:
@@ -380,6 +397,17 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
         check_query_config(config["model"], registry)
     _check_stateful_needs_sequential(config, v.used, registry)
     return v.used
+
+
+def _class_count(data: Any, registry: Registry) -> int | None:
+    """How many classes the data node's module declares (a ``class_names`` class attribute), or None."""
+    if not isinstance(data, dict) or not isinstance(data.get("type"), str):
+        return None
+    try:
+        names = getattr(registry.get("data", data["type"]).factory, "class_names", None)
+    except LookupError:
+        return None  # named by the walk, with a suggestion
+    return len(names) if isinstance(names, tuple) and names else None
 
 
 def validate_component(node: Any, kind: str, key: str, registry: Registry) -> None:
