@@ -9,10 +9,14 @@ An id the data set lacks, or a choice outside its ``Literal`` (``fusion``), is o
 import pytest
 
 from occplug.cli import main
-from occplug.data import OCC3D_CLASSES, SEMANTIC_KITTI_CLASSES, SEMANTIC_KITTI_DYNAMIC
-from occplug.data.nuscenes.reader import Occ3DNuScenesDataModule
-from occplug.data.semantickitti.reader import SemanticKITTIDataModule
-from occplug.data.synthetic.datamodule import SyntheticDataModule
+from occplug.data import (
+    OCC3D_CLASSES,
+    SEMANTIC_KITTI_CLASSES,
+    SEMANTIC_KITTI_DYNAMIC,
+    Occ3DNuScenesDataModule,
+    SemanticKITTIDataModule,
+)
+from occplug.data.synthetic import SyntheticDataModule
 from occplug.run import runner
 from occplug_duocc.blocks.queryagg import (
     DEFAULT_DETECTION_CLASSES,
