@@ -17,6 +17,7 @@ import circle through the config package. It is the constraints' one home: plugi
 
 from __future__ import annotations
 
+import difflib
 import math
 import typing
 from dataclasses import dataclass
@@ -25,11 +26,15 @@ from typing import Any
 __all__ = [
     "Constraint",
     "Fraction",
+    "LabelIds",
     "Length",
     "NonNegative",
     "Positive",
     "Range",
     "UnitInterval",
+    "check_choices",
+    "choices_of",
+    "describe_choices",
     "constraints_of",
     "describe_rules",
     "violated",
@@ -137,6 +142,29 @@ def _num(x: float) -> str:
     return str(int(x)) if float(x).is_integer() else str(x)
 
 
+@dataclass(frozen=True)
+class LabelIds(Constraint):
+    """A list of label ids of the run's classes: every id ``< count``.
+
+    Declared as ``LabelIds()`` beside the elements' own rule (``tuple[Annotated[int, NonNegative], ...]``): the
+    class count is the data module's, unknown where the rule is declared. Config validation reads the data
+    module's classes (its ``class_names`` class attribute) and checks the rule with ``count`` filled in, so a class
+    id the data set does not have is one line before anything is built. With ``count`` None it admits every list.
+    """
+
+    count: int | None = None
+
+    def holds(self, value: Any) -> bool:
+        return self.count is None or all(not isinstance(v, int) or v < self.count for v in value)
+
+    def describe(self) -> str:
+        count = "the data set's" if self.count is None else f"the data set's {self.count}"
+        return f"label ids of {count} classes" + ("" if self.count is None else f" (0 to {self.count - 1})")
+
+    def violations(self) -> list[Any]:
+        return [] if self.count is None else [[self.count]]
+
+
 def constraints_of(annotation: Any) -> list[Constraint]:
     """The constraints declared on ``annotation`` itself (``Annotated[..., C]``, also inside ``X | None``)."""
     if typing.get_origin(annotation) is typing.Annotated:
@@ -197,7 +225,49 @@ def describe_rules(annotation: Any) -> str:
 
 
 def _with_type(rule: Constraint, value: Any) -> str:
-    if isinstance(rule, Length):
+    if isinstance(rule, (Length, LabelIds)):
         return rule.describe()
     kind = "an int" if isinstance(value, int) and not isinstance(value, bool) else "a number"
     return f"{kind} {rule.describe()}"
+
+
+def choices_of(annotation: Any) -> tuple[Any, ...]:
+    """The values of the ``Literal`` in ``annotation`` (inside ``Annotated`` / a union), or ``()``."""
+    origin = typing.get_origin(annotation)
+    if origin is typing.Literal:
+        return typing.get_args(annotation)
+    if origin is typing.Annotated:
+        return choices_of(typing.get_args(annotation)[0])
+    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+        return tuple(c for arg in typing.get_args(annotation) for c in choices_of(arg))
+    return ()
+
+
+def describe_choices(choices: tuple[Any, ...]) -> str:
+    """``"'add' or 'concat'"``: the ``repr`` of each choice, the last joined by "or"."""
+    words = [repr(c) for c in choices]
+    return words[0] if len(words) == 1 else f"{', '.join(words[:-1])} or {words[-1]}"
+
+
+def check_choices(func: Any, who: str, **values: Any) -> None:
+    """Check each ``name=value`` against the ``Literal`` annotating ``func``'s parameter ``name``.
+
+    The annotation is the one list of choices (config validation reads the same one), so a constructor
+    checks a directly passed value without a second list::
+
+        def __init__(self, fusion: Literal["add", "concat"] = "add"):
+            check_choices(StreamAggregation.__init__, "StreamAggregation", fusion=fusion)
+
+    Raises:
+        ValueError: ``"{who} {name} must be 'add' or 'concat', got 'ad'; did you mean 'add'?"`` (one line).
+        TypeError: a named parameter that is not ``Literal``-annotated (a programming error).
+    """
+    hints = typing.get_type_hints(func, include_extras=True)
+    for name, value in values.items():
+        allowed = choices_of(hints.get(name))
+        if not allowed:
+            raise TypeError(f"check_choices: {who} parameter {name!r} is not annotated with a Literal")
+        if not any(type(value) is type(c) and value == c for c in allowed):
+            near = difflib.get_close_matches(str(value), [c for c in allowed if isinstance(c, str)], n=1)
+            hint = f"; did you mean {near[0]!r}?" if near and isinstance(value, str) else ""
+            raise ValueError(f"{who} {name} must be {describe_choices(allowed)}, got {value!r}{hint}")

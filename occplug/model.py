@@ -226,6 +226,7 @@ class OccModel(OccupancyModel):
             grid=run_grid,
             num_classes=self.num_classes,
             point_channels={name: int(enc.out_channels) for name, enc in self.point_encoders.items()},
+            **({"class_names": tuple(self.class_names)} if self.class_names else {}),
         )
         self.heads = nn.ModuleDict(
             {

@@ -9,7 +9,7 @@ from typing import Annotated, Any, Literal
 import torch
 from torch import Tensor, nn
 
-from occplug.constraints import Positive
+from occplug.constraints import Positive, check_choices
 from occplug.errors import UserError
 from occplug.interfaces import ImageEncoder
 from occplug.nn import BasicBlock2d, ConvNormAct2d
@@ -89,8 +89,7 @@ class SmallCNN(ImageEncoder):
         super().__init__()
         if levels < 1:
             raise ValueError(f"small_cnn levels must be >= 1, got {levels}")
-        if stride not in (4, 8, 16):
-            raise ValueError(f"small_cnn stride must be 4, 8 or 16, got {stride}")
+        check_choices(SmallCNN.__init__, "small_cnn", stride=stride)
         if num_blocks < 1:
             raise ValueError(f"small_cnn num_blocks must be >= 1, got {num_blocks}")
         self.out_channels = int(out_channels)

@@ -7,12 +7,12 @@ RefineNet): it shows how a streaming component uses :class:`occplug.streams.Stre
 from __future__ import annotations
 
 import math
-from typing import Annotated
+from typing import Annotated, Literal
 
 import torch
 from torch import Tensor, nn
 
-from occplug.constraints import NonNegative, Positive, Range
+from occplug.constraints import NonNegative, Positive, Range, check_choices
 from occplug.data.frame import Batch
 from occplug.geometry import warp_volume
 from occplug.interfaces import Lifted
@@ -59,14 +59,13 @@ class DenseVoxelsHistory(DenseVoxels):
         num_blocks: Annotated[int, NonNegative] = 2,
         history_weight: Annotated[float, Range(low=0, high=1, low_open=True, high_open=True)] = 0.5,
         learn_weight: bool = False,
-        reset: str = "current",
+        reset: Literal["current", "zeros"] = "current",
         max_gap_s: Annotated[float | None, Positive] = 2.0,
     ) -> None:
         super().__init__(in_channels, out_channels, num_blocks)
         if not 0.0 < history_weight < 1.0:
             raise ValueError(f"dense_voxels_history history_weight must be in (0, 1), got {history_weight}")
-        if reset not in ("current", "zeros"):
-            raise ValueError(f"dense_voxels_history reset must be 'current' or 'zeros', got {reset!r}")
+        check_choices(DenseVoxelsHistory.__init__, "dense_voxels_history", reset=reset)
         logit = torch.tensor(math.log(history_weight / (1.0 - history_weight)))
         if learn_weight:
             self.weight_logit = nn.Parameter(logit)

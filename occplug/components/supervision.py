@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from occplug.constraints import NonNegative, UnitInterval
+from occplug.constraints import NonNegative, UnitInterval, check_choices
 from occplug.data.frame import Batch
 from occplug.interfaces import ModelOutputs, SupervisionSource
 
@@ -69,8 +69,7 @@ class VoxelCrossEntropy(SupervisionSource):
         self.lidar_mask = bool(lidar_mask)
         self.ignore_label = ignore_label
         self.label_smoothing = float(label_smoothing)
-        if normalize not in ("weights", "count"):
-            raise ValueError(f"voxel_ce normalize must be 'weights' or 'count', got {normalize!r}")
+        check_choices(VoxelCrossEntropy.__init__, "voxel_ce", normalize=normalize)
         self.normalize = normalize
         cw = None if class_weights is None else torch.tensor([float(v) for v in class_weights], dtype=torch.float32)
         self.register_buffer("class_weights", cw, persistent=False)

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from occplug.constraints import Length, NonNegative, Positive
+from occplug.constraints import Length, NonNegative, Positive, check_choices
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, project_to_image
 from occplug.interfaces import Lifted, ViewTransform
@@ -170,8 +170,7 @@ class LSSViewTransform(ViewTransform):
         depth_net: Annotated[dict | DepthNet | None, Slot("depth_net")] = None,
     ) -> None:
         super().__init__()
-        if splat not in ("fast", "reference"):
-            raise ValueError(f"lss splat must be 'fast' or 'reference', got {splat!r}")
+        check_choices(LSSViewTransform.__init__, "lss", splat=splat)
         self.grid = GridSpec.from_config(grid)
         self.image_stride = int(image_stride)
         self.out_channels = int(out_channels)

@@ -20,7 +20,16 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
-from occplug.constraints import NonNegative, Positive, Range, UnitInterval, violated
+from occplug.constraints import (
+    LabelIds,
+    NonNegative,
+    Positive,
+    Range,
+    UnitInterval,
+    choices_of,
+    constraints_of,
+    violated,
+)
 from occplug.geometry import GridSpec
 from occplug.kinds import given_arguments
 from occplug.registry import Registry, closest
@@ -94,6 +103,12 @@ def _type_name(annotation: Any) -> str:
     return getattr(annotation, "__name__", str(annotation))
 
 
+def _near(value: Any, annotation: Any) -> str:
+    """``"; did you mean 'x'?"`` for a string close to one of ``annotation``'s ``Literal`` choices, else ``""``."""
+    hint = closest(value, [c for c in choices_of(annotation) if isinstance(c, str)]) if isinstance(value, str) else None
+    return f"; did you mean {hint!r}?" if hint else ""
+
+
 def check_type(value: Any, annotation: Any) -> bool:
     """Whether a config value fits a (resolved) annotation; unknown annotations accept anything."""
     if annotation is inspect.Parameter.empty or annotation is Any or isinstance(annotation, str):
@@ -147,9 +162,11 @@ class UsedComponent:
 
 
 class _Validator:
-    def __init__(self, registry: Registry) -> None:
+    def __init__(self, registry: Registry, class_count: int | None = None) -> None:
         self.registry = registry
         self.used: list[UsedComponent] = []
+        #: how many classes the run's data module has, where it declares them (checks :class:`LabelIds`)
+        self.class_count = class_count
 
     def node(self, node: Any, kind: str, path: str) -> None:
         if isinstance(node, str) and kind == "metric":
@@ -192,8 +209,10 @@ class _Validator:
             if slot is not None:
                 self.slot(value, slot, f"{path}.{key}")
             elif not check_type(value, annotation):
-                raise ConfigError(f"{path}.{key}: expected {_type_name(annotation)}, got {_describe(value)}")
-            elif (problem := violated(value, annotation)) is not None:
+                raise ConfigError(
+                    f"{path}.{key}: expected {_type_name(annotation)}, got {_describe(value)}{_near(value, annotation)}"
+                )
+            elif (problem := violated(value, self.with_classes(annotation))) is not None:
                 raise ConfigError(f"{path}.{key}: expected {problem}, got {_describe(value)}")
             elif group is not None and isinstance(value, dict):
                 self.arguments(value, component_params(group), f"{path}.{key}", group.__name__, "setting")
@@ -204,6 +223,12 @@ class _Validator:
         if missing:
             what = "argument" if noun == "parameter" else noun
             raise ConfigError(f"{path}: {label} is missing required {what}(s): {', '.join(missing)}")
+
+    def with_classes(self, annotation: Any) -> Any:
+        """``annotation`` with its :class:`LabelIds` rule bounded by the run's class count, where both are known."""
+        if self.class_count is None or LabelIds() not in constraints_of(annotation):
+            return annotation
+        return typing.Annotated[annotation, LabelIds(self.class_count)]
 
     def slot(self, value: Any, slot: Slot, path: str) -> None:
         if slot.mapping:
@@ -366,7 +391,7 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
     for required in ("data", "model"):
         if required not in config:
             raise ConfigError(f"{required}: missing section (every config needs 'data:' and 'model:')")
-    v = _Validator(registry)
+    v = _Validator(registry, _class_count(config.get("data"), registry))
     if "seed" in config and not check_type(config["seed"], int):
         raise ConfigError(f"seed: expected int, got {_describe(config['seed'])}")
     if "seed" in config and not SEED_RANGE[0] <= config["seed"] <= SEED_RANGE[1]:
@@ -415,6 +440,17 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
         check_query_config(config["model"], registry)
     _check_stateful_needs_sequential(config, v.used, registry)
     return v.used
+
+
+def _class_count(data: Any, registry: Registry) -> int | None:
+    """How many classes the data node's module declares (a ``class_names`` class attribute), or None."""
+    if not isinstance(data, dict) or not isinstance(data.get("type"), str):
+        return None
+    try:
+        names = getattr(registry.get("data", data["type"]).factory, "class_names", None)
+    except LookupError:
+        return None  # named by the walk, with a suggestion
+    return len(names) if isinstance(names, tuple) and names else None
 
 
 def validate_component(node: Any, kind: str, key: str, registry: Registry) -> None:

@@ -21,6 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from occplug.constraints import check_choices
+
 __all__ = [
     "CBAM",
     "ChannelAttention",
@@ -125,10 +127,7 @@ class DeformableAttention(nn.Module):
         super().__init__()
         if dims not in (2, 3):
             raise ValueError(f"deformable attention: dims must be 2 or 3, got {dims}")
-        if offset_order not in ("axes", "grid_sample"):
-            raise ValueError(
-                f"deformable attention: offset_order must be 'axes' or 'grid_sample', got {offset_order!r}"
-            )
+        check_choices(DeformableAttention.__init__, "deformable attention:", offset_order=offset_order)
         if channels % heads:
             raise ValueError(f"{dims}D deformable attention: channels {channels} not divisible by heads {heads}")
         self.heads, self.points, self.dims = int(heads), int(points), int(dims)

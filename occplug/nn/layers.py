@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 from torch import Tensor, nn
+
+from occplug.constraints import check_choices
 
 __all__ = ["BasicBlock2d", "BasicBlock3d", "ConvNormAct2d", "ConvNormAct3d", "PixelNet", "norm_layer"]
 
@@ -29,10 +32,16 @@ class _ConvNormAct(nn.Sequential):
     """``conv (no bias) -> norm -> activation`` in 2D or 3D; its parameters are ``0.*`` (conv) and ``1.*`` (norm)."""
 
     def __init__(
-        self, in_channels: int, out_channels: int, kernel: int, stride: int, norm: str, act: str, dims: int
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel: int,
+        stride: int,
+        norm: str,
+        act: Literal["relu", "silu"],
+        dims: int,
     ) -> None:
-        if act not in ("relu", "silu"):
-            raise ValueError(f"act must be 'relu' or 'silu', got {act!r}")
+        check_choices(_ConvNormAct.__init__, "_ConvNormAct", act=act)
         conv = nn.Conv2d if dims == 2 else nn.Conv3d
         super().__init__(
             conv(in_channels, out_channels, kernel, stride=stride, padding=kernel // 2, bias=False),

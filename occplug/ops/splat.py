@@ -49,6 +49,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from occplug.constraints import check_choices
 from occplug.geometry import GridSpec, pixel_centers, unproject_from_image
 
 __all__ = [
@@ -381,8 +382,10 @@ def splat_outer(depth: Tensor, context: Tensor, plans: Sequence[SplatPlan]) -> T
         empty voxel). Differentiable in ``depth`` and ``context`` (first order).
     """
     if depth.dim() != 5 or context.dim() != 5:
-        raise ValueError(f"splat_outer: expected depth (B, N, D, h, w) and context (B, N, C, h, w), got "
-                         f"{tuple(depth.shape)} and {tuple(context.shape)}")
+        raise ValueError(
+            f"splat_outer: expected depth (B, N, D, h, w) and context (B, N, C, h, w), got "
+            f"{tuple(depth.shape)} and {tuple(context.shape)}"
+        )
     b, n, d, h, w = depth.shape
     if context.shape[0] != b or context.shape[1] != n or context.shape[3:] != (h, w):
         raise ValueError(f"splat_outer: context {tuple(context.shape)} does not match depth {tuple(depth.shape)}")
@@ -476,8 +479,10 @@ def feature_cell_centers(h: int, w: int, stride: int, device: torch.device | str
 
 def _depths_per_camera(depths: Tensor, b: int, n: int) -> Tensor:
     """``(D,)``, ``(N, D)`` or ``(B, N, D)`` depth centres -> a ``(B, N, D)`` float32 view."""
-    if depths.dim() not in (1, 2, 3) or (depths.dim() >= 2 and depths.shape[-2] != n) or (
-        depths.dim() == 3 and depths.shape[0] != b
+    if (
+        depths.dim() not in (1, 2, 3)
+        or (depths.dim() >= 2 and depths.shape[-2] != n)
+        or (depths.dim() == 3 and depths.shape[0] != b)
     ):
         raise ValueError(f"depth centres must be (D,), (N, D) or (B, N, D) for B={b}, N={n}; got {tuple(depths.shape)}")
     return depths.float().expand(b, n, depths.shape[-1])
@@ -571,8 +576,7 @@ class FrustumSplatter:
         mode: Literal["fast", "reference"] = "fast",
         max_plans: int = 16,
     ) -> None:
-        if mode not in ("fast", "reference"):
-            raise ValueError(f"splat mode must be 'fast' or 'reference', got {mode!r}")
+        check_choices(FrustumSplatter.__init__, "splat", mode=mode)
         if int(image_stride) < 1:
             raise ValueError(f"image_stride must be >= 1, got {image_stride}")
         self.grid = GridSpec.from_config(grid)
@@ -634,7 +638,12 @@ class FrustumSplatter:
         geometry = torch.cat([*parts, z.reshape(b, -1)], dim=1)
         shapes = tuple(tuple(t.shape[1:]) for t in (batch.intrinsics, batch.cam_to_ego, batch.img_aug, z))
         static = {
-            "h": int(h), "w": int(w), "stride": self.image_stride, "grid": self.grid, "bev": self.bev, "shapes": shapes,
+            "h": int(h),
+            "w": int(w),
+            "stride": self.image_stride,
+            "grid": self.grid,
+            "bev": self.bev,
+            "shapes": shapes,
             "device": str(depths.device),
         }
         return [geometry_key(geometry[i], **static) for i in range(b)]
@@ -682,8 +691,10 @@ class FrustumSplatter:
             ``(B, C, *out_shape)``, contiguous; differentiable in ``depth`` and ``context``.
         """
         if depth.dim() != 5 or context.dim() != 5:
-            raise ValueError(f"splat_outer: expected depth (B, N, D, h, w) and context (B, N, C, h, w), got "
-                             f"{tuple(depth.shape)} and {tuple(context.shape)}")
+            raise ValueError(
+                f"splat_outer: expected depth (B, N, D, h, w) and context (B, N, C, h, w), got "
+                f"{tuple(depth.shape)} and {tuple(context.shape)}"
+            )
         b, n, d, h, w = depth.shape
         c = context.shape[2]
         with _no_autocast(depth.device):

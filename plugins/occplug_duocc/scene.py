@@ -11,7 +11,7 @@ is halved as in the paper) and return a :class:`StreamVoxelScene` on that coarse
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import torch
 from torch import Tensor, nn
@@ -23,7 +23,7 @@ from occplug.interfaces import DenseVoxelScene, Lifted, ModelOutputs, SceneRepre
 from occplug.streams import StreamState
 
 from .blocks.fpn3d import VoxelFPN3D
-from .blocks.queryagg import QueryAggregation, QueryAggSettings
+from .blocks.queryagg import QueryAggregation, QueryAggSettings, resolve_detection_classes
 from .blocks.stream_agg import StreamAggregation
 
 __all__ = [
@@ -169,6 +169,8 @@ class DuOccStream(_DuOccVoxels):
             ``detector``, ...), or None (off: Tab. 4 B). Needs ``stream: true``.
         level_channels: the image encoder's levels' channels, finest first (given by the model; QueryAgg's
             detector reads those levels).
+        class_names: the run's class names (given by the model): QueryAgg's detection classes default to their
+            ``dynamic`` group and must be their label ids.
 
     Forward:
         :class:`~occplug.interfaces.Lifted` ``V_init`` ``(B, C_init, X, Y, Z)``, the batch (``scene``,
@@ -178,6 +180,8 @@ class DuOccStream(_DuOccVoxels):
 
     stateful = True
     reads_outputs = True
+    #: the model also gives the run's class names (QueryAgg's detection classes are a class group of them)
+    given = (*SceneRepresentation.given, "class_names")
 
     def __init__(
         self,
@@ -189,7 +193,7 @@ class DuOccStream(_DuOccVoxels):
         fpn_blocks: Annotated[list[Annotated[int, Positive]], Length(exact=3)] = [1, 1, 1],  # noqa: B006
         num_classes: Annotated[int, Positive] = 18,
         stream: bool = True,
-        fusion: str = "add",
+        fusion: Literal["add", "concat"] = "add",
         refine: bool = True,
         occupied_head: bool = True,
         forecast_head: bool = True,
@@ -200,6 +204,7 @@ class DuOccStream(_DuOccVoxels):
         train_cut_prob: Annotated[float, Range(low=0.0, high=1.0, high_open=True)] = 0.0,
         query_agg: QueryAggSettings | None = None,
         level_channels: Sequence[int] | None = None,
+        class_names: Sequence[str] | None = None,
     ) -> None:
         super().__init__(in_channels, grid, channels, downsample, fpn_channels, fpn_blocks)
         self.stream = bool(stream)
@@ -228,6 +233,7 @@ class DuOccStream(_DuOccVoxels):
                 raise ValueError(
                     "duocc_stream query_agg needs level_channels, the image encoder's (the model gives them)"
                 )
+            query_agg = resolve_detection_classes(query_agg, class_names)
             self.query_agg = QueryAggregation(self.out_channels, self.coarse, level_channels, query_agg)
 
     def forward(self, lifted: Lifted, batch: Batch, outputs: ModelOutputs | None = None) -> StreamVoxelScene:

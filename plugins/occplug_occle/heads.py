@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from occplug.constraints import NonNegative, Positive
+from occplug.constraints import NonNegative, Positive, check_choices
 from occplug.data import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces import DEFAULT_QUERY_CHUNK, Head, ModelOutputs, OccupancyHead, Scene
@@ -251,8 +251,7 @@ class ProjectedSegmentationHead(Head):
         hidden: Annotated[int, NonNegative] = 32,
     ) -> None:
         super().__init__()
-        if mode not in ("sum", "distance"):
-            raise ValueError(f"occle_projection mode must be 'sum' or 'distance', got {mode!r}")
+        check_choices(ProjectedSegmentationHead.__init__, "occle_projection", mode=mode)
         self.num_classes, self.stride, self.mode = int(num_classes), int(stride), mode
         self.net = ProjectionHead(in_channels, self.num_classes, hidden)
 

@@ -30,7 +30,7 @@ import torch
 import torch.utils.checkpoint
 from torch import Tensor, nn
 
-from occplug.constraints import Length, NonNegative, Positive
+from occplug.constraints import Length, NonNegative, Positive, check_choices
 from occplug.data import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces import DenseVoxelScene, Lifted, ModelOutputs, SceneRepresentation
@@ -171,15 +171,10 @@ class OccleScene(SceneRepresentation):
         history: list[int] | None = None,
     ) -> None:
         super().__init__()
-        if compute not in ("all", "semantic", "geometric"):
-            raise ValueError(f"occle_scene compute must be 'all', 'semantic' or 'geometric', got {compute!r}")
+        check_choices(OccleScene.__init__, "occle_scene", compute=compute, geometry=geometry, fusion=fusion)
         if compute != "all" and not (semantic if compute == "semantic" else geometric):
             raise ValueError(f"occle_scene compute: {compute} runs the {compute} branch alone, which is switched off")
         self.compute = compute
-        if geometry not in ("cross_plane", "conv3d"):
-            raise ValueError(f"occle_scene geometry must be 'cross_plane' or 'conv3d', got {geometry!r}")
-        if fusion not in ("dual_mamba", "conv"):
-            raise ValueError(f"occle_scene fusion must be 'dual_mamba' or 'conv', got {fusion!r}")
         self.grid = GridSpec.from_config(grid)
         if lidar_channels is None and point_channels is not None:
             if lidar_encoder not in point_channels:

@@ -25,7 +25,7 @@ from torch import Tensor, nn
 
 from occplug.components import build_depth_net
 from occplug.config import Slot
-from occplug.constraints import NonNegative, Positive, UnitInterval
+from occplug.constraints import NonNegative, Positive, UnitInterval, check_choices
 from occplug.data import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces import Lifted, ViewTransform
@@ -91,8 +91,7 @@ class LiftContractSplat(ViewTransform):
         depth_net: Annotated[dict | None, Slot("depth_net")] = None,
     ) -> None:
         super().__init__()
-        if bins not in ("log_linear", "uniform"):
-            raise ValueError(f"queryocc_lift_contract_splat bins must be 'log_linear' or 'uniform', got {bins!r}")
+        check_choices(LiftContractSplat.__init__, "queryocc_lift_contract_splat", bins=bins)
         self.grid = GridSpec.from_config(grid)
         self.image_stride = int(image_stride)
         self.out_channels = int(out_channels)

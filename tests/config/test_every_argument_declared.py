@@ -11,6 +11,7 @@ the component and are skipped.
 
 from __future__ import annotations
 
+import ast
 import collections.abc as cabc
 import importlib
 import inspect
@@ -19,15 +20,16 @@ import types
 import typing
 from importlib import metadata, util
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import pytest
 
 from occplug.config import ConfigError
 from occplug.config.validate import _Validator
-from occplug.constraints import Constraint, Length, constraints_of, violated
+from occplug.constraints import Constraint, Length, check_choices, choices_of, constraints_of, violated
 from occplug.kinds import given_arguments
 from occplug.plugins import ENTRY_POINT_GROUP, isolated
+from occplug.settings import settings_type
 from occplug.slots import component_params, slot_of
 
 EXAMPLE_SRC = Path(__file__).resolve().parents[2] / "plugins" / "example" / "src"
@@ -283,3 +285,137 @@ def test_hidden_zero_stays_valid_where_it_means_a_1x1_conv(registry):
         v.node({**node, "hidden": 0}, kind, "x")  # passes: no error at all
     with pytest.raises(ConfigError, match=r"^x.hidden: expected an int > 0, got int 0$"):
         v.node({"type": "camera_aware", "hidden": 0}, "depth_net", "x")
+
+
+# ---------------------------------------------------------------------------------------------- choices
+
+
+def _choice_arguments(registry):
+    """``(kind, name, path, annotation)`` of every ``Literal``-annotated argument, inside settings groups too.
+
+    ``path`` is the argument's keys from the component node down (``("query_agg", "coverage")``).
+    """
+    for entry in registry.entries():
+        stack = [((key,), annotation) for key, (_, annotation) in component_params(entry.factory).items()]
+        while stack:
+            path, annotation = stack.pop()
+            if slot_of(annotation) is not None:
+                continue
+            if choices_of(annotation):
+                yield entry.kind, entry.name, path, annotation
+            group = settings_type(annotation)
+            if group is not None:
+                stack += [((*path, k), a) for k, (_, a) in component_params(group).items()]
+
+
+def _outside(choices: tuple[Any, ...]) -> Any:
+    """A value none of ``choices`` is: a near miss of the first string choice, else one past the largest int."""
+    strings = [c for c in choices if isinstance(c, str)]
+    return strings[0] + "x" if strings else max(c for c in choices if isinstance(c, int)) + 1
+
+
+def test_every_choice_outside_its_literal_is_one_line_at_config_validation(registry):
+    seen = set()
+    for kind, name, path, annotation in _choice_arguments(registry):
+        choices = choices_of(annotation)
+        bad = _outside(choices)
+        node: Any = bad
+        for key in reversed(path):
+            node = {key: node}
+        with pytest.raises(ConfigError) as caught:
+            _Validator(registry).node({"type": name, **node}, kind, "x")
+        message = str(caught.value)
+        where = "x." + ".".join(path)
+        assert message.startswith(f"{where}: expected ") and f"got {type(bad).__name__} {bad!r}" in message, message
+        assert all(repr(c) in message for c in choices), message
+        assert "\n" not in message and "Traceback" not in message, message
+        if isinstance(bad, str):  # a near miss names the choice it missed
+            assert message.endswith(f"; did you mean {bad[:-1]!r}?"), message
+        seen.add((name, path[-1]))
+    # the choices the constructors used to check by hand are among them, in the core and in each method plugin
+    assert {
+        ("small_cnn", "stride"),
+        ("voxel_ce", "normalize"),
+        ("lss", "splat"),
+        ("dense_voxels_history", "reset"),
+        ("duocc_stream", "fusion"),
+        ("duocc_stream", "coverage"),
+        ("occle_scene", "compute"),
+        ("occle_projection_head", "mode"),
+        ("queryocc_query_points", "points"),
+        ("queryocc_render_points", "spacing"),
+        ("queryocc_lift_contract_splat", "bins"),
+    } <= seen, seen
+
+
+def _hand_checked_choices(tree: ast.AST) -> list[int]:
+    """Lines where an ``__init__`` raises when a parameter is ``not in`` a literal or module-level string tuple."""
+    tuples = {
+        target.id
+        for node in getattr(tree, "body", [])
+        if isinstance(node, (ast.Assign, ast.AnnAssign)) and _string_collection(node.value)
+        for target in (node.targets if isinstance(node, ast.Assign) else [node.target])
+        if isinstance(target, ast.Name)
+    }
+    lines = []
+    for fn in ast.walk(tree):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)) or fn.name != "__init__":
+            continue
+        params = {a.arg for a in [*fn.args.args, *fn.args.kwonlyargs]}
+        for branch in ast.walk(fn):
+            if not isinstance(branch, ast.If) or not any(isinstance(n, ast.Raise) for n in branch.body):
+                continue
+            for cmp in ast.walk(branch.test):
+                if not isinstance(cmp, ast.Compare) or not (isinstance(cmp.left, ast.Name) and cmp.left.id in params):
+                    continue
+                for op, right in zip(cmp.ops, cmp.comparators, strict=True):
+                    named = isinstance(right, ast.Name) and right.id in tuples
+                    if isinstance(op, ast.NotIn) and (named or _string_collection(right)):
+                        lines.append(cmp.lineno)
+    return lines
+
+
+def _string_collection(node: ast.AST | None) -> bool:
+    return (
+        isinstance(node, (ast.Tuple, ast.Set, ast.List))
+        and bool(node.elts)
+        and all(isinstance(e, ast.Constant) and isinstance(e.value, str) for e in node.elts)
+    )
+
+
+def test_no_component_checks_a_string_choice_by_hand(registry):
+    """Components declare choices as ``Literal`` and check them with ``check_choices``, not with a second tuple.
+
+    Scanned: the module of every registered component and every module of the method plugins (their blocks too).
+    """
+    root = Path(__file__).resolve().parents[2]
+    files = {Path(inspect.getsourcefile(entry.factory)).resolve() for entry in registry.entries()}
+    for package in sorted((root / "plugins").glob("occplug_*")):
+        files |= {p.resolve() for p in package.rglob("*.py") if "tests" not in p.relative_to(package).parts}
+    offenders = [f"{path}:{n}" for path in sorted(files) for n in _hand_checked_choices(ast.parse(path.read_text()))]
+    assert len(files) > 60, len(files)
+    assert not offenders, "string choices checked by hand (annotate Literal[...], call check_choices):\n  " + (
+        "\n  ".join(offenders)
+    )
+
+
+def test_the_hand_check_finder_finds_the_old_pattern():
+    old = 'MODES = ("a", "b")\nclass C:\n    def __init__(self, m, n):\n        if m not in ("x", "y"):\n            raise E\n'
+    old += "        if n not in MODES:\n            raise E\n        if n not in (1, 2):\n            raise E\n"
+    old += "        if m in ('x',):\n            pass\n        for k in n:\n            if k not in MODES:\n                raise E\n"
+    assert _hand_checked_choices(ast.parse(old)) == [4, 6]
+
+
+def test_check_choices_reads_the_constructors_literal():
+    def f(fusion: Literal["add", "concat"] = "add", stride: Literal[4, 8] = 4, free: str = "x"):
+        pass
+
+    check_choices(f, "f", fusion="concat", stride=8)
+    with pytest.raises(ValueError, match=r"^f fusion must be 'add' or 'concat', got 'ad'; did you mean 'add'\?$"):
+        check_choices(f, "f", fusion="ad")
+    with pytest.raises(ValueError, match=r"^f stride must be 4 or 8, got True$"):
+        check_choices(f, "f", stride=True)  # a bool is not the int 1 of a Literal, nor any other choice
+    with pytest.raises(ValueError, match=r"^f stride must be 4 or 8, got 4.0$"):
+        check_choices(f, "f", stride=4.0)
+    with pytest.raises(TypeError, match="not annotated with a Literal"):
+        check_choices(f, "f", free="y")

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Collection
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, ClassVar
 
 import numpy as np
 import torch
@@ -282,6 +282,9 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
             auto when :meth:`require_fields` declares points.
     """
 
+    #: the label names, index = id (config validation reads them before anything is built)
+    class_names: ClassVar[tuple[str, ...]] = OCC3D_CLASSES
+
     def __init__(
         self,
         root: str,
@@ -311,7 +314,7 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
     ) -> None:
         super().__init__(
             grid=grid if grid is not None else OCC3D_GRID,
-            class_names=OCC3D_CLASSES,
+            class_names=self.class_names,
             free_label=OCC3D_FREE,
             ignore_label=255,
             batch_size=batch_size,

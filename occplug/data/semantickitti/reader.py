@@ -27,7 +27,7 @@ from __future__ import annotations
 from collections.abc import Collection
 from functools import partial
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, ClassVar
 
 import numpy as np
 import torch
@@ -322,6 +322,9 @@ class SemanticKITTIDataModule(ReaderDataModule):
             present fails only when it is read.
     """
 
+    #: the label names, index = id (config validation reads them before anything is built)
+    class_names: ClassVar[tuple[str, ...]] = SEMANTIC_KITTI_CLASSES
+
     def __init__(
         self,
         root: str,
@@ -346,7 +349,7 @@ class SemanticKITTIDataModule(ReaderDataModule):
     ) -> None:
         super().__init__(
             grid=grid if grid is not None else SSC_GRID,
-            class_names=SEMANTIC_KITTI_CLASSES,
+            class_names=self.class_names,
             free_label=0,
             ignore_label=IGNORE,
             batch_size=batch_size,

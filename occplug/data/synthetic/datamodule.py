@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, ClassVar
 
 from torch.utils.data import Dataset, Sampler
 
@@ -69,6 +69,9 @@ class SyntheticDataModule(ReaderDataModule):
     Attributes:
         world_config: the resolved :class:`~occplug.data.synthetic.SyntheticWorldConfig`.
     """
+
+    #: the label names, index = id (config validation reads them before anything is built)
+    class_names: ClassVar[tuple[str, ...]] = OCC3D_CLASSES
 
     def __init__(
         self,
@@ -140,7 +143,7 @@ class SyntheticDataModule(ReaderDataModule):
             grid=config.grid,
             batch_size=batch_size,
             num_workers=num_workers,
-            class_names=OCC3D_CLASSES,
+            class_names=self.class_names,
             free_label=OCC3D_FREE,
             ignore_label=255,
             pin_memory=pin_memory,

@@ -34,12 +34,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Annotated
+from typing import Annotated, Literal
 
 import torch
 from torch import Tensor, nn
 
-from occplug.constraints import Positive
+from occplug.constraints import Positive, check_choices
 from occplug.geometry import GridSpec
 
 __all__ = [
@@ -292,14 +292,13 @@ class DynamicQueryAggregation(nn.Module):
         grid: GridSpec | Mapping,
         query_channels: int | None = None,
         heads: Annotated[int, Positive] = 8,
-        coverage: str = "center",
+        coverage: Literal["center", "aabb"] = "center",
         positional: bool = True,
     ) -> None:
         super().__init__()
         if channels % heads:
             raise ValueError(f"DynamicQueryAggregation: channels {channels} not divisible by heads {heads}")
-        if coverage not in ("center", "aabb"):
-            raise ValueError(f"DynamicQueryAggregation coverage must be 'center' or 'aabb', got {coverage!r}")
+        check_choices(DynamicQueryAggregation.__init__, "DynamicQueryAggregation", coverage=coverage)
         self.grid = GridSpec.from_config(grid)
         if self.grid.is_contracted:
             raise ValueError("DynamicQueryAggregation needs a metric grid (boxes are found by voxel index)")

@@ -44,8 +44,8 @@ import torch
 from torch import Tensor, nn
 
 from occplug.config import settings
-from occplug.constraints import Length, NonNegative, Positive, Range, UnitInterval
-from occplug.data import Batch
+from occplug.constraints import LabelIds, Length, NonNegative, Positive, Range, UnitInterval
+from occplug.data import OCC3D_CLASSES, Batch, class_groups
 from occplug.geometry import GridSpec
 
 from .denoising import DN_NOISE_SCALE
@@ -56,6 +56,7 @@ from .v2q import VoxelToQuery
 
 __all__ = [
     "DEFAULT_DETECTION_CLASSES",
+    "DETECTION_GROUP",
     "DEFAULT_SMALL_CLASSES",
     "DetectorSettings",
     "QueryAggOutput",
@@ -63,11 +64,15 @@ __all__ = [
     "QueryAggregation",
     "SelectionSettings",
     "detection_targets",
+    "resolve_detection_classes",
 ]
 
-#: Occ3D label ids of the detection classes: barrier, bicycle, bus, car, construction vehicle, motorcycle,
-#: pedestrian, traffic cone, trailer, truck (``occplug.data.classes.OCC3D_DYNAMIC``, the nuScenes detection set).
-DEFAULT_DETECTION_CLASSES = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
+#: The class group whose label ids are the detection classes when ``detection_classes`` is left out
+#: (:func:`occplug.data.class_groups`; Occ3D's: barrier ... truck, the nuScenes detection set).
+DETECTION_GROUP = "dynamic"
+#: Occ3D label ids of the detection classes (Occ3D's ``dynamic`` group, by name: 1 to 10): what a QueryAgg built
+#: without the run's class names detects.
+DEFAULT_DETECTION_CLASSES: tuple[int, ...] = class_groups(OCC3D_CLASSES)[DETECTION_GROUP]
 #: Occ3D label ids the paper's selection treats as small objects (cost test): barrier, bicycle, motorcycle,
 #: pedestrian, traffic cone.
 DEFAULT_SMALL_CLASSES = (1, 2, 6, 7, 8)
@@ -139,7 +144,8 @@ class QueryAggSettings:
         small_classes: label ids the paper's rule treats as small objects (only those among ``detection_classes``).
         score_threshold: selection without ground truth (evaluation, prediction): ``score > score_threshold``.
         max_queries: keep at most this many selected queries per sample (None: all).
-        detection_classes: label id of each detection class, in order.
+        detection_classes: label id of each detection class, in order (None: the run's ``dynamic`` class group,
+            by name, :func:`resolve_detection_classes`; Occ3D and the synthetic world: 1 to 10).
         detector: the detector's settings (:class:`DetectorSettings`).
         v2q_heads, v2q_points: V2Q's attention heads and sampling points per head.
         dqa_heads, coverage, positional: DQA's heads, which voxels a box covers (``center``: the voxel centre
@@ -158,10 +164,10 @@ class QueryAggSettings:
     gt_box_noise: Annotated[float, NonNegative] = 0.0
     select_with_gt: bool = True
     selection: Literal["paper", "code"] | SelectionSettings = "paper"
-    small_classes: tuple[Annotated[int, NonNegative], ...] | None = DEFAULT_SMALL_CLASSES
+    small_classes: Annotated[tuple[Annotated[int, NonNegative], ...], LabelIds()] | None = DEFAULT_SMALL_CLASSES
     score_threshold: Annotated[float, _SCORE_THRESHOLD] = 0.3
     max_queries: Annotated[int, Positive] | None = None
-    detection_classes: Annotated[tuple[Annotated[int, NonNegative], ...], Length(min=1)] = DEFAULT_DETECTION_CLASSES
+    detection_classes: Annotated[tuple[Annotated[int, NonNegative], ...], Length(min=1), LabelIds()] | None = None
     detector: DetectorSettings = DetectorSettings()
     v2q_heads: Annotated[int, Positive] = 4
     v2q_points: Annotated[int, Positive] = 6
@@ -170,6 +176,35 @@ class QueryAggSettings:
     positional: bool = True
     ffn_hidden: Annotated[int, Positive] | None = None
     write: Literal["instance", "class"] = "instance"
+
+
+def resolve_detection_classes(config: QueryAggSettings, class_names: Sequence[str] | None) -> QueryAggSettings:
+    """``config`` with its detection classes checked against, or taken from, the run's class names.
+
+    Left out (None), they are the label ids of the run's :data:`DETECTION_GROUP` class group
+    (:func:`occplug.data.class_groups`, by name); given, each must be a label id of the run's classes.
+    Without class names (a QueryAgg built outside a run) ``config`` is returned as it is.
+
+    Raises:
+        ValueError: an id the run's classes do not have, or no class group to take them from (one line).
+    """
+    if class_names is None:
+        return config
+    key = "duocc_stream query_agg.detection_classes"
+    if config.detection_classes is None:
+        groups = class_groups(tuple(class_names))
+        if groups is None or not groups.get(DETECTION_GROUP):
+            raise ValueError(
+                f"{key}: the run's {len(class_names)} classes are no taxonomy with a '{DETECTION_GROUP}' class group "
+                "(occplug.data.class_groups); list the detection classes' label ids"
+            )
+        return dataclasses.replace(config, detection_classes=groups[DETECTION_GROUP])
+    for label in config.detection_classes:
+        if not 0 <= int(label) < len(class_names):
+            raise ValueError(
+                f"{key}: label id {label} is not one of the run's {len(class_names)} classes (0 to {len(class_names) - 1})"
+            )
+    return config
 
 
 def detection_targets(batch: Batch, classes: Sequence[int], who: str) -> tuple[list[Tensor], list[Tensor]]:
@@ -265,7 +300,7 @@ class QueryAggregation(nn.Module):
             raise ValueError(
                 "duocc_stream query_agg.gt_box_drop / gt_box_noise degrade the ground-truth boxes: they need gt_boxes: true"
             )
-        self.classes = tuple(int(c) for c in cfg.detection_classes)
+        self.classes = tuple(int(c) for c in (cfg.detection_classes or DEFAULT_DETECTION_CLASSES))
         small_ids = [self.classes.index(int(c)) for c in (cfg.small_classes or []) if int(c) in self.classes]
         self.rule = _selection_rule(cfg.selection, small_ids)
         self.score_threshold = float(cfg.score_threshold)

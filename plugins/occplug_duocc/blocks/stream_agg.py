@@ -26,13 +26,13 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from occplug.constraints import Positive
+from occplug.constraints import Positive, check_choices
 from occplug.geometry import GridSpec, warp_volume
 from occplug.nn import ChannelAttention, SpatialAttention3d, cbam
 
@@ -206,7 +206,7 @@ class StreamAggregation(nn.Module):
         channels: Annotated[int, Positive],
         num_classes: Annotated[int, Positive],
         grid: GridSpec | Mapping,
-        fusion: str = "add",
+        fusion: Literal["add", "concat"] = "add",
         refine: bool = True,
         occupied_head: bool = True,
         forecast_head: bool = True,
@@ -216,8 +216,7 @@ class StreamAggregation(nn.Module):
         residual_relu: bool = False,
     ) -> None:
         super().__init__()
-        if fusion not in ("add", "concat"):
-            raise ValueError(f"StreamAggregation fusion must be 'add' or 'concat', got {fusion!r}")
+        check_choices(StreamAggregation.__init__, "StreamAggregation", fusion=fusion)
         if occupied_head and not refine:
             raise ValueError(
                 "StreamAggregation occupied_head reads RefineNet's spatial attention: it needs refine=True"

@@ -30,9 +30,25 @@ from occplug.config import ConfigError
 from occplug.run import runner
 
 
-def training_boxes(cfg: dict, classes: list[int], max_distance: float | None) -> torch.Tensor:
-    """``(M, 9)`` ego-frame boxes of ``classes`` over the training split (inside the grid, or the distance)."""
+def detection_classes(agg: dict, class_names: tuple[str, ...]) -> list[int]:
+    """The label ids the detector of a ``query_agg`` node classifies: its ``detection_classes``, else the
+    data's ``dynamic`` class group (as ``duocc_stream`` resolves them)."""
+    from ..blocks.queryagg import QueryAggSettings, resolve_detection_classes
+
+    given = agg.get("detection_classes")
+    settings = QueryAggSettings(detection_classes=None if given is None else tuple(int(c) for c in given))
+    try:
+        return list(resolve_detection_classes(settings, class_names).detection_classes)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def training_boxes(cfg: dict, classes: list[int] | None, max_distance: float | None) -> tuple[torch.Tensor, list[int]]:
+    """``(M, 9)`` ego-frame boxes of ``classes`` over the training split (inside the grid, or the distance), and
+    ``classes`` (None: those of the config's ``model.scene.query_agg``, :func:`detection_classes`)."""
     dm = runner.build_datamodule(cfg)
+    if classes is None:
+        classes = detection_classes(cfg["model"]["scene"]["query_agg"], tuple(dm.class_names))
     grid = dm.grid
     dataset = dm.dataset("train")
     wanted = torch.tensor(classes)
@@ -48,7 +64,7 @@ def training_boxes(cfg: dict, classes: list[int], max_distance: float | None) ->
         else:
             near = ((boxes[:, :2] >= lo) & (boxes[:, :2] <= hi)).all(1)
         kept.append(boxes[near])
-    return torch.cat(kept) if kept else torch.zeros(0, 9)
+    return (torch.cat(kept) if kept else torch.zeros(0, 9)), classes
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -74,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         k = int(args.queries if args.queries is not None else agg["detector"].get("num_queries", 64))
         if k < 1:
             raise ConfigError(f"--queries: expected an int >= 1, got {k}")
-        boxes = training_boxes(cfg, [int(c) for c in agg["detection_classes"]], args.max_distance)
+        boxes, classes = training_boxes(cfg, None, args.max_distance)
         if boxes.shape[0] < k:
             raise ConfigError(f"{args.config}: the training split holds {boxes.shape[0]} boxes, fewer than {k} anchors")
     except ConfigError as exc:
@@ -84,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     where = f"within {args.max_distance:g} m" if args.max_distance is not None else "inside the grid"
     header = (
         f"# DuOcc detector anchors (python -m occplug_duocc.tools.fit_anchors): k-means (k={k}, seed {args.seed}) of\n"
-        f"# {boxes.shape[0]} ego-frame centres of the training boxes {where}, classes {list(agg['detection_classes'])};\n"
+        f"# {boxes.shape[0]} ego-frame centres of the training boxes {where}, classes {classes};\n"
         f"# size = the mean box size. Made from: -c {' -c '.join(args.config)} {' '.join(args.overrides)}\n"
     )
     body = {

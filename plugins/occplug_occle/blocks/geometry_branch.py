@@ -58,7 +58,7 @@ from typing import Annotated, Literal
 import torch
 from torch import Tensor, nn
 
-from occplug.constraints import NonNegative, Positive
+from occplug.constraints import NonNegative, Positive, check_choices
 from occplug.geometry import GridSpec
 from occplug.nn import ConvNormAct3d, DeformableAttention
 
@@ -507,8 +507,7 @@ class LidarVoxelEncoder(nn.Module):
         sampling: PointSampling = "random",
     ) -> None:
         super().__init__()
-        if sampling not in ("random", "first"):
-            raise ValueError(f"lidar voxel encoder: sampling must be 'random' or 'first', got {sampling!r}")
+        check_choices(LidarVoxelEncoder.__init__, "lidar voxel encoder:", sampling=sampling)
         self.grid = GridSpec.from_config(grid)
         self.point_features, self.out_channels, self.max_points = int(point_features), int(out_channels), max_points
         self.sampling = sampling

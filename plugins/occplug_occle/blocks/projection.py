@@ -19,6 +19,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from occplug.constraints import check_choices
 from occplug.geometry import GridSpec, project_to_image
 from occplug.nn import PixelNet
 from occplug.ops import splat
@@ -160,8 +161,7 @@ class ScatterProjection(nn.Module):
 
     def __init__(self, grid: GridSpec, mode: ProjectionMode = "sum") -> None:
         super().__init__()
-        if mode not in _MODES:
-            raise ValueError(f"ScatterProjection: mode must be one of {_MODES}, got {mode!r}")
+        check_choices(ScatterProjection.__init__, "ScatterProjection:", mode=mode)
         self.grid = GridSpec.from_config(grid)
         self.mode = mode
 

@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from occplug.constraints import Length, NonNegative, Positive, Range
+from occplug.constraints import Length, NonNegative, Positive, Range, check_choices
 from occplug.data import Batch, LabelledPoints, free_pixel_rays, lidar_points, pseudo_depth_points, to_frame
 from occplug.geometry import GridSpec
 from occplug.interfaces import ModelOutputs, SupervisionSource
@@ -377,8 +377,7 @@ class QuerySupervision(SupervisionSource):
         super().__init__()
         if sky_rays > 0 and free_label is None:
             raise ValueError("queryocc_query_points: sky_rays > 0 needs a free_label (the class sky pixels map to)")
-        if points not in ("pseudo", "lidar", "union"):
-            raise ValueError(f"queryocc_query_points points must be pseudo, lidar or union, got {points!r}")
+        check_choices(QuerySupervision.__init__, "queryocc_query_points", points=points)
         if negatives + positives == 0:
             raise ValueError("queryocc_query_points needs negatives + positives > 0")
         self.weight, self.query_head, self.source = float(weight), query_head, points

@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from occplug.constraints import Length, NonNegative, Positive, Range
+from occplug.constraints import Length, NonNegative, Positive, Range, check_choices
 from occplug.data import Batch
 from occplug.geometry import invert_pose, transform_points, unproject_from_image
 from occplug.interfaces import ModelOutputs, SupervisionSource
@@ -302,8 +302,7 @@ class RenderSupervision(SupervisionSource):
         super().__init__()
         if sky_rays > 0 and free_label is None:
             raise ValueError("queryocc_render_points: sky_rays > 0 needs a free_label (the class sky pixels map to)")
-        if spacing not in ("log", "uniform"):
-            raise ValueError(f"queryocc_render_points spacing must be 'log' or 'uniform', got {spacing!r}")
+        check_choices(RenderSupervision.__init__, "queryocc_render_points", spacing=spacing)
         self.log_spacing = spacing == "log"
         if not far > near:
             raise ValueError(f"queryocc_render_points needs far > near, got near={near}, far={far}")
