@@ -178,7 +178,12 @@ class LSSViewTransform(ViewTransform):
         self.register_buffer("depth_centers", depth_bin_centers(depth_bins), persistent=False)
         self.num_depth_bins = int(self.depth_centers.shape[0])
         self.depth_net = build_depth_net(
-            depth_net, in_channels, self.num_depth_bins, self.out_channels, hidden=hidden, depth_centers=self.depth_centers
+            depth_net,
+            in_channels,
+            self.num_depth_bins,
+            self.out_channels,
+            hidden=hidden,
+            depth_centers=self.depth_centers,
         )
         #: the public splatter doing the frustum geometry, the plans and the pooling.
         self.splatter = FrustumSplatter(self.grid, self.image_stride, mode=splat)
