@@ -69,7 +69,9 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
         raise RunError(f"checkpoint {path} does not exist")
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:
+    except pickle.UnpicklingError as exc:
+        if not zipfile.is_zipfile(path) or "weights only" not in str(exc).lower():  # text, random bytes
+            raise RunError(f"checkpoint {path} is truncated or corrupt (not a torch.save file)") from None
         raise RunError(
             f"checkpoint {path} holds objects other than tensors and plain data, which weights_only=True refuses "
             "to unpickle (a foreign or unsafe file); not loaded"
