@@ -217,9 +217,11 @@ class _RunInfoCallback(Callback):
     def __init__(self, info: dict[str, Any]) -> None:
         self.info = info
         self.last_val_step = -1
+        self.last_saved_step = -1
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict) -> None:
         checkpoint[CHECKPOINT_KEY] = self.info
+        self.last_saved_step = trainer.global_step
 
     def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if not trainer.sanity_checking:
@@ -512,7 +514,8 @@ def fit(
     first_batch_check(model, dm)
     info = _RunInfoCallback(run_info(cfg, model, dm))
     steps = step_checkpoint(cfg, ckpt_dir)
-    defaults = {"save_last": True, **({"enable_version_counter": False} if steps else {})}
+    # no last-v1.ckpt: a resumed run (moved or copied too) rewrites its own last.ckpt
+    defaults = {"save_last": True, "enable_version_counter": False}
     checkpoint = ModelCheckpoint(dirpath=str(ckpt_dir), **{**defaults, **checkpoint_node})
     guard = SignalCheckpoint(last)
     with run_lock(run_dir) if is_rank_zero() else contextlib.nullcontext():
@@ -541,6 +544,8 @@ def fit(
             # the train loader does resume mid-epoch (OccDataModule.state_dict), through a path Lightning does not see
             warnings.filterwarnings("ignore", message=".*your dataloader is not resumable")
             trainer.fit(model, datamodule=dm, ckpt_path=str(last) if resume else None)
+            if info.last_saved_step != trainer.global_step:  # the final steps came after the last checkpoint
+                trainer.save_checkpoint(str(last))
             if info.last_val_step != trainer.global_step:  # training stopped between validations
                 trainer.validate(model, datamodule=dm, verbose=False)
         results = dict(model.last_results.get("val", {}))
