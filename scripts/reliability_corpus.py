@@ -405,8 +405,8 @@ CASES = [
     Case("fit-into-locked-run-dir", "concurrency", locked, message="in use by another occplug process"),
     Case("fit-into-non-empty-dir", "concurrency", lambda ctx: [*FIT, "--run-dir", str(ctx.write("run/x", "x").parent)]),
     Case("two-fits-one-run-dir", "concurrency", two_processes, message="run directory", process=True),
-    Case("sigterm-mid-fit", "signals", signalled(signal.SIGTERM), expect=143, message="SIGTERM", process=True),
-    Case("sigint-mid-fit", "signals", signalled(signal.SIGINT), expect=130, message="SIGINT", process=True),
+    Case("sigterm-mid-fit", "signals", signalled(signal.SIGTERM), expect=143, message="SIGTERM at step", process=True),
+    Case("sigint-mid-fit", "signals", signalled(signal.SIGINT), expect=130, message="SIGINT at step", process=True),
     Case("sigkill-then-resume", "signals", killed_then_resumed, expect=0, process=True),
     # disks and caches
     Case("checkpoint-write-disk-full", "disk", full_disk, message="No space left on device", needs_run=True),
@@ -525,9 +525,12 @@ after = os.environ.get("CORPUS_SIGNAL_AFTER_CHECKPOINT")
 if after:
     from occplug.run import runner
     real = runner.AtomicCheckpointIO.save_checkpoint
+    sent = []
     def spy(io, checkpoint, path, storage_options=None):
         real(io, checkpoint, path, storage_options)
-        os.kill(os.getpid(), int(after))
+        if not sent:  # once: a second signal would stop the run at once, by design
+            sent.append(1)
+            os.kill(os.getpid(), int(after))
     runner.AtomicCheckpointIO.save_checkpoint = spy
 from occplug.cli import main
 sys.exit(main(sys.argv[1:]))
