@@ -518,21 +518,21 @@ def fit(
     defaults = {"save_last": True, "enable_version_counter": False}
     checkpoint = ModelCheckpoint(dirpath=str(ckpt_dir), **{**defaults, **checkpoint_node})
     guard = SignalCheckpoint(last)
+    try:  # CSV (logs/version_<n>/: a resume never overwrites) and the trainer.loggers the config names
+        logger = build_loggers((cfg.get("trainer") or {}).get("loggers"), run_dir)
+    except UserError as exc:
+        raise RunError(str(exc)) from None
+    trainer = _trainer(
+        cfg,
+        run_dir,
+        [checkpoint, *steps, info, guard, *callbacks],
+        logger,
+        train_batches=train_batches_per_epoch(cfg, dm),
+        checkpoint_io=io,
+    )
     with run_lock(run_dir) if is_rank_zero() else contextlib.nullcontext():
         if fresh:  # again under the lock: another fit may have started here meanwhile
             check_fresh_run_dir(run_dir)
-        try:  # CSV (logs/version_<n>/: a resume never overwrites) and the trainer.loggers the config names
-            logger = build_loggers((cfg.get("trainer") or {}).get("loggers"), run_dir)
-        except UserError as exc:
-            raise RunError(str(exc)) from None
-        trainer = _trainer(
-            cfg,
-            run_dir,
-            [checkpoint, *steps, info, guard, *callbacks],
-            logger,
-            train_batches=train_batches_per_epoch(cfg, dm),
-            checkpoint_io=io,
-        )
         if trainer.is_global_zero:
             write_text_atomic(
                 run_dir / "config.yaml",
