@@ -217,17 +217,23 @@ class _Releaser:
         self.lock.__exit__(None, None, None)
 
 
-def two_processes(ctx: Ctx) -> list[str]:
-    """Two ``fit`` processes into one --run-dir, started together: the second is refused."""
-    run = ctx.folder / "run"
-    first = subprocess.Popen(
+def _fit_until(run: Path, written: Path) -> subprocess.Popen:
+    """A tiny fit of 3 epochs into ``run`` in its own process, returned once it has written ``written``."""
+    proc = subprocess.Popen(
         [sys.executable, "-m", "occplug.cli", *FIT, "trainer.max_epochs=3", "--run-dir", str(run)],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
     deadline = time.monotonic() + 240
-    while not (run / "config.yaml").exists() and first.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
+    while not written.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    return proc
+
+
+def two_processes(ctx: Ctx) -> list[str]:
+    """Two ``fit`` processes into one --run-dir, started together: the second is refused."""
+    run = ctx.folder / "run"
+    first = _fit_until(run, run / "config.yaml")
     ctx.patches.append(contextlib.closing(_Killer(first)))
     return [*FIT, "--run-dir", str(run)]
 
@@ -352,14 +358,7 @@ def signalled(signum: int) -> Callable[[Ctx], list[str]]:
 
 def killed_then_resumed(ctx: Ctx) -> list[str]:
     run = ctx.folder / "run"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "occplug.cli", *FIT, "trainer.max_epochs=3", "--run-dir", str(run)],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    deadline = time.monotonic() + 240
-    while not _last(run).exists() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
+    proc = _fit_until(run, _last(run))
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     return ["fit", "--resume", str(run)]
