@@ -250,3 +250,90 @@ def test_a_run_killed_mid_epoch_resumes_bit_identical(tmp_path, capsys):
         assert torch.equal(a["state_dict"][key], b["state_dict"][key]), key
     assert json.loads((killed / "metrics.json").read_text()) == json.loads((whole / "metrics.json").read_text())
     assert (killed / "logs" / "version_1").is_dir()  # the resume logged beside the killed run's log
+
+
+# ----------------------------------------------------------------------------- a kill right after each write
+#: Two schedules that between them write last.ckpt at every kind of point: A validates at each epoch's end and
+#: checkpoints every step; B validates mid-epoch (every 2 of 3 steps) with no step checkpoints.
+SCHEDULES = {
+    "A": RUN,
+    "B": [*RUN[:-1], "trainer.limit_train_batches=3", "trainer.val_check_interval=2"],
+}
+
+
+class _Snapshots:
+    """Copies of every last.ckpt one uninterrupted fit writes, in order, each labelled with the hook that wrote
+    it: a SIGKILL right after a write leaves exactly that file for ``--resume``."""
+
+    def __init__(self, monkeypatch, folder: Path) -> None:
+        import shutil
+        import traceback
+
+        self.files: list[tuple[str, Path]] = []
+        real = AtomicCheckpointIO.save_checkpoint
+
+        def spy(io, checkpoint, path, storage_options=None):
+            real(io, checkpoint, path, storage_options)
+            if Path(path).name == "last.ckpt":
+                hooks = [f.name for f in traceback.extract_stack() if f.name.startswith("on_")]
+                hook = hooks[-1] if hooks else "end of fit"
+                copy = folder / f"{len(self.files)}.ckpt"
+                shutil.copy(path, copy)
+                self.files.append((hook, copy))
+
+        monkeypatch.setattr(AtomicCheckpointIO, "save_checkpoint", spy)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """``{schedule: (run dir, [(hook, snapshot)])}``, each schedule fitted once."""
+    out = {}
+    with pytest.MonkeyPatch.context() as mp:
+        for name, overrides in SCHEDULES.items():
+            folder = tmp_path_factory.mktemp(f"schedule{name}")
+            snaps = _Snapshots(mp, folder)
+            assert main(["fit", "-c", BASELINE, *overrides, "--run-dir", str(folder / "run")]) == 0
+            mp.undo()
+            out[name] = (folder / "run", snaps.files)
+    return out
+
+
+def _resume_from_snapshot(run: Path, snapshot: Path, into: Path) -> dict:
+    import shutil
+
+    shutil.copytree(run, into, ignore=shutil.ignore_patterns("*.ckpt", "metrics.json", "logs"))
+    (into / "checkpoints").mkdir(exist_ok=True)
+    shutil.copy(snapshot, into / "checkpoints" / "last.ckpt")
+    assert main(["fit", "--resume", str(into)]) == 0
+    return torch.load(into / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+
+
+#: (schedule, index of the write, the hook that makes it); the fast set holds the issue's case (after epoch 0's
+#: validation) and a mid-epoch validation; the rest run with -m slow.
+POINTS = [
+    pytest.param("A", 2, "on_train_epoch_end", id="A-end-of-epoch-0-after-validation"),
+    pytest.param("B", 0, "on_validation_end", id="B-validation-mid-epoch"),
+    pytest.param("A", 0, "on_train_batch_end", id="A-step-mid-epoch", marks=pytest.mark.slow),
+    pytest.param("A", 1, "on_train_batch_end", id="A-step-last-of-epoch", marks=pytest.mark.slow),
+    pytest.param("A", 3, "on_train_batch_end", id="A-step-mid-epoch-1", marks=pytest.mark.slow),
+    pytest.param("B", 1, "on_validation_end", id="B-validation-mid-epoch-1", marks=pytest.mark.slow),
+]
+
+
+@pytest.mark.parametrize("schedule, index, hook", POINTS)
+def test_a_kill_right_after_each_kind_of_checkpoint_write_resumes_bit_identical(
+    uninterrupted, tmp_path, capsys, schedule, index, hook
+):
+    run, snaps = uninterrupted[schedule]
+    written_by, snapshot = snaps[index]
+    assert written_by == hook, [h for h, _ in snaps]
+    got = _resume_from_snapshot(run, snapshot, tmp_path / "resumed")
+    capsys.readouterr()
+    want = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert got["global_step"] == want["global_step"] > torch.load(snapshot, weights_only=True)["global_step"]
+    for key in want["state_dict"]:
+        assert torch.equal(got["state_dict"][key], want["state_dict"][key]), key
+    assert sorted(p.name for p in (tmp_path / "resumed" / "checkpoints").glob("last*")) == ["last.ckpt"]  # no -v1
+    assert json.loads((tmp_path / "resumed" / "metrics.json").read_text()) == json.loads(
+        (run / "metrics.json").read_text()
+    )

@@ -6,7 +6,6 @@ import argparse
 import sys
 from pathlib import Path
 
-from occplug.config import read_config
 from occplug.plugins import broken_plugins_warning
 from occplug.run import runner
 from occplug.run.phases import fit_phases
@@ -55,7 +54,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
             saved_path = run_dir / "config.yaml"
             if not saved_path.is_file():
                 raise UsageError(f"--resume {run_dir}: no config.yaml there (not an occplug run directory)")
-            saved = read_config(saved_path)  # YAML 1.2 within limits; one error line naming the file
+            saved = runner.read_run_config(saved_path)
             cfg = runner.load_config(args.config, args.overrides, saved=saved)
         else:
             if not args.config:
@@ -66,6 +65,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
         results = fit(cfg, run_dir, resume=bool(args.resume))
     except runner.RunError as exc:
         raise UsageError(str(exc)) from None
+    except runner.RunInterrupted as stop:  # SIGTERM / SIGINT: a checkpoint, then a scheduler-visible failure
+        print(f"interrupted: {stop.message}; continue with: occplug fit --resume {run_dir}", file=sys.stderr)
+        return stop.exit_code
     if runner.is_rank_zero():  # DDP: every rank runs this command; one reports
         _print_metrics(results)
         print(f"run directory: {run_dir}")

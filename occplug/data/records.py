@@ -14,6 +14,8 @@ from typing import Any
 
 import torch
 
+from occplug.errors import UserError
+
 from .frame import Frame
 
 __all__ = ["FORMAT", "frame_to_record", "read_frame", "record_to_frame", "save_frame"]
@@ -70,15 +72,36 @@ def save_frame(frame: Frame, path: str | Path) -> None:
     """Write ``frame`` to ``path`` atomically (a temporary file in the same folder, then a rename),
     so concurrent writers and interrupted runs never leave a half-written file."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise cache_write_error(path, exc) from None
     try:
         with os.fdopen(fd, "wb") as fh:
             torch.save(frame_to_record(frame), fh)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise cache_write_error(path, exc) from None
         raise
+
+
+def cache_write_error(path: Path, exc: OSError) -> UserError:
+    """One line for a frame file that cannot be written (a cache that is read-only or full, a file where its
+    folder goes, a folder where the file goes), naming the file and the ways out."""
+    if path.is_dir():
+        reason = "a folder is in the way (remove it)"
+    elif any(p.exists() and not p.is_dir() for p in path.parents):
+        blocker = next(p for p in path.parents if p.exists() and not p.is_dir())
+        reason = f"{blocker} is a file, not a folder"
+    else:
+        reason = exc.strerror or str(exc) or type(exc).__name__
+    return UserError(
+        f"cannot write cache entry {path}: {reason}; point data.cache_dir (or $OCCPLUG_CACHE) at a writable folder"
+        ", or set data.cache=false"
+    )
 
 
 def read_frame(path: str | Path) -> Frame:

@@ -22,6 +22,7 @@ something, and one batch runs through it (``runner.first_batch_check``).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import shutil
@@ -38,6 +39,7 @@ from occplug.config.yamlio import dump_yaml
 from occplug.data.teacher_labels import DONE, META, write_teacher_file
 from occplug.interfaces.model import OccupancyModel
 from occplug.run import preflight, runner
+from occplug.run.rundir import check_fresh_run_dir, run_lock
 from occplug.run.weights import init_from, init_from_config, matching
 from occplug.streams import find_streams, set_stream_stage
 
@@ -259,16 +261,23 @@ def fit_phases(
     ``callbacks`` join every phase's trainer (as :func:`occplug.run.runner.fit`'s do; e.g. a probe timing steps).
     """
     specs = phase_specs(cfg)
-    by_name = {s.name: s for s in specs}
-    if runner.is_rank_zero() and not resume and run_dir.exists() and any(run_dir.iterdir()):
-        raise runner.RunError(
-            f"run directory {run_dir} already exists and is not empty; choose another --run-dir or --resume it"
-        )
+    fresh = runner.is_rank_zero() and not resume
+    if fresh:
+        check_fresh_run_dir(run_dir)
     if not resume:
         check_phases(specs)
     _check_phase_settings(specs)  # DDP / precision mistakes of any phase, before anything is written
+    with run_lock(run_dir) if runner.is_rank_zero() else contextlib.nullcontext():
+        if fresh:  # again under the lock: another fit may have started here meanwhile
+            check_fresh_run_dir(run_dir)
+        return _fit_phases(cfg, specs, run_dir, callbacks)
+
+
+def _fit_phases(
+    cfg: dict[str, Any], specs: Sequence[PhaseSpec], run_dir: Path, callbacks: Sequence[Callback]
+) -> dict[str, float]:
+    by_name = {s.name: s for s in specs}
     if runner.is_rank_zero():
-        run_dir.mkdir(parents=True, exist_ok=True)
         runner.write_text_atomic(
             run_dir / "config.yaml",
             "# resolved occplug config with phases; each phase's own config in <phase>/config.yaml\n" + dump_yaml(cfg),

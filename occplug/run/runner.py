@@ -44,14 +44,26 @@ from occplug.errors import UserError
 from occplug.interfaces.model import OccupancyModel
 from occplug.plugins import get_registry, plugin_reports
 from occplug.run import preflight, ranks
-from occplug.run.checkpoints import RunError, load_checkpoint
+from occplug.run.checkpoints import RunError, RunInterrupted, WriteError, check_resume_checkpoint, load_checkpoint
 from occplug.run.loggers import build_loggers, quiet_lightning_tips
+from occplug.run.rundir import (
+    SignalCheckpoint,
+    check_fresh_run_dir,
+    confined_checkpoint_node,
+    interruptible,
+    read_run_config,
+    remove_stale_temporaries,
+    run_lock,
+    temporary_prefix,
+)
 from occplug.run.weights import init_from_config
 from occplug.streams import check_streaming
 
 __all__ = [
     "AtomicCheckpointIO",
     "RunError",
+    "RunInterrupted",
+    "WriteError",
     "build_datamodule",
     "build_model",
     "build_run",
@@ -65,6 +77,7 @@ __all__ = [
     "load_config",
     "plugin_versions",
     "predict",
+    "read_run_config",
     "resolve_run_config",
     "restore_run",
     "write_text_atomic",
@@ -205,9 +218,11 @@ class _RunInfoCallback(Callback):
     def __init__(self, info: dict[str, Any]) -> None:
         self.info = info
         self.last_val_step = -1
+        self.last_saved_step = -1
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict) -> None:
         checkpoint[CHECKPOINT_KEY] = self.info
+        self.last_saved_step = trainer.global_step
 
     def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if not trainer.sanity_checking:
@@ -258,7 +273,14 @@ _FILE_MODE = 0o666 & ~_umask()
 
 
 def _write_atomic(path: Path, write: Any) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    """``write(fh)`` into ``.<name>.<pid>.<random>.tmp`` beside ``path``, then a rename. Temporary files that
+    killed writers left for ``path`` are removed first; a failing disk (full, read-only, a folder in the way) is
+    one :class:`WriteError` line and keeps the previous file."""
+    try:
+        remove_stale_temporaries(path)
+        fd, tmp = tempfile.mkstemp(prefix=temporary_prefix(path), suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise write_error(path, exc) from None
     try:
         os.fchmod(fd, _FILE_MODE)
         with os.fdopen(fd, "wb") as fh:
@@ -266,9 +288,20 @@ def _write_atomic(path: Path, write: Any) -> None:
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise write_error(path, exc) from None
         raise
+
+
+def write_error(path: Path, exc: OSError) -> WriteError:
+    """One line for a file that cannot be written: the file, the system's reason, and that the old one is kept."""
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    kept = "; the previous version is kept" if Path(path).is_file() else ""
+    if Path(path).is_dir():
+        reason = "a folder is in the way"
+    return WriteError(f"cannot write {path}: {reason}{kept}")
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):
@@ -279,8 +312,24 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         if storage_options is not None:
             raise TypeError(f"{type(self).__name__} takes no storage_options")
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise write_error(path, exc) from None
         _write_atomic(path, lambda fh: torch.save(checkpoint, fh))
+
+    def load_checkpoint(self, path: Any, map_location: Any = None, weights_only: Any = None) -> dict[str, Any]:
+        """Every checkpoint Lightning reads (``fit --resume``) goes through :func:`load_checkpoint`
+        (``weights_only=True`` whatever the torch version or ``weights_only`` asked); the one handed over by
+        :meth:`hand_over` is returned without reading it again."""
+        handed, self._handed = getattr(self, "_handed", None), None
+        if handed is not None and Path(handed[0]) == Path(path):
+            return handed[1]
+        return load_checkpoint(Path(path))
+
+    def hand_over(self, path: Path, checkpoint: dict[str, Any]) -> None:
+        """Give the next :meth:`load_checkpoint` of ``path`` this already read (and checked) checkpoint."""
+        self._handed = (Path(path), checkpoint)
 
 
 #: occplug's own ``trainer.*`` keys (validated with the Trainer's; see ``config.validate.TRAINER_EXTRAS``).
@@ -310,6 +359,7 @@ def _trainer(
     callbacks: list[Callback],
     logger: Any = False,
     train_batches: int | None = None,
+    checkpoint_io: AtomicCheckpointIO | None = None,
 ) -> L.Trainer:
     kwargs = dict(cfg.get("trainer") or {})
     kwargs.pop("loggers", None)  # occplug's key: the loggers are built by build_loggers and passed as `logger`
@@ -330,7 +380,7 @@ def _trainer(
     user_keys = list(kwargs)
     if root is not None:
         kwargs["default_root_dir"] = str(root)
-        kwargs.setdefault("plugins", [AtomicCheckpointIO()])
+        kwargs.setdefault("plugins", [checkpoint_io or AtomicCheckpointIO()])
     try:
         return L.Trainer(callbacks=callbacks, logger=logger, **kwargs)
     except (MisconfigurationException, ValueError, TypeError, RuntimeError) as exc:
@@ -431,16 +481,21 @@ def fit(
     run_dir = Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
     last = ckpt_dir / "last.ckpt"
+    checkpoint_node = confined_checkpoint_node(cfg.get("checkpoint"))
     if resume and not last.is_file():
         raise RunError(f"--resume {run_dir}: no checkpoint at {last}")
+    fresh = is_rank_zero() and not resume
+    if fresh:
+        check_fresh_run_dir(run_dir)
     if is_rank_zero():
-        if not resume and run_dir.exists() and any(run_dir.iterdir()):
-            raise RunError(
-                f"run directory {run_dir} already exists and is not empty; choose another --run-dir or --resume it"
-            )
         os.environ[RUN_DIR_ENV] = str(run_dir.absolute())  # inherited by the ranks a DDP launcher starts
     L.seed_everything(int(cfg.get("seed", 0)), workers=True, verbose=False)
     dm, model = build_run(cfg)
+    io = AtomicCheckpointIO()
+    if resume:  # the checkpoint is read (weights_only=True) and checked before anything is written
+        resumed = load_checkpoint(last)
+        check_resume_checkpoint(resumed, last, model.state_dict())
+        io.hand_over(last, resumed)  # Lightning reads it through io: the same safe loader, not a second read
     check_trainable(model)
     if not resume:  # the top-level init_from (state-dict files); a resumed run's weights come from its checkpoint
         for line in init_from_config(model, cfg):
@@ -451,44 +506,55 @@ def fit(
     first_batch_check(model, dm)
     info = _RunInfoCallback(run_info(cfg, model, dm))
     steps = step_checkpoint(cfg, ckpt_dir)
-    defaults = {"save_last": True, **({"enable_version_counter": False} if steps else {})}
-    checkpoint = ModelCheckpoint(dirpath=str(ckpt_dir), **{**defaults, **(cfg.get("checkpoint") or {})})
+    # no last-v1.ckpt: a resumed run (moved or copied too) rewrites its own last.ckpt
+    defaults = {"save_last": True, "enable_version_counter": False}
+    checkpoint = ModelCheckpoint(dirpath=str(ckpt_dir), **{**defaults, **checkpoint_node})
+    guard = SignalCheckpoint(last)
     try:  # CSV (logs/version_<n>/: a resume never overwrites) and the trainer.loggers the config names
         logger = build_loggers((cfg.get("trainer") or {}).get("loggers"), run_dir)
     except UserError as exc:
         raise RunError(str(exc)) from None
     trainer = _trainer(
-        cfg, run_dir, [checkpoint, *steps, info, *callbacks], logger, train_batches=train_batches_per_epoch(cfg, dm)
+        cfg,
+        run_dir,
+        [checkpoint, *steps, info, guard, *callbacks],
+        logger,
+        train_batches=train_batches_per_epoch(cfg, dm),
+        checkpoint_io=io,
     )
     preflight.check_run(cfg, trainer, dm, model)  # DDP / precision mistakes: one line, before anything is written
-    if trainer.is_global_zero:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(run_dir / "config.yaml", run_config_text(cfg))  # every component argument, defaults too
-        write_text_atomic(run_dir / "plugins.json", json.dumps(plugin_versions(), indent=2) + "\n")
-    with data_errors(), warnings.catch_warnings():
-        # the train loader does resume mid-epoch (OccDataModule.state_dict), through a path Lightning does not see
-        warnings.filterwarnings("ignore", message=".*your dataloader is not resumable")
-        trainer.fit(model, datamodule=dm, ckpt_path=str(last) if resume else None)
-        if info.last_val_step != trainer.global_step:  # training stopped between validations
-            trainer.validate(model, datamodule=dm, verbose=False)
-    results = dict(model.last_results.get("val", {}))
-    if trainer.is_global_zero:
-        masks = info.info["masks"]
-        batch = model.effective_batch
-        payload = {
-            **results,
-            "global_step": trainer.global_step,
-            "epoch": trainer.current_epoch,
-            **masks,
-            "effective_batch": None if batch is None else batch.total,
-            "effective_batch_parts": None
-            if batch is None
-            else {"devices": batch.devices, "per_device": batch.per_device, "accumulation": batch.accumulation},
-            "lr": model.effective_lr,
-            **dm.label_cut.describe(),
-        }
-        write_json(run_dir / "metrics.json", payload)
-        print_tables(model.last_tables, masks)
+    with run_lock(run_dir) if is_rank_zero() else contextlib.nullcontext():
+        if fresh:  # again under the lock: another fit may have started here meanwhile
+            check_fresh_run_dir(run_dir)
+        if trainer.is_global_zero:
+            write_text_atomic(run_dir / "config.yaml", run_config_text(cfg))  # every component argument, defaults too
+            write_text_atomic(run_dir / "plugins.json", json.dumps(plugin_versions(), indent=2) + "\n")
+        with interruptible(guard), data_errors(), warnings.catch_warnings():
+            # the train loader does resume mid-epoch (OccDataModule.state_dict), through a path Lightning does not see
+            warnings.filterwarnings("ignore", message=".*your dataloader is not resumable")
+            trainer.fit(model, datamodule=dm, ckpt_path=str(last) if resume else None)
+            if info.last_saved_step != trainer.global_step:  # the final steps came after the last checkpoint
+                trainer.save_checkpoint(str(last))
+            if info.last_val_step != trainer.global_step:  # training stopped between validations
+                trainer.validate(model, datamodule=dm, verbose=False)
+        results = dict(model.last_results.get("val", {}))
+        if trainer.is_global_zero:
+            masks = info.info["masks"]
+            batch = model.effective_batch
+            payload = {
+                **results,
+                "global_step": trainer.global_step,
+                "epoch": trainer.current_epoch,
+                **masks,
+                "effective_batch": None if batch is None else batch.total,
+                "effective_batch_parts": None
+                if batch is None
+                else {"devices": batch.devices, "per_device": batch.per_device, "accumulation": batch.accumulation},
+                "lr": model.effective_lr,
+                **dm.label_cut.describe(),
+            }
+            write_json(run_dir / "metrics.json", payload)
+            print_tables(model.last_tables, masks)
     return results
 
 
