@@ -51,6 +51,8 @@ ALLOWED: dict[tuple[str, str, str], str] = {
     ("data", "occ3d_nuscenes", "transforms"): "a list of transform nodes, checked by occplug.data.extensions",
     ("data", "semantickitti", "transforms"): "a list of transform nodes, checked by occplug.data.extensions",
     ("data", "synthetic", "transforms"): "a list of transform nodes, checked by occplug.data.extensions",
+    # the view transform's own bin centres, handed in by lss (a contract value, not a user's setting)
+    ("depth_net", "oracle_depth", "depth_centers"): "bin centres the view transform hands in; checked against num_bins",
     # a random seed: every int (negative too) is a valid seed
     ("data", "synthetic", "seed"): "a random seed; any int is one",
     # class names (strings), checked against the data set's classes when the metric is built

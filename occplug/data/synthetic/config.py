@@ -200,15 +200,6 @@ PRESETS: dict[str, SyntheticWorldConfig] = {
         world_margin=50.0,
     ),
     "default": SyntheticWorldConfig(),
-    "aligned": SyntheticWorldConfig(grid=_ALIGNED_GRID),
-    "testbed": SyntheticWorldConfig(
-        grid=_ALIGNED_GRID,
-        eval_frames_per_scene=16,
-        image_size=(192, 352),
-        lidar_range_noise=0.02,
-        lidar_dropout=0.1,
-        ego_lane_speed_offset=(1.0, 4.0),
-    ),
     "occ3d": SyntheticWorldConfig(
         train_scenes=64,
         val_scenes=16,
@@ -235,6 +226,15 @@ PRESETS: dict[str, SyntheticWorldConfig] = {
         label_subsamples=2,
         camera_mask_scale=0.5,
         world_margin=260.0,
+    ),
+    "aligned": SyntheticWorldConfig(grid=_ALIGNED_GRID),
+    "testbed": SyntheticWorldConfig(
+        grid=_ALIGNED_GRID,
+        eval_frames_per_scene=16,
+        image_size=(192, 352),
+        lidar_range_noise=0.02,
+        lidar_dropout=0.1,
+        ego_lane_speed_offset=(1.0, 4.0),
     ),
 }
 
