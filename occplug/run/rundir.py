@@ -1,9 +1,9 @@
 """What keeps a run directory whole: one writer at a time, paths that stay inside it, signals that end in a
 checkpoint, temporary files that do not outlive their writer.
 
-* :func:`run_lock`: an advisory ``fcntl.flock`` on ``<run>/.lock`` held while a fit writes the directory; a second
-  process gets one line naming the holder's pid. The kernel drops the lock when its process dies (SIGKILL too), so
-  a crashed run leaves nothing held.
+* :func:`run_lock`: an advisory ``fcntl.flock`` on the run folder itself, held while a fit writes the directory; a
+  second process gets one line. The kernel drops the lock when its process dies (SIGKILL too), so a crashed run
+  leaves nothing held, and no lock file sits in the run directory.
 * :func:`confined_checkpoint_node`: the config's ``checkpoint:`` node, with every path kept inside
   ``<run>/checkpoints``.
 * :class:`SignalCheckpoint` and :func:`interruptible`: SIGTERM or SIGINT during ``fit`` saves ``last.ckpt`` after
@@ -30,7 +30,6 @@ from occplug.config import ConfigError, read_config
 from occplug.run.checkpoints import RunError, RunInterrupted, WriteError
 
 __all__ = [
-    "LOCK_NAME",
     "SignalCheckpoint",
     "check_fresh_run_dir",
     "confined_checkpoint_node",
@@ -42,21 +41,18 @@ __all__ = [
     "temporary_prefix",
 ]
 
-#: The lock file of a run directory (also ignored by the "is the run directory empty" checks).
-LOCK_NAME = ".lock"
-
 #: The signals a fit turns into a last checkpoint and a non-zero exit.
 SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
 def is_empty_run_dir(run_dir: Path) -> bool:
-    """Whether ``run_dir`` is absent or holds nothing but its lock file."""
+    """Whether ``run_dir`` is absent or empty."""
     run_dir = Path(run_dir)
-    return not run_dir.exists() or all(p.name == LOCK_NAME for p in run_dir.iterdir())
+    return not run_dir.exists() or not any(run_dir.iterdir())
 
 
 def check_fresh_run_dir(run_dir: Path) -> None:
-    """Refuse to start a new run in a folder that holds anything (but a lock file).
+    """Refuse to start a new run in a folder that holds anything.
 
     Raises:
         RunError: one line naming the folder and the two ways on.
@@ -71,28 +67,27 @@ def check_fresh_run_dir(run_dir: Path) -> None:
 def run_lock(run_dir: Path) -> Iterator[None]:
     """Hold the run directory's advisory lock (creating the folder if needed) for the body.
 
+    The lock is ``flock`` on the folder itself (no lock file: the run directory's contents stay what the run
+    writes); the kernel drops it when its process ends, so a crashed run never leaves it held.
+
     Raises:
-        RunError: another live process holds it (one line with its pid).
+        RunError: another live process holds it (one line).
     """
     run_dir = Path(run_dir)
-    path = run_dir / LOCK_NAME
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(run_dir, os.O_RDONLY | os.O_DIRECTORY)
     except OSError as exc:
         raise WriteError(f"cannot write in run directory {run_dir}: {exc.strerror or exc}") from None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
-        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
         os.close(fd)
         raise RunError(
-            f"run directory {run_dir} is in use by another occplug process (pid {holder}); wait for it to end, "
-            "or choose another --run-dir"
+            f"run directory {run_dir} is in use by another occplug process; wait for it to end, or choose another "
+            "--run-dir"
         ) from None
     try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         yield
     finally:
         fcntl.flock(fd, fcntl.LOCK_UN)

@@ -197,8 +197,8 @@ def test_a_second_fit_into_a_locked_run_directory_is_one_error(tmp_path, capsys)
     try:
         assert holder.stdout.readline().strip() == "locked"
         assert main(["fit", "-c", BASELINE, *TINY, "--run-dir", str(run)]) == 2
-        assert f"in use by another occplug process (pid {holder.pid})" in one_error(capsys)
-        assert [p.name for p in run.iterdir()] == [".lock"]  # nothing of the second run written
+        assert "is in use by another occplug process" in one_error(capsys)
+        assert list(run.iterdir()) == []  # nothing of the second run written (the lock is on the folder itself)
         holder.send_signal(signal.SIGKILL)  # a crashed holder: the kernel drops its lock
         holder.wait()
         with rundir.run_lock(run):
