@@ -217,7 +217,7 @@ def scan_row(args: argparse.Namespace) -> dict[str, Any]:
     import torch
     import torch.nn.functional as F
 
-    from occplug_occle.selective_scan import selective_scan, selective_scan_chunked, selective_scan_ref
+    from occplug_occle.blocks.selective_scan import selective_scan, selective_scan_chunked, selective_scan_ref
 
     cuda = args.device == "cuda"
     b, length, d, n = (2, 64, 8, 4) if args.dry_run else (2, 4096, 64, 16)
