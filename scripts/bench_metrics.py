@@ -8,12 +8,10 @@ prediction is realistic rather than perfect).
 
 Prints, side by side in one run, RayIoU's seconds per sample with the pure-PyTorch walk (the
 reference) and with the compiled walk (numba, when installed), their ratio and the first-use cost of
-the compiled one; the pure-PyTorch cast without empty-space skipping; with ``--sparseocc DIR`` (a
-local clone of SparseOcc, never used by the tests) the official caster compiled for the CPU on the
-same rays, with the ratio; and a per-ray pure-Python Amanatides-Woo reference timed on
+the compiled one; the pure-PyTorch cast without empty-space skipping; and a per-ray pure-Python Amanatides-Woo reference timed on
 ``--reference-rays`` random query rays and extrapolated to all rays of the sample (which it also
 checks the cast against). ``--json OUT`` writes the timings.
-Run: ``python scripts/bench_metrics.py [--threads 1] [--sparseocc DIR]``.
+Run: ``python scripts/bench_metrics.py [--threads 1]``.
 """
 
 from __future__ import annotations
@@ -23,7 +21,6 @@ import importlib.util
 import json
 import math
 import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -33,8 +30,6 @@ from occplug.data import OCC3D_GRID, Batch
 from occplug.data.synthetic import LIDAR_TO_EGO, build_scene, preset, voxel_labels
 from occplug.geometry import GridSpec, first_hits, invert_pose
 from occplug.metrics import RayIoU, cast_query_rays, query_ray_directions, select_origins
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # sparseocc_caster beside this script
 
 FREE = 17
 
@@ -109,12 +104,6 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--reference-rays", type=int, default=2000)
-    parser.add_argument(
-        "--sparseocc",
-        metavar="DIR",
-        help="a local clone of SparseOcc (github.com/MCG-NJU/SparseOcc): time its own caster, compiled for the CPU, "
-        "on the same sample (see scripts/sparseocc_caster.py; nothing of it is part of occplug)",
-    )
     parser.add_argument("--json", metavar="OUT", help="also write the timings to this JSON file")
     parser.add_argument(
         "--device", default="cpu", help="also time the pure-PyTorch walk on this device (e.g. cuda; default: CPU only)"
@@ -191,26 +180,6 @@ def main() -> None:
     print(
         f"pure-PyTorch cast without empty-space skipping: {plain:.3f} s ({plain / reference:.1f}x the reference's time)"
     )
-
-    if args.sparseocc:
-        import sparseocc_caster
-
-        official = sparseocc_caster.official_cast_seconds(args.sparseocc, pred, labels, origins, args.repeats)
-        ours = cast_query_rays(pred, labels, OCC3D_GRID, origins, FREE, directions)
-        depth, voxel = sparseocc_caster.official_cast(
-            sparseocc_caster.build(args.sparseocc), labels, origins, directions
-        )
-        hit = ours.gt_class != FREE
-        same = (labels[voxel[:, 0], voxel[:, 1], voxel[:, 2]] == ours.gt_class) & (
-            (depth.double() - ours.gt_depth).abs() < 1e-3
-        )
-        print(
-            f"SparseOcc's caster compiled for the CPU ({args.sparseocc}): {official:.3f} s/sample for the same rays "
-            f"through both grids (the caster alone); side by side: occplug's whole RayIoU update {fast:.3f} s, "
-            f"occplug / official = {fast / official:.3f}; ground-truth rays agreeing with occplug's (class, depth "
-            f"within 1e-3 m): {float(same[hit].double().mean()):.5f} of {int(hit.sum())}"
-        )
-        record.update(official_s=official, ratio_to_official=fast / official)
 
     pick = torch.randperm(rays, generator=torch.Generator().manual_seed(0))[: args.reference_rays]
     cast = cast_query_rays(pred, labels, OCC3D_GRID, origins, FREE, directions)
