@@ -3,7 +3,7 @@
 Checked instead of a line count: the sections in order; the two set-up commands exact and first (``.ci/run`` calls
 the second verbatim); no commit hash or run provenance (that lives in ``results/``); the world section's knob table
 agrees with the code's defaults and the ``testbed`` preset; the real-data block runs its steps in order; every
-relative link resolves; every synthetic-world ``occplug fit`` command the pages show passes ``occplug config
+relative link of the README, ``docs/`` and ``results/`` resolves; every synthetic-world ``occplug fit`` command the pages show passes ``occplug config
 validate``.
 """
 
@@ -20,6 +20,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 DOCS = sorted((ROOT / "docs").glob("*.md"))
+#: the measurement pages (results/<method>/RESULTS.md, results/README.md and the claim folders' README.md files)
+RESULTS = sorted((ROOT / "results").rglob("*.md"))
 
 #: the root README's sections, in this order
 SECTIONS = (
@@ -187,7 +189,7 @@ def _slug(heading: str) -> str:
     return text.replace(" ", "-")
 
 
-@pytest.mark.parametrize("page", [README, *DOCS], ids=lambda p: p.name)
+@pytest.mark.parametrize("page", [README, *DOCS, *RESULTS], ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_relative_link_resolves(page):
     broken = []
     for target in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
