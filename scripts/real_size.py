@@ -34,8 +34,8 @@ Usage::
 
 The trees are written once under ``<out>/trees`` (about 2 minutes each on 2 CPU cores) and reused. The QueryOcc and
 DuOcc recipes use timm encoders: install ``torch==2.14.1 torchvision==0.29.1`` and ``occplug[timm,duocc]`` first
-(README, "Real data sets"); a recipe that cannot start prints its first error line in the table and the script
-goes on.
+(docs/data.md, "From your files to the first step, at the real size"); a recipe that cannot start prints its first
+error line in the table and the script goes on.
 """
 
 from __future__ import annotations

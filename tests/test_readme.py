@@ -3,8 +3,8 @@
 Checked instead of a line count: the sections in order; the two set-up commands exact and first (``.ci/run`` calls
 the second verbatim); no commit hash or run provenance (that lives in ``results/``); the world section's knob table
 agrees with the code's defaults and the ``testbed`` preset; the real-data block runs its steps in order; every
-relative link of the README, ``docs/`` and ``results/`` resolves; every synthetic-world ``occplug fit`` command the pages show passes ``occplug config
-validate``.
+relative link of the README, ``docs/`` and ``results/`` resolves; every synthetic-world ``occplug fit`` command the
+pages show passes ``occplug config validate``.
 """
 
 from __future__ import annotations
