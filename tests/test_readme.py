@@ -119,8 +119,9 @@ def test_no_commit_hashes_or_run_provenance():
     text = README.read_text()
     hashes = HASH.findall(text)
     assert not hashes, f"the README names commits {hashes}; provenance goes to results/"
-    lower = text.lower()
-    found = [word for word in PROVENANCE if word in lower]
+    # the generated status table words its verdicts from results/claims_tables.yaml; the prose around it is ours
+    prose = re.sub(r"<!-- claims-table: .*?<!-- /claims-table -->", "", text, flags=re.S).lower()
+    found = [word for word in PROVENANCE if word in prose]
     assert not found, f"the README holds run provenance {found}; it goes to results/"
 
 
