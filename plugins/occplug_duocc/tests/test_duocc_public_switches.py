@@ -185,7 +185,7 @@ def test_duocc_occupied_source_applies_the_code_s_weighting_and_its_second_sigmo
 def test_code_recipe_sets_the_public_switches_and_validates():
     cfg = compose(["duocc/code_recipe"]).resolved()
     scene, supervision = cfg["model"]["scene"], cfg["model"]["supervision"]
-    assert (scene["warp_sampling"], scene["history_reset"], scene["residual_relu"]) == ("public_linspace", "public", True)
+    assert scene["warp_sampling"] == "public_linspace" and scene["history_reset"] == "public" and scene["residual_relu"]
     assert supervision["occupied"]["weighting"] == "public_mean" and supervision["occupied"]["head_sigmoid"] is True
     validate(cfg, get_registry())
     for recipe in ("full", "stream_agg", "occ3d_nuscenes"):  # the defaults elsewhere
