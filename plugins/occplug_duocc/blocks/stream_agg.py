@@ -15,7 +15,8 @@ Paper versus the public code (``models/heads/streamagg/streamagg.py``, ``refinen
 * fusion: Eq. 5 adds (``fusion="add"``, default); the code concatenates, then a 1x1x1 conv, GroupNorm
   and ReLU (``fusion="concat"``);
 * reset (a sequence start, or a gap outside ``(0, 2] s``): as the code, the history becomes the current
-  feature ``V_curr`` itself (detached, no warp), not zeros;
+  feature ``V_curr`` itself (detached, no warp), not zeros; when to reset is the scene's (``duocc_stream``
+  ``history_reset``: ``public`` keeps the history also for a step back in time of up to 2 s, as the code);
 * the occupied head ends in a logit trained with plain BCE-with-logits (:func:`occupied_loss`); the code
   applies a sigmoid and then ``BCEWithLogitsLoss`` (a double sigmoid);
 * RefineNet follows Eq. 4 (no activation after the residual); ``residual_relu=True`` adds the code's ReLU;
