@@ -120,13 +120,17 @@ class StreamState:
             (``train`` stage with gradients on). Drawn from torch's global generator: a seeded run
             repeats, and draws other random numbers after the first cut than a run without cuts.
             0 never cuts.
+        allow_backward: also continue when time runs backwards by at most ``max_gap_s`` (the time since
+            the stored frame in ``[-max_gap_s, 0)``; with ``max_frame_step=None``, since a step back
+            fails the frame check). Default off: time must advance.
 
     Attributes:
         stage: the store :meth:`get` and :meth:`update` use (set by :func:`set_stream_stage`).
     """
 
     def __init__(self, on_reset: Callable[[Any], Any] | None = None, max_gap_s: float | None = 2.0,
-                 max_frame_step: int | None = 1, persistent: bool = False, train_cut_prob: float = 0.0) -> None:
+                 max_frame_step: int | None = 1, persistent: bool = False, train_cut_prob: float = 0.0,
+                 allow_backward: bool = False) -> None:
         if max_gap_s is not None and max_gap_s <= 0:
             raise ValueError(f"StreamState max_gap_s must be positive or None, got {max_gap_s}")
         if max_frame_step is not None and max_frame_step < 1:
@@ -138,6 +142,7 @@ class StreamState:
         self.max_frame_step = max_frame_step
         self.persistent = bool(persistent)
         self.train_cut_prob = float(train_cut_prob)
+        self.allow_backward = bool(allow_backward)
         self.stage = "train"
         self._stores: dict[str, dict[int, _Entry]] = {}
 
@@ -167,6 +172,8 @@ class StreamState:
         if self.max_frame_step is not None and not 1 <= step <= self.max_frame_step:
             return False
         dt = float(batch.timestamp[b]) - entry.timestamp
+        if self.allow_backward:
+            dt = abs(dt)
         return self.max_gap_s is None or 0.0 < dt <= self.max_gap_s
 
     # ------------------------------------------------------------------ read / write

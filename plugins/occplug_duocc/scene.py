@@ -16,7 +16,7 @@ from typing import Annotated, Any, Literal
 import torch
 from torch import Tensor, nn
 
-from occplug.constraints import Length, Positive, Range
+from occplug.constraints import Length, Positive, Range, check_choices
 from occplug.data import Batch
 from occplug.geometry import GridSpec, relative_pose, warp_volume
 from occplug.interfaces import DenseVoxelScene, Lifted, ModelOutputs, SceneRepresentation
@@ -171,6 +171,16 @@ class DuOccStream(_DuOccVoxels):
             detector reads those levels).
         class_names: the run's class names (given by the model): QueryAgg's detection classes default to their
             ``dynamic`` group and must be their label ids.
+        warp_sampling: StreamAgg's warp (:class:`~occplug_duocc.blocks.stream_agg.StreamAggregation`):
+            ``voxel_centres`` (Eqs. 1-2) or ``public_linspace`` (the public code's sampling points).
+        history_reset: when the history continues. Both read ``dt`` = current timestamp - stored timestamp
+            (seconds; the public code's ``time_interval`` is the same difference, current minus previous).
+            ``paper``: the stream continues iff ``0 < dt <= max_gap_s`` and the frame index advances by one
+            (also the :class:`~occplug.streams.StreamState` default); ``public``: iff ``0 < |dt| <= max_gap_s``,
+            with no frame-index check, as the public code, whose only rule is the time (a step back in time of
+            up to 2 s keeps and warps the history). In both, a sequence start or another scene restarts (the code
+            reads absolute nuScenes timestamps, where another scene is always a time jump; here scenes may share
+            timestamps).
 
     Forward:
         :class:`~occplug.interfaces.Lifted` ``V_init`` ``(B, C_init, X, Y, Z)``, the batch (``scene``,
@@ -205,8 +215,11 @@ class DuOccStream(_DuOccVoxels):
         query_agg: QueryAggSettings | None = None,
         level_channels: Sequence[int] | None = None,
         class_names: Sequence[str] | None = None,
+        warp_sampling: Literal["voxel_centres", "public_linspace"] = "voxel_centres",
+        history_reset: Literal["paper", "public"] = "paper",
     ) -> None:
         super().__init__(in_channels, grid, channels, downsample, fpn_channels, fpn_blocks)
+        check_choices(DuOccStream.__init__, "duocc_stream", warp_sampling=warp_sampling, history_reset=history_reset)
         self.stream = bool(stream)
         if query_agg is not None and not self.stream:
             raise ValueError("duocc_stream query_agg needs stream: true (the detector state and V_fin are streamed)")
@@ -225,8 +238,16 @@ class DuOccStream(_DuOccVoxels):
                 occupied_hidden=occupied_hidden,
                 reduction=reduction,
                 residual_relu=residual_relu,
+                warp_sampling=warp_sampling,
             )
-            self.history = StreamState(on_reset=_itself, max_gap_s=max_gap_s, train_cut_prob=train_cut_prob)
+            public = history_reset == "public"
+            self.history = StreamState(
+                on_reset=_itself,
+                max_gap_s=max_gap_s,
+                max_frame_step=None if public else 1,
+                train_cut_prob=train_cut_prob,
+                allow_backward=public,
+            )
         self.query_agg: QueryAggregation | None = None
         if query_agg is not None:
             if not level_channels:

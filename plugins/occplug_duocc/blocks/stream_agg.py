@@ -15,10 +15,15 @@ Paper versus the public code (``models/heads/streamagg/streamagg.py``, ``refinen
 * fusion: Eq. 5 adds (``fusion="add"``, default); the code concatenates, then a 1x1x1 conv, GroupNorm
   and ReLU (``fusion="concat"``);
 * reset (a sequence start, or a gap outside ``(0, 2] s``): as the code, the history becomes the current
-  feature ``V_curr`` itself (detached, no warp), not zeros;
+  feature ``V_curr`` itself (detached, no warp), not zeros; when to reset is the scene's (``duocc_stream``
+  ``history_reset``: ``public`` keeps the history also for a step back in time of up to 2 s, as the code);
 * the occupied head ends in a logit trained with plain BCE-with-logits (:func:`occupied_loss`); the code
   applies a sigmoid and then ``BCEWithLogitsLoss`` (a double sigmoid);
-* RefineNet follows Eq. 4 (no activation after the residual); ``residual_relu=True`` adds the code's ReLU.
+* RefineNet follows Eq. 4 (no activation after the residual); ``residual_relu=True`` adds the code's ReLU;
+* warp: each destination voxel centre is read (``align_corners=False``); ``warp_sampling="public_linspace"`` samples
+  at the code's ``linspace`` points with ``align_corners=True`` instead (:func:`public_linspace_warp`);
+* occupied loss: the mean BCE over the supervised voxels; ``weighting="public_mean"`` multiplies it by the mean of
+  the code's per-voxel weights (1.0 occupied, 0.1 free), as the code does (:func:`occupied_loss`).
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ from occplug.geometry import GridSpec, warp_volume
 from occplug.nn import ChannelAttention, SpatialAttention3d, cbam
 
 __all__ = [
+    "PUBLIC_OCCUPIED_WEIGHTS",
     "CBAMAttention",
     "RefineNet",
     "StreamAggOutput",
@@ -44,7 +50,11 @@ __all__ = [
     "UpsampleDecoder",
     "forecast_loss",
     "occupied_loss",
+    "public_linspace_warp",
 ]
+
+#: the public code's per-voxel weights of its occupied-mask BCE (occupied, free).
+PUBLIC_OCCUPIED_WEIGHTS = (1.0, 0.1)
 
 
 @dataclass
@@ -193,6 +203,10 @@ class StreamAggregation(nn.Module):
         occupied_hidden: width of the occupied head's deconvolution (code: 64).
         reduction: RefineNet's channel-attention reduction (code: 16).
         residual_relu: RefineNet's ReLU after the residual (code: on; Eq. 4: off).
+        warp_sampling: where the history is read: ``"voxel_centres"`` (Eqs. 1-2: every voxel centre, mapped into
+            the previous frame, :func:`~occplug.geometry.warp_volume`) or ``"public_linspace"`` (the public code's
+            points, :func:`public_linspace_warp`: translations move the content by ``(N - 1) / N`` of their voxel
+            count per axis; needs a square x-y grid without contraction).
 
     Forward:
         ``(v_curr, v_hist, prev_to_current, reset)`` -> :class:`StreamAggOutput`; see :meth:`forward`.
@@ -214,15 +228,19 @@ class StreamAggregation(nn.Module):
         occupied_hidden: Annotated[int, Positive] = 64,
         reduction: Annotated[int, Positive] = 16,
         residual_relu: bool = False,
+        warp_sampling: Literal["voxel_centres", "public_linspace"] = "voxel_centres",
     ) -> None:
         super().__init__()
-        check_choices(StreamAggregation.__init__, "StreamAggregation", fusion=fusion)
+        check_choices(StreamAggregation.__init__, "StreamAggregation", fusion=fusion, warp_sampling=warp_sampling)
         if occupied_head and not refine:
             raise ValueError(
                 "StreamAggregation occupied_head reads RefineNet's spatial attention: it needs refine=True"
             )
         self.channels, self.num_classes = int(channels), int(num_classes)
         self.grid = GridSpec.from_config(grid)
+        if warp_sampling == "public_linspace":
+            _check_public_linspace_grid(self.grid)
+        self.warp_sampling = warp_sampling
         self.fusion = fusion
         self.refine = RefineNet(channels, reduction=reduction, residual_relu=residual_relu) if refine else None
         if fusion == "concat":
@@ -266,7 +284,10 @@ class StreamAggregation(nn.Module):
                 )
             if prev_to_current is None:
                 prev_to_current = torch.eye(4, dtype=torch.float64, device=v_curr.device).expand(b, 4, 4)
-            warped = warp_volume(v_hist.detach(), self.grid, prev_to_current)
+            if self.warp_sampling == "public_linspace":
+                warped = public_linspace_warp(v_hist.detach(), self.grid, prev_to_current)
+            else:
+                warped = warp_volume(v_hist.detach(), self.grid, prev_to_current)
             if reset is not None:  # the public code restarts a stream from the current feature, unwarped
                 warped = torch.where(reset.view(b, 1, 1, 1, 1).to(warped.device), v_curr.detach(), warped)
         attention = None
@@ -315,18 +336,83 @@ class StreamAggregation(nn.Module):
         return losses
 
 
+def _check_public_linspace_grid(grid: GridSpec) -> None:
+    """Refuse a grid the public code's warp cannot sample (its x points take the y count: square grids only)."""
+    nx, ny, _ = grid.shape
+    if nx != ny:
+        raise ValueError(
+            f"StreamAggregation warp_sampling='public_linspace' needs a square x-y grid (the public code's x linspace "
+            f"takes the y voxel count), got {nx} x {ny}; use warp_sampling='voxel_centres'"
+        )
+    if grid.is_contracted:
+        raise ValueError(
+            "StreamAggregation warp_sampling='public_linspace' samples a metric grid, got a contracted one; "
+            "use warp_sampling='voxel_centres'"
+        )
+
+
+def public_linspace_warp(volume: Tensor, grid: GridSpec, src_to_dst: Tensor) -> Tensor:
+    """The public code's StreamAgg warp: ``linspace`` points over the grid's range, ``align_corners=True``.
+
+    Destination point ``i`` of an axis with range ``[lo, hi]`` and ``N`` voxels is ``lo + i (hi - lo) / (N - 1)``
+    (the range's edges, not the voxel centres); it is mapped into ``src`` and normalised by the range's centre and
+    half-extent, and ``grid_sample`` with ``align_corners=True`` reads source index ``i + t (N - 1) / (hi - lo)`` for
+    a translation ``t``. The identity is exact, but a translation moves the content by ``(N - 1) / N`` of its true
+    voxel count ``t N / (hi - lo)`` (the code's 100 x 100 x 8 grid: 0.99 in x and y, 0.875 in z), and rotations are
+    read at the same shrunk pitch. The code builds its x points with the y count (and y with the x count): the same
+    on a square grid, refused on another (:class:`StreamAggregation`).
+
+    Args:
+        volume: ``(B, C, X, Y, Z)`` in frame ``src``, on ``grid`` (metric, square in x-y).
+        grid: the grid of both frames.
+        src_to_dst: ``(B, 4, 4)`` ``src`` ego -> ``dst`` ego (the code's matrix is its inverse, current -> previous).
+
+    Returns:
+        ``(B, C, X, Y, Z)`` in frame ``dst``; points outside the range read zeros.
+    """
+    _check_public_linspace_grid(grid)
+    dtype, device = volume.dtype, volume.device
+    lo, hi = grid.range[:3], grid.range[3:]
+    nx, ny, nz = grid.shape
+    # as the code, in the volume's dtype: x takes the y count and y the x count (equal here)
+    axes = [
+        torch.linspace(lo[0], hi[0], ny, device=device, dtype=dtype),
+        torch.linspace(lo[1], hi[1], nx, device=device, dtype=dtype),
+        torch.linspace(lo[2], hi[2], nz, device=device, dtype=dtype),
+    ]
+    points = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)  # (X, Y, Z, 3) in dst
+    dst_to_src = torch.linalg.inv(src_to_dst.to(torch.float64)).to(dtype)  # the code's current -> previous
+    rot, trans = dst_to_src[:, None, None, None, :3, :3], dst_to_src[:, None, None, None, :3, 3]
+    src = (rot @ points[None, ..., None]).squeeze(-1) + trans  # (B, X, Y, Z, 3)
+    centre = torch.tensor([(a + c) / 2 for a, c in zip(lo, hi, strict=True)], device=device, dtype=dtype)
+    half = torch.tensor([(c - a) / 2 for a, c in zip(lo, hi, strict=True)], device=device, dtype=dtype)
+    norm = ((src - centre) / half).flip(-1)  # grid_sample reads (z, y, x) for a (X, Y, Z) volume
+    return F.grid_sample(volume, norm, mode="bilinear", padding_mode="zeros", align_corners=True)
+
+
 def _valid(labels: Tensor, mask: Tensor | None, ignore_label: int) -> Tensor:
     valid = labels != ignore_label
     return valid if mask is None else valid & mask.to(torch.bool)
 
 
 def occupied_loss(
-    logits: Tensor, labels: Tensor, free_label: int, mask: Tensor | None = None, ignore_label: int = 255
+    logits: Tensor,
+    labels: Tensor,
+    free_label: int,
+    mask: Tensor | None = None,
+    ignore_label: int = 255,
+    weighting: Literal["per_voxel", "public_mean"] = "per_voxel",
 ) -> Tensor:
     """Binary cross-entropy with logits of "occupied" (label not free), averaged over the supervised voxels.
 
     One sigmoid, inside :func:`torch.nn.functional.binary_cross_entropy_with_logits` (the public code's
     head applies a second one before it).
+
+    ``weighting``: ``"per_voxel"`` is the mean of the per-voxel BCE, every supervised voxel weighted alike (the
+    paper's plain BCE); ``"public_mean"`` is the public code's formula: its per-voxel weights (1.0 occupied, 0.1
+    free, :data:`PUBLIC_OCCUPIED_WEIGHTS`) multiply the already averaged BCE, so the loss is
+    ``mean_v(BCE_v) * (0.1 + 0.9 * occupied fraction)`` over the batch's supervised voxels: a factor that depends
+    on the batch, not a weighting of the voxels.
 
     Args:
         logits: ``(B, X, Y, Z)`` occupied logits.
@@ -334,15 +420,21 @@ def occupied_loss(
         free_label: the id of free space.
         mask: ``(B, X, Y, Z)`` bool, voxels to supervise, or None (all but ``ignore_label``).
         ignore_label: label id never supervised.
+        weighting: ``"per_voxel"`` or ``"public_mean"`` (above).
 
     Returns:
         Scalar; zero (still attached to ``logits``) when no voxel is supervised.
     """
+    check_choices(occupied_loss, "occupied_loss", weighting=weighting)
     valid = _valid(labels, mask, ignore_label)
     target = (labels != free_label).to(logits.dtype)
     if not bool(valid.any()):
         return logits.sum() * 0.0
-    return F.binary_cross_entropy_with_logits(logits[valid], target[valid])
+    loss = F.binary_cross_entropy_with_logits(logits[valid], target[valid])
+    if weighting == "public_mean":
+        occupied_w, free_w = PUBLIC_OCCUPIED_WEIGHTS
+        loss = (loss * torch.where(target[valid] == 1, occupied_w, free_w)).mean()
+    return loss
 
 
 def forecast_loss(

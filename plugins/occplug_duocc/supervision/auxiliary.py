@@ -8,12 +8,12 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import torch
 from torch import Tensor
 
-from occplug.constraints import NonNegative, UnitInterval
+from occplug.constraints import NonNegative, UnitInterval, check_choices
 from occplug.data import Batch
 from occplug.interfaces import ModelOutputs, SupervisionSource
 
@@ -81,6 +81,11 @@ class DuOccOccupied(_AuxLoss):
         weight: ``lambda_bin`` (paper: 10).
         camera_mask: count only ``batch.mask_camera`` voxels (as the occupancy loss).
         free_label, ignore_label: the data set's (filled in by the model).
+        weighting: ``per_voxel`` (the mean BCE, every counted voxel alike: the paper's BCE) or ``public_mean``
+            (the public code's: that mean times the mean of its 1.0 occupied / 0.1 free voxel weights, a
+            factor ``0.1 + 0.9 x`` occupied fraction of the batch; :func:`~occplug_duocc.blocks.stream_agg.occupied_loss`).
+        head_sigmoid: apply a sigmoid to the head's output before the BCE with logits, as the public code's head
+            does (so two sigmoids; its BCE then sees values in ``(0, 1)`` as logits). Default off.
 
     Reads ``outputs.extras["duocc_stream/occupied_logits"]`` ``(B, X, Y, Z)`` and ``batch.voxel_labels``
     ``(B, X, Y, Z)`` on the evaluation grid. Returns ``{"occupied_bce": scalar}`` (mean over counted voxels).
@@ -95,8 +100,13 @@ class DuOccOccupied(_AuxLoss):
         camera_mask: bool = True,
         free_label: int = 17,
         ignore_label: int | None = 255,
+        weighting: Literal["per_voxel", "public_mean"] = "per_voxel",
+        head_sigmoid: bool = False,
     ) -> None:
         super().__init__(weight, camera_mask, free_label, ignore_label)
+        check_choices(DuOccOccupied.__init__, "duocc_occupied", weighting=weighting)
+        self.weighting = weighting
+        self.head_sigmoid = bool(head_sigmoid)
 
     def forward(self, batch: Batch, outputs: ModelOutputs) -> dict[str, Tensor]:
         """``{"occupied_bce": loss}`` in training, ``{}`` when the head did not run."""
@@ -106,7 +116,10 @@ class DuOccOccupied(_AuxLoss):
         batch.require("voxel_labels", by="duocc_occupied")
         labels = batch.voxel_labels.long()
         mask = self.mask(batch, labels)
-        return {"occupied_bce": occupied_loss(logits, labels, self.free_label, mask, self.ignore_label)}
+        if self.head_sigmoid:
+            logits = torch.sigmoid(logits)
+        loss = occupied_loss(logits, labels, self.free_label, mask, self.ignore_label, weighting=self.weighting)
+        return {"occupied_bce": loss}
 
     @classmethod
     def _aux(cls, batch: Batch, grid: Any) -> Tensor:

@@ -59,3 +59,23 @@ def test_fit_class_weights_writes_the_weights_of_the_training_split(tmp_path, ca
         == 2
     )
     assert "expected a voxel_ce source" in capsys.readouterr().err and not bad.exists()
+
+
+def test_fit_class_weights_unrounded_writes_the_code_s_rule_to_float32_precision(tmp_path):
+    from occplug_duocc.tools.class_weights import CODE_EPS
+
+    out = tmp_path / "exact.yaml"
+    args = ["-c", "duocc/stream_agg", "data.preset=tiny", "--unrounded", "--eps", "0.001", "--out", str(out)]
+    assert fit_class_weights.main(args) == 0
+    text = out.read_text()
+    assert "plus 0.001" in text and "--eps 0.001 --unrounded" in text  # the header says how it was made
+    written = yaml.safe_load(text)["model"]["supervision"]["occupancy"]["class_weights"]
+    dm = runner.build_datamodule(runner.load_config(["duocc/stream_agg"], ["data.preset=tiny"]))
+    counts = class_counts(dm.dataset("train"), len(dm.class_names))
+    free = list(dm.class_names).index("free")
+    expected = duocc_class_weights(counts.counts, free_index=free, eps=CODE_EPS)
+    assert torch.equal(torch.tensor(written, dtype=torch.float32), expected)
+    assert not torch.equal(expected, duocc_class_weights(counts.counts, free_index=free))  # + 0.001 shows here
+    bad = tmp_path / "bad.yaml"
+    assert fit_class_weights.main(["-c", "duocc/stream_agg", "--eps", "-1", "--out", str(bad)]) == 2
+    assert not bad.exists()
