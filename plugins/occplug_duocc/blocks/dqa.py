@@ -23,7 +23,9 @@ Paper versus the public code (``projects/mmdet3d_plugin/models/heads/queryagg/dq
   exact); the code takes the axis-aligned index range of the rounded box corners (``coverage="aabb"``),
   which over-covers rotated boxes;
 * the code adds a LayerNorm on the instance features, an output projection and attention dropout, and
-  runs its FFN's bias and norms over every voxel; here Eq. 10 holds exactly (no output projection);
+  runs its FFN's bias and norms over every voxel; here Eq. 10 holds exactly (no output projection) unless
+  ``instance_norm`` / ``output_bias`` ask for the code's; its other habits are switches too (``outside_boxes``,
+  ``empty_selection``, ``box_rotation``, ``positional_order``; ``duocc/code_recipe`` sets them all);
 * selection (:func:`select_queries`): the paper's thresholds (IoU 0.4 for large objects, the geometric
   cost ``2 D_center + 1 D_size < 1.5`` for small ones) and the code's (no size split: cost
   ``0.5 D_center + 0.125 D_size < 1.5`` or IoU > 0.3) are both arguments (:data:`PAPER_SELECTION`,

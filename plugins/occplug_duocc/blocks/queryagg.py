@@ -28,7 +28,8 @@ dynamic classes ``1..10`` (barrier ... truck, the nuScenes detection classes), s
 ``detection_classes[i]``; ground-truth boxes of other labels are ignored (:func:`detection_targets`).
 
 Assumptions where the paper is silent (code notes §3): V2Q runs once, after the detector's last layer (the code:
-inside layer 6, before its last refinement), so the boxes DQA uses are the last layer's; the paper's small-object
+inside layer 6, before its last refinement: the detector's ``v2q_placement``), so the boxes DQA uses are the last
+layer's; the paper's small-object
 rule needs a "small" set, here the classes ``small_classes`` (default barrier, bicycle, motorcycle, pedestrian,
 traffic cone).
 """

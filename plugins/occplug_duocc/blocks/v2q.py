@@ -7,7 +7,9 @@ QueryAgg (:mod:`.queryagg`) applies it to the detector's queries (``q_img`` -> `
 Assumptions (where the paper is silent; the public code's choices, from ``models/heads/queryagg/``, are these):
 
 * §3.2 V2Q (Eq. 6): ``heads x points`` learnable offsets per query within +-0.5 x box size, rotated by yaw
-  (the code adds the 7 fixed key points; here the offset bias starts on a spread pattern instead); weights are
+  (the code makes 7 of them fixed key points, ``fixed_key_points``; here the offset bias starts on a spread
+  pattern instead; the code's other choices are the switches ``offset_input``, ``value_bias``, ``box_rotation``);
+  weights are
   a zero-initialised Linear, softmax over each head's points; ``W'_h`` is a bias-free projection applied after
   sampling (identical to projecting the volume first, since trilinear sampling is linear) and ``W_h`` the output
   projection over the concatenated heads.
@@ -26,19 +28,9 @@ from occplug.constraints import Positive, check_choices
 from occplug.geometry import GridSpec, sample_volume
 
 from .boxes import box_points
+from .image_aggregation import FIXED_KEY_POINTS
 
-__all__ = ["FIXED_KEY_POINTS", "VoxelToQuery"]
-
-#: The public code's 7 fixed key points, fractions of the box's ``(l, w, h)`` along its own axes.
-FIXED_KEY_POINTS = (
-    (0.0, 0.0, 0.0),
-    (0.45, 0.0, 0.0),
-    (-0.45, 0.0, 0.0),
-    (0.0, 0.45, 0.0),
-    (0.0, -0.45, 0.0),
-    (0.0, 0.0, 0.45),
-    (0.0, 0.0, -0.45),
-)
+__all__ = ["VoxelToQuery"]
 
 
 class VoxelToQuery(nn.Module):

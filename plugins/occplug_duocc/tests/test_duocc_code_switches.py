@@ -9,7 +9,8 @@ import torch
 from occplug.geometry import GridSpec, sample_volume
 from occplug_duocc.blocks.detector import SparseDetector
 from occplug_duocc.blocks.dqa import DynamicQueryAggregation
-from occplug_duocc.blocks.v2q import FIXED_KEY_POINTS, VoxelToQuery
+from occplug_duocc.blocks.image_aggregation import FIXED_KEY_POINTS
+from occplug_duocc.blocks.v2q import VoxelToQuery
 
 GRID = GridSpec((-4, -4, -2, 4, 4, 2), 1.0)  # (8, 8, 4)
 
