@@ -12,7 +12,7 @@ prints each module's max relative difference; the parity tests do the same from 
 
 Modules: ``dqa`` (with the cross-attention layer's FFN and closing LayerNorm), ``v2q``, ``refinenet`` (its
 fixture also holds the ``occupied_head``'s output), ``fusion``, ``forecast_head``, ``stream_agg`` (end to end, warp included), ``decoder``,
-``class_weights``.
+``class_weights``, ``mask_matching``.
 """
 
 from __future__ import annotations
@@ -189,6 +189,13 @@ def _pyg_softmax(src: Tensor, index: Tensor, ptr: Any = None, num_nodes: int | N
     return e / (total[index] + 1e-16)
 
 
+class _AssignResult:
+    """mmdet's ``AssignResult``: what an assigner returns."""
+
+    def __init__(self, num_gts: int, gt_inds: Tensor, max_overlaps: Any, labels: Any = None) -> None:
+        self.num_gts, self.gt_inds, self.max_overlaps, self.labels = num_gts, gt_inds, max_overlaps, labels
+
+
 def _install(root: Path) -> None:
     """Stand-ins for the names the public files import, and the plugin's packages without their ``__init__``."""
 
@@ -225,6 +232,13 @@ def _install(root: Path) -> None:
              for k, n in (("backbone", "BACKBONES"), ("neck", "NECKS"), ("head", "HEADS"))}  # fmt: skip
     module("mmdet")
     module("mmdet.core", multi_apply=lambda f, *a, **k: tuple(map(list, zip(*map(f, *a), strict=True))))
+    match_cost = _Registry("MATCH_COST")
+    module("mmdet.core.bbox")
+    module("mmdet.core.bbox.builder", BBOX_ASSIGNERS=_Registry("BBOX_ASSIGNERS"))
+    module("mmdet.core.bbox.match_costs")
+    module("mmdet.core.bbox.match_costs.builder", MATCH_COST=match_cost,
+           build_match_cost=lambda cfg: _build_from_cfg(cfg, match_cost))  # fmt: skip
+    module("mmdet.core.bbox.assigners", AssignResult=_AssignResult, BaseAssigner=object)
     module("mmdet.models", **mmdet_reg, **build)
     module("mmdet.models.builder", **mmdet_reg, **build)
     module("torch_geometric")
@@ -519,6 +533,44 @@ def case_class_weights(gen: torch.Generator, root: Path) -> dict[str, Any]:
     }
 
 
+def case_mask_matching(gen: torch.Generator) -> dict[str, Any]:
+    """The code's mask decoder assignment (``MaskHungarianAssigner3D`` with its config's costs 1 / 20 / 1)."""
+    costs = _public("models.assigners.match_costs.match_cost")
+    assigner = _public("models.assigners.mask_hungarian_assigner").MaskHungarianAssigner3D(
+        cls_cost={"type": "MaskClassificationCost", "weight": 1.0},
+        mask_cost={"type": "MaskFocalLossCost", "weight": 20.0, "binary_input": True},
+        dice_cost={"type": "MaskDiceLossCost", "weight": 1.0, "pred_act": True, "eps": 1.0},
+        use_camera_mask=True,
+        use_lidar_mask=False,
+    )
+    assert costs is not None
+    q, k, m, shape = 12, 6, 5, (8, 8, 4)
+    cls_logits = 2 * torch.randn(q, k + 1, generator=gen)
+    mask_logits = 3 * torch.randn(q, *shape, generator=gen)
+    gt_labels = torch.randperm(k + 1, generator=gen)[:m]
+    owner = torch.randint(0, m, shape, generator=gen)  # one ground-truth mask per voxel (as a semantic grid)
+    gt_masks = torch.stack([owner == i for i in range(m)])
+    camera = torch.rand(shape, generator=gen) > 0.3
+    result = assigner.assign(cls_logits, mask_logits, gt_labels, gt_masks, mask_camera=camera)
+    flat_pred, flat_gt = mask_logits[:, camera].flatten(1), gt_masks[:, camera].flatten(1).float()
+    cost = (
+        assigner.cls_cost(cls_logits, gt_labels)
+        + assigner.mask_cost(flat_pred, flat_gt)
+        + assigner.dice_cost(flat_pred, flat_gt)
+    )
+    return {
+        "inputs": {
+            "cls_logits": cls_logits,
+            "mask_logits": mask_logits,
+            "gt_labels": gt_labels,
+            "gt_masks": gt_masks,
+            "camera": camera,
+        },
+        "public_state_dict": {},
+        "public_outputs": {"gt_inds": result.gt_inds, "cost": cost},
+    }
+
+
 BUILDERS = {
     "dqa": case_dqa,
     "v2q": case_v2q,
@@ -528,6 +580,7 @@ BUILDERS = {
     "stream_agg": case_stream_agg,
     "decoder": case_decoder,
     "class_weights": case_class_weights,
+    "mask_matching": case_mask_matching,
 }
 
 

@@ -199,6 +199,31 @@ def class_weights(fx: dict[str, Any]) -> dict[str, float]:
     return {"weights": max_relative_difference(ours, fx["public_outputs"]["weights"])}
 
 
+def mask_matching(fx: dict[str, Any]) -> dict[str, float]:
+    """The code's mask Hungarian assignment = :func:`~occplug_duocc.supervision.mask_decoder.match_masks`: the same
+    cost matrix (over the camera-visible voxels) and the same query -> ground-truth assignment."""
+    from occplug.nn import pairwise_dice_loss, pairwise_sigmoid_focal_loss
+
+    from ..supervision.mask_decoder import match_masks
+
+    inp, out = fx["inputs"], fx["public_outputs"]
+    logits = inp["mask_logits"][:, inp["camera"]]  # (Q, V) at the counted voxels
+    gts = inp["gt_masks"][:, inp["camera"]].float()
+    cls = inp["cls_logits"]
+    cost = (
+        -cls.softmax(-1)[:, inp["gt_labels"]]
+        + 20.0 * pairwise_sigmoid_focal_loss(logits, gts)
+        + pairwise_dice_loss(logits, gts, 1.0)
+    )
+    query_idx, gt_idx = match_masks(cls, logits, inp["gt_labels"], gts)
+    ours = torch.zeros_like(out["gt_inds"])  # the code's encoding: 0 unassigned, else 1 + the ground truth
+    ours[query_idx] = gt_idx + 1
+    return {
+        "cost": max_relative_difference(cost, out["cost"]),
+        "assignment": float((ours != out["gt_inds"]).float().mean()),
+    }
+
+
 #: module name -> its case.
 CASES: dict[str, Callable[[dict[str, Any]], dict[str, float]]] = {
     "dqa": dqa,
@@ -210,6 +235,7 @@ CASES: dict[str, Callable[[dict[str, Any]], dict[str, float]]] = {
     "stream_agg": stream_agg,
     "decoder": decoder,
     "class_weights": class_weights,
+    "mask_matching": mask_matching,
 }
 
 #: case -> the fixture file (``<name>.pt``) it reads: the occupied head is read off RefineNet's run.
