@@ -482,13 +482,14 @@ class SparseDetector(nn.Module):
         inside = v2q if self.v2q_placement == "before_last_refinement" else None
         for i, layer in enumerate(self.layers):
             t = temporal if i > 0 else None
-            step = inside if i == len(self.layers) - 1 else None
+            # the layer's call is the plain one unless V2Q runs inside it
+            step = {"before_refine": inside} if inside is not None and i == len(self.layers) - 1 else {}
             if denoising is None:
-                x, anchors, logits = layer(x, anchors, self.anchor_encoder(anchors), cams, t, before_refine=step)
+                x, anchors, logits = layer(x, anchors, self.anchor_encoder(anchors), cams, t, **step)
             else:
                 both = torch.cat([anchors, a_dn], dim=1)
                 xs, both, both_logits = layer(
-                    torch.cat([x, x_dn], 1), both, self.anchor_encoder(both), cams, t, mask, before_refine=step
+                    torch.cat([x, x_dn], 1), both, self.anchor_encoder(both), cams, t, mask, **step
                 )
                 x, x_dn = xs[:, :q], xs[:, q:]
                 anchors, a_dn = both[:, :q], both[:, q:]
