@@ -535,7 +535,7 @@ def case_class_weights(gen: torch.Generator, root: Path) -> dict[str, Any]:
 
 def case_mask_matching(gen: torch.Generator) -> dict[str, Any]:
     """The code's mask decoder assignment (``MaskHungarianAssigner3D`` with its config's costs 1 / 20 / 1)."""
-    costs = _public("models.assigners.match_costs.match_cost")
+    _public("models.assigners.match_costs.match_cost")  # registers the costs
     assigner = _public("models.assigners.mask_hungarian_assigner").MaskHungarianAssigner3D(
         cls_cost={"type": "MaskClassificationCost", "weight": 1.0},
         mask_cost={"type": "MaskFocalLossCost", "weight": 20.0, "binary_input": True},
@@ -543,7 +543,6 @@ def case_mask_matching(gen: torch.Generator) -> dict[str, Any]:
         use_camera_mask=True,
         use_lidar_mask=False,
     )
-    assert costs is not None
     q, k, m, shape = 12, 6, 5, (8, 8, 4)
     cls_logits = 2 * torch.randn(q, k + 1, generator=gen)
     mask_logits = 3 * torch.randn(q, *shape, generator=gen)
