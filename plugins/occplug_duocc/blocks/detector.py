@@ -41,14 +41,14 @@ its Sparse4D v3 detector in ``models/heads/queryagg/``, are these):
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import torch
 from torch import Tensor, nn
 
-from occplug.constraints import NonNegative, Positive
+from occplug.constraints import NonNegative, Positive, check_choices
 from occplug.geometry import relative_pose, transform_points
 
 from .boxes import BOX_DIM, decode_boxes
@@ -157,6 +157,7 @@ class _DecoderLayer(nn.Module):
         cams: tuple,
         temporal: tuple[Tensor, Tensor, Tensor] | None,
         attn_mask: Tensor | None = None,
+        before_refine: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         if self.interaction:
             if temporal is not None:
@@ -167,6 +168,8 @@ class _DecoderLayer(nn.Module):
             x = self.norm_attn(x + self.self_attn(q, q, x, attn_mask=attn_mask, need_weights=False)[0])
         agg = self.deformable(x, anchor_embed, anchors, *cams)
         x = self.norm_ffn(self.ffn(torch.cat([x, agg], dim=-1)))
+        if before_refine is not None:  # V2Q inside the layer (v2q_placement="before_last_refinement")
+            x = before_refine(x, anchors, anchor_embed)
         anchors = anchors + self.refine(x + anchor_embed)
         return x, anchors, self.cls(x)
 
@@ -324,6 +327,10 @@ class SparseDetector(nn.Module):
         checkpoint_aggregation: recompute each layer's image samples in the backward pass instead of keeping
             them (:class:`~.image_aggregation.DeformableImageAggregation` ``checkpoint``; same values and
             gradients, less training memory).
+        v2q_placement: where QueryAgg's V2Q runs: after the last layer (``"after_last_refinement"``: the boxes
+            never see the voxels), or, as the public code, inside the last layer before its refinement
+            (``"before_last_refinement"``: the last refinement and classification read the V2Q-refined
+            features); the latter is the ``v2q`` argument of :meth:`forward`.
 
     Forward: :meth:`forward` (tensors) or :meth:`forward_batch` (a :class:`~occplug.Batch`).
     """
@@ -352,8 +359,11 @@ class SparseDetector(nn.Module):
         max_dn_gt: Annotated[int, Positive] = 32,
         dn_negatives: bool = True,
         checkpoint_aggregation: bool = False,
+        v2q_placement: Literal["after_last_refinement", "before_last_refinement"] = "after_last_refinement",
     ) -> None:
         super().__init__()
+        check_choices(SparseDetector.__init__, "SparseDetector", v2q_placement=v2q_placement)
+        self.v2q_placement = v2q_placement
         if len(dn_noise_scale) != BOX_DIM:
             raise ValueError(f"SparseDetector: dn_noise_scale needs {BOX_DIM} values, got {list(dn_noise_scale)}")
         self.num_dn_groups, self.max_dn_gt, self.dn_negatives = int(num_dn_groups), int(max_dn_gt), bool(dn_negatives)
@@ -415,6 +425,7 @@ class SparseDetector(nn.Module):
         timestamp: Tensor | None = None,
         reset: Tensor | None = None,
         denoising: DenoisingQueries | None = None,
+        v2q: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None,
     ) -> DetectorOutput:
         """Detect boxes in one frame, optionally continuing from the previous frame's state.
 
@@ -432,6 +443,9 @@ class SparseDetector(nn.Module):
             denoising: :meth:`denoising_queries` of this frame's ground truth (training), or None. They run
                 beside the ``Q`` queries, masked from them (module :mod:`.denoising`), and change none of their
                 outputs (exactly so without dropout).
+            v2q: with ``v2q_placement="before_last_refinement"``, ``v2q(features (B, Q', C), encoded anchors
+                (B, Q', 10), anchor embedding (B, Q', C)) -> features`` runs in the last layer before its
+                refinement (on the denoising queries too); ignored with ``"after_last_refinement"``.
 
         Returns:
             :class:`DetectorOutput` with ``Q = num_queries`` queries per layer and the next state (and the
@@ -465,13 +479,18 @@ class SparseDetector(nn.Module):
             mask = torch.ones(q + m, q + m, dtype=torch.bool, device=x.device)  # True: may not attend
             mask[:q, :q] = False
             mask[q:, q:] = denoising.attn_mask.to(x.device)
+        inside = v2q if self.v2q_placement == "before_last_refinement" else None
         for i, layer in enumerate(self.layers):
             t = temporal if i > 0 else None
+            # the layer's call is the plain one unless V2Q runs inside it
+            step = {"before_refine": inside} if inside is not None and i == len(self.layers) - 1 else {}
             if denoising is None:
-                x, anchors, logits = layer(x, anchors, self.anchor_encoder(anchors), cams, t)
+                x, anchors, logits = layer(x, anchors, self.anchor_encoder(anchors), cams, t, **step)
             else:
                 both = torch.cat([anchors, a_dn], dim=1)
-                xs, both, both_logits = layer(torch.cat([x, x_dn], 1), both, self.anchor_encoder(both), cams, t, mask)
+                xs, both, both_logits = layer(
+                    torch.cat([x, x_dn], 1), both, self.anchor_encoder(both), cams, t, mask, **step
+                )
                 x, x_dn = xs[:, :q], xs[:, q:]
                 anchors, a_dn = both[:, :q], both[:, q:]
                 logits = both_logits[:, :q]

@@ -23,7 +23,9 @@ Paper versus the public code (``projects/mmdet3d_plugin/models/heads/queryagg/dq
   exact); the code takes the axis-aligned index range of the rounded box corners (``coverage="aabb"``),
   which over-covers rotated boxes;
 * the code adds a LayerNorm on the instance features, an output projection and attention dropout, and
-  runs its FFN's bias and norms over every voxel; here Eq. 10 holds exactly (no output projection);
+  runs its FFN's bias and norms over every voxel; here Eq. 10 holds exactly (no output projection) unless
+  ``instance_norm`` / ``output_bias`` ask for the code's; its other habits are switches too (``outside_boxes``,
+  ``empty_selection``, ``box_rotation``, ``positional_order``; ``duocc/code_recipe`` sets them all);
 * selection (:func:`select_queries`): the paper's thresholds (IoU 0.4 for large objects, the geometric
   cost ``2 D_center + 1 D_size < 1.5`` for small ones) and the code's (no size split: cost
   ``0.5 D_center + 0.125 D_size < 1.5`` or IoU > 0.3) are both arguments (:data:`PAPER_SELECTION`,
@@ -282,6 +284,21 @@ class DynamicQueryAggregation(nn.Module):
             axis-aligned range of rounded corner indices).
         positional: add the learned positional encoding ``sigma_p`` to the voxel side (Eq. 7): one table
             per axis, ``3C/8 + 3C/8 + rest`` channels concatenated (the code's 96 + 96 + 64 of 256).
+        output_bias: the public code's output projection ``W_O`` (with bias) on the message; its bias reaches
+            every voxel, covered or not (off: Eq. 10, no projection, uncovered voxels unchanged).
+        instance_norm: the public code's LayerNorm on the instance features before ``W_K`` / ``W_V``.
+        outside_boxes: a box whose index range misses the grid writes nothing (``"skip"``), or, as the public
+            code, its range is clamped onto the grid, a one-voxel slab on the nearest face (``"clamp"``; with
+            ``coverage="center"`` the slab's centres are still tested, so it matters with ``"aabb"``).
+        empty_selection: a sample with no selected query writes nothing (``"skip"``), or, as the public code,
+            query 0's box is written with a zero feature (``"dummy_query"``); in that mode, as in the code, an
+            edge whose (normalised) instance feature sums to exactly zero carries no value (it still takes its
+            share of the softmax).
+        box_rotation: ``"yaw"`` reads box column 6 as the yaw; ``"sin_cos"`` reads columns 6 and 7 as the
+            detector's raw, unnormalised ``(sin, cos)`` (the public code's box corners); ``coverage="center"``
+            then uses ``atan2(sin, cos)``.
+        positional_order: channel blocks of ``sigma_p``: ``[x | y | z]`` tables (``"xyz"``) or the public
+            code's ``[y | x | z]`` (``"yxz"``, its row embedding is the y axis); the parameters are the same.
 
     Forward: see :meth:`forward`.
     """
@@ -294,11 +311,27 @@ class DynamicQueryAggregation(nn.Module):
         heads: Annotated[int, Positive] = 8,
         coverage: Literal["center", "aabb"] = "center",
         positional: bool = True,
+        output_bias: bool = False,
+        instance_norm: bool = False,
+        outside_boxes: Literal["skip", "clamp"] = "skip",
+        empty_selection: Literal["skip", "dummy_query"] = "skip",
+        box_rotation: Literal["yaw", "sin_cos"] = "yaw",
+        positional_order: Literal["xyz", "yxz"] = "xyz",
     ) -> None:
         super().__init__()
         if channels % heads:
             raise ValueError(f"DynamicQueryAggregation: channels {channels} not divisible by heads {heads}")
-        check_choices(DynamicQueryAggregation.__init__, "DynamicQueryAggregation", coverage=coverage)
+        check_choices(
+            DynamicQueryAggregation.__init__,
+            "DynamicQueryAggregation",
+            coverage=coverage,
+            outside_boxes=outside_boxes,
+            empty_selection=empty_selection,
+            box_rotation=box_rotation,
+            positional_order=positional_order,
+        )
+        self.outside_boxes, self.empty_selection = outside_boxes, empty_selection
+        self.box_rotation, self.positional_order = box_rotation, positional_order
         self.grid = GridSpec.from_config(grid)
         if self.grid.is_contracted:
             raise ValueError("DynamicQueryAggregation needs a metric grid (boxes are found by voxel index)")
@@ -308,6 +341,8 @@ class DynamicQueryAggregation(nn.Module):
         self.w_k = nn.Linear(qc, channels)
         self.w_v = nn.Linear(qc, channels)
         self.w_gate = nn.Linear(2 * channels, channels)
+        self.w_out = nn.Linear(channels, channels) if output_bias else None
+        self.instance_norm = nn.LayerNorm(qc) if instance_norm else None
         self.pos = None
         if positional:
             cx = cy = 3 * channels // 8
@@ -325,12 +360,26 @@ class DynamicQueryAggregation(nn.Module):
         """``(..., 7)`` float64 boxes -> ``(lo, hi)`` ``(..., 3)`` int64: the voxel index range (inclusive, unclipped)
         of each box's axis-aligned extent (``"center"``: floored; ``"aabb"``: the code's rounded corners)."""
         lower, size = self._metric(bx.device)
-        c, s = torch.cos(bx[..., 6]).abs(), torch.sin(bx[..., 6]).abs()
+        if self.box_rotation == "sin_cos":  # raw (sin, cos): an unnormalised pair scales the corners, as in the code
+            c, s = bx[..., 7].abs(), bx[..., 6].abs()
+        else:
+            c, s = torch.cos(bx[..., 6]).abs(), torch.sin(bx[..., 6]).abs()
         half = torch.stack([bx[..., 3] * c + bx[..., 4] * s, bx[..., 3] * s + bx[..., 4] * c, bx[..., 5]], -1) / 2
         lo, hi = (bx[..., :3] - half - lower) / size, (bx[..., :3] + half - lower) / size  # in voxel units
         if self.coverage == "aabb":  # the code: round the corners' positions, keep the whole index range
-            return torch.round(lo).long(), torch.round(hi).long()
-        return torch.floor(lo).long(), torch.floor(hi).long()
+            lo, hi = torch.round(lo).long(), torch.round(hi).long()
+        else:
+            lo, hi = torch.floor(lo).long(), torch.floor(hi).long()
+        if self.outside_boxes == "clamp":  # the code clamps each end onto the grid: an outside box keeps a face slab
+            top = torch.tensor(self.grid.shape, device=bx.device) - 1
+            lo, hi = lo.clamp(min=0).minimum(top), hi.clamp(min=0).minimum(top)
+        return lo, hi
+
+    def _yaw_boxes(self, bx: Tensor) -> Tensor:
+        """``(..., >=7)`` float64 boxes -> ``(..., 7)`` with column 6 the yaw (``atan2`` of a raw ``(sin, cos)``)."""
+        if self.box_rotation == "sin_cos":
+            return torch.cat([bx[..., :6], torch.atan2(bx[..., 6], bx[..., 7])[..., None]], -1)
+        return bx[..., :7]
 
     def edges(self, boxes: Tensor) -> tuple[Tensor, Tensor]:
         """The (voxel, query) pairs of one sample's boxes: voxel ``i`` of the flat ``X*Y*Z`` grid lies in box ``j``.
@@ -346,7 +395,7 @@ class DynamicQueryAggregation(nn.Module):
         device = boxes.device
         shape = torch.tensor(self.grid.shape, device=device)
         lower, size = self._metric(device)
-        bx = boxes[:, :7].to(torch.float64)
+        bx = boxes[:, : 8 if self.box_rotation == "sin_cos" else 7].to(torch.float64)
         lo, hi = self._index_range(bx)
         hits_grid = ((hi >= 0) & (lo < shape)).all(-1)
         lo, hi = torch.maximum(lo, torch.zeros_like(lo)), torch.minimum(hi, shape - 1)
@@ -362,7 +411,7 @@ class DynamicQueryAggregation(nn.Module):
         keep = (offsets[None] < extent[:, None, :]).all(-1)
         if self.coverage == "center":
             centers = lower + (index.to(torch.float64) + 0.5) * size
-            keep = keep & _inside(centers, bx[:, None, :])
+            keep = keep & _inside(centers, self._yaw_boxes(bx)[:, None, :])
         query_idx, cand = keep.nonzero(as_tuple=True)
         ijk = index[query_idx, cand]
         voxel_idx = (ijk[:, 0] * shape[1] + ijk[:, 1]) * shape[2] + ijk[:, 2]
@@ -383,11 +432,12 @@ class DynamicQueryAggregation(nn.Module):
         ijk = torch.stack(
             torch.meshgrid(*(torch.arange(n, device=boxes.device) for n in self.grid.shape), indexing="ij"), -1
         ).view(-1, 3)  # (N, 3), flat order
-        bx = boxes[..., :7].to(torch.float64)
+        bx = boxes[..., : 8 if self.box_rotation == "sin_cos" else 7].to(torch.float64)
         if self.coverage == "center":
             lower, size = self._metric(boxes.device)
             centers = lower + (ijk.to(torch.float64) + 0.5) * size
-            inside = _inside(centers[None, :, None, :], bx[:, None, :, :])
+            # (a clamped slab lies outside its box: the centre test alone is edges()' result)
+            inside = _inside(centers[None, :, None, :], self._yaw_boxes(bx)[:, None, :, :])
         else:  # every voxel of the box's index range, as in edges()
             lo, hi = self._index_range(bx)
             at = ijk[None, :, None, :]
@@ -422,7 +472,26 @@ class DynamicQueryAggregation(nn.Module):
         assert self.pos is not None
         ny, nz = self.grid.shape[1:]
         ijk = (flat_idx // (ny * nz), (flat_idx // nz) % ny, flat_idx % nz)
-        return torch.cat([table[k] for table, k in zip(self.pos, ijk, strict=True)], -1)
+        blocks = [table[k] for table, k in zip(self.pos, ijk, strict=True)]
+        if self.positional_order == "yxz":
+            blocks = [blocks[1], blocks[0], blocks[2]]
+        return torch.cat(blocks, -1)
+
+    def _dummy(self, queries: Tensor, selected: Tensor) -> tuple[Tensor, Tensor]:
+        """``empty_selection="dummy_query"``: a sample with nothing selected selects query 0 with a zero feature."""
+        empty = ~selected.any(1, keepdim=True)  # (B, 1)
+        first = torch.arange(selected.shape[1], device=selected.device)[None] == 0
+        dummy = empty & first  # (B, Q)
+        return queries.masked_fill(dummy[..., None], 0.0), selected | dummy
+
+    def _keys(self, feats: Tensor) -> tuple[Tensor, Tensor]:
+        """``(..., C_q)`` instance features -> keys and values ``(..., C)`` (values zero where the code masks them)."""
+        if self.instance_norm is not None:
+            feats = self.instance_norm(feats)
+        k, v = self.w_k(feats), self.w_v(feats)
+        if self.empty_selection == "dummy_query":  # the code's mask: a feature summing to exactly 0 sends no value
+            v = v * (feats.sum(-1, keepdim=True) != 0).to(v.dtype)
+        return k, v
 
     def dense(self, volume: Tensor, queries: Tensor, boxes: Tensor, selected: Tensor) -> Tensor:
         """:meth:`forward` with a ``(B, N, Q)`` mask in place of the edge list: fixed shapes, so it traces.
@@ -434,6 +503,8 @@ class DynamicQueryAggregation(nn.Module):
         b, c = volume.shape[:2]
         h, d = self.heads, c // self.heads
         flat = volume.reshape(b, c, -1).transpose(1, 2)  # (B, N, C)
+        if self.empty_selection == "dummy_query":
+            queries, selected = self._dummy(queries, selected)
         member = self.membership(boxes, selected)  # (B, N, Q)
         qin = flat
         if self.pos is not None:
@@ -441,8 +512,8 @@ class DynamicQueryAggregation(nn.Module):
         q = self.w_q(qin).view(b, -1, h, d)
         # an unselected query's weight is 0, but 0 * inf is NaN: keep its (possibly non-finite) features out
         queries = queries.masked_fill(~selected[..., None], 0.0)
-        k = self.w_k(queries).view(b, -1, h, d)
-        v = self.w_v(queries).view(b, -1, h, d)
+        k, v = self._keys(queries)
+        k, v = k.view(b, -1, h, d), v.view(b, -1, h, d)
         logits = torch.einsum("bnhd,bqhd->bnqh", q, k) / math.sqrt(d)
         logits = logits.masked_fill(~member[..., None], -math.inf)
         covered = member.any(-1)  # (B, N)
@@ -450,7 +521,10 @@ class DynamicQueryAggregation(nn.Module):
         alpha = torch.softmax(torch.where(covered[..., None, None], logits, torch.zeros_like(logits)), dim=2)
         z = torch.einsum("bnqh,bqhd->bnhd", alpha, v).reshape(b, -1, c)
         gate = torch.sigmoid(self.w_gate(torch.cat([flat, z], -1)))
-        updated = torch.where(covered[..., None], flat + gate * z, flat)
+        if self.w_out is not None:  # the code: W_O over every voxel's message (zero where uncovered: its bias)
+            updated = flat + self.w_out(torch.where(covered[..., None], gate * z, torch.zeros_like(z)))
+        else:
+            updated = torch.where(covered[..., None], flat + gate * z, flat)
         return updated.transpose(1, 2).reshape(volume.shape)
 
     def sparse(self, volume: Tensor, queries: Tensor, boxes: Tensor, selected: Tensor) -> Tensor:
@@ -458,12 +532,17 @@ class DynamicQueryAggregation(nn.Module):
         b, c = volume.shape[:2]
         h, d = self.heads, c // self.heads
         out = []
+        if self.empty_selection == "dummy_query":
+            queries, selected = self._dummy(queries, selected)
         for i in range(b):
             flat = volume[i].reshape(c, -1)  # (C, N)
+            base = flat  # what an uncovered voxel ends as
+            if self.w_out is not None:  # W_O's bias reaches every voxel (the message is zero where uncovered)
+                base = flat + self.w_out.bias.to(flat)[:, None]
             sel = selected[i].nonzero(as_tuple=True)[0]
             voxel_idx, edge_q = self.edges(boxes[i, sel])
             if voxel_idx.numel() == 0:
-                out.append(volume[i])
+                out.append(base.view_as(volume[i]))
                 continue
             covered, edge_v = torch.unique(voxel_idx, return_inverse=True)  # (Nc,), (E,)
             v_cov = flat[:, covered].t()  # (Nc, C)
@@ -471,9 +550,8 @@ class DynamicQueryAggregation(nn.Module):
             if self.pos is not None:
                 qin = v_cov + self._positional(covered).to(v_cov)
             q = self.w_q(qin).view(-1, h, d)
-            feats = queries[i, sel]
-            k = self.w_k(feats).view(-1, h, d)[edge_q]  # (E, h, d)
-            v = self.w_v(feats).view(-1, h, d)[edge_q]
+            k, v = self._keys(queries[i, sel])
+            k, v = k.view(-1, h, d)[edge_q], v.view(-1, h, d)[edge_q]  # (E, h, d)
             logits = (q[edge_v] * k).sum(-1) / math.sqrt(d)  # (E, h)
             # softmax over the edges of each voxel (a scatter softmax; the shift only steadies exp)
             top = torch.full((covered.numel(), h), -math.inf, dtype=logits.dtype, device=logits.device)
@@ -484,8 +562,8 @@ class DynamicQueryAggregation(nn.Module):
             z = torch.zeros(covered.numel(), h, d, dtype=v.dtype, device=v.device)
             z = z.index_add(0, edge_v, alpha[..., None] * v).reshape(-1, c)  # (Nc, C)
             gate = torch.sigmoid(self.w_gate(torch.cat([v_cov, z], -1)))
-            updated = v_cov + gate * z
-            out.append(flat.index_copy(1, covered, updated.t().to(flat.dtype)).view_as(volume[i]))
+            updated = v_cov + (gate * z if self.w_out is None else self.w_out(gate * z))
+            out.append(base.index_copy(1, covered, updated.t().to(flat.dtype)).view_as(volume[i]))
         return torch.stack(out)
 
 

@@ -28,7 +28,8 @@ dynamic classes ``1..10`` (barrier ... truck, the nuScenes detection classes), s
 ``detection_classes[i]``; ground-truth boxes of other labels are ignored (:func:`detection_targets`).
 
 Assumptions where the paper is silent (code notes §3): V2Q runs once, after the detector's last layer (the code:
-inside layer 6, before its last refinement), so the boxes DQA uses are the last layer's; the paper's small-object
+inside layer 6, before its last refinement: the detector's ``v2q_placement``), so the boxes DQA uses are the last
+layer's; the paper's small-object
 rule needs a "small" set, here the classes ``small_classes`` (default barrier, bicycle, motorcycle, pedestrian,
 traffic cone).
 """
@@ -48,6 +49,7 @@ from occplug.constraints import LabelIds, Length, NonNegative, Positive, Range, 
 from occplug.data import OCC3D_CLASSES, Batch, class_groups
 from occplug.geometry import GridSpec
 
+from .boxes import decode_boxes
 from .denoising import DN_NOISE_SCALE
 from .detector import DetectorOutput, DetectorState, SparseDetector
 from .dqa import CODE_SELECTION, PAPER_SELECTION, DynamicQueryAggregation, VoxelFFN, select_queries
@@ -127,6 +129,7 @@ class DetectorSettings:
     max_dn_gt: Annotated[int, Positive] = 32
     dn_negatives: bool = True
     checkpoint_aggregation: bool = False
+    v2q_placement: Literal["after_last_refinement", "before_last_refinement"] = "after_last_refinement"
 
 
 @settings
@@ -155,6 +158,14 @@ class QueryAggSettings:
             paper), or ``class``, a learned embedding of the box's class (the ground truth's with ``gt_boxes``, else
             the detector's top class) with V2Q off: a footprint input that carries no instance features, the
             control of the ground-truth-box oracle (the difference between the two is what instance features add).
+        dqa_output_bias, dqa_instance_norm, outside_boxes, empty_selection, positional_order: DQA's switches to the
+            public code's behaviour (:class:`~.dqa.DynamicQueryAggregation` ``output_bias``, ``instance_norm``,
+            ``outside_boxes``, ``empty_selection``, ``positional_order``).
+        box_rotation: DQA's and V2Q's box rotation: ``yaw`` or the detector's raw ``sin_cos`` (the public code; the
+            ground truth's ``(sin yaw, cos yaw)`` with ``gt_boxes``).
+        v2q_offset_input, v2q_value_bias, v2q_fixed_key_points: V2Q's switches (:class:`~.v2q.VoxelToQuery`
+            ``offset_input``, ``value_bias``, ``fixed_key_points``); where V2Q runs is the detector's
+            ``v2q_placement``.
     """
 
     v2q: bool = True
@@ -176,6 +187,15 @@ class QueryAggSettings:
     positional: bool = True
     ffn_hidden: Annotated[int, Positive] | None = None
     write: Literal["instance", "class"] = "instance"
+    dqa_output_bias: bool = False
+    dqa_instance_norm: bool = False
+    outside_boxes: Literal["skip", "clamp"] = "skip"
+    empty_selection: Literal["skip", "dummy_query"] = "skip"
+    positional_order: Literal["xyz", "yxz"] = "xyz"
+    box_rotation: Literal["yaw", "sin_cos"] = "yaw"
+    v2q_offset_input: Literal["feature_and_anchor", "feature"] = "feature_and_anchor"
+    v2q_value_bias: bool = False
+    v2q_fixed_key_points: bool = False
 
 
 def resolve_detection_classes(config: QueryAggSettings, class_names: Sequence[str] | None) -> QueryAggSettings:
@@ -313,11 +333,21 @@ class QueryAggregation(nn.Module):
         )
         q = self.detector.channels
         self.v2q = (
-            VoxelToQuery(q, grid, volume_channels=channels, heads=cfg.v2q_heads, points=cfg.v2q_points)
+            VoxelToQuery(
+                q,
+                grid,
+                volume_channels=channels,
+                heads=cfg.v2q_heads,
+                points=cfg.v2q_points,
+                offset_input=cfg.v2q_offset_input,
+                value_bias=cfg.v2q_value_bias,
+                fixed_key_points=cfg.v2q_fixed_key_points,
+                box_rotation=cfg.box_rotation,
+            )
             if self.v2q_on
             else None
         )
-        self.write = cfg.write
+        self.write, self.box_rotation = cfg.write, cfg.box_rotation
         if self.write == "class" and not self.dqa_on:
             raise ValueError("duocc_stream query_agg.write: class is what DQA writes: it needs dqa: true")
         if self.write == "class":  # a footprint of the box's class: no instance features, so no V2Q either
@@ -333,6 +363,12 @@ class QueryAggregation(nn.Module):
                 heads=cfg.dqa_heads,
                 coverage=cfg.coverage,
                 positional=cfg.positional,
+                output_bias=cfg.dqa_output_bias,
+                instance_norm=cfg.dqa_instance_norm,
+                outside_boxes=cfg.outside_boxes,
+                empty_selection=cfg.empty_selection,
+                box_rotation=cfg.box_rotation,
+                positional_order=cfg.positional_order,
             )
             self.ffn = VoxelFFN(channels, cfg.ffn_hidden)
 
@@ -394,6 +430,12 @@ class QueryAggregation(nn.Module):
             )
         return selected, boxes, classes
 
+    def _rotation_boxes(self, encoded: Tensor) -> Tensor:
+        """``(B, Q, 10)`` encoded boxes -> V2Q's boxes: decoded (yaw) or ``[cx, cy, cz, l, w, h, sin, cos]``."""
+        if self.box_rotation == "sin_cos":
+            return torch.cat([encoded[..., :3], encoded[..., 3:6].exp(), encoded[..., 6:8]], -1)
+        return decode_boxes(encoded)
+
     # ------------------------------------------------------------------ forward
     def forward(
         self,
@@ -443,6 +485,13 @@ class QueryAggregation(nn.Module):
                 [lab.to(volume.device) for lab in labels],
                 [g.to(device=volume.device, dtype=self.detector.anchors.dtype) for g in gts],
             )
+        inside = None
+        if self.v2q is not None and self.detector.v2q_placement == "before_last_refinement":
+            v2q = self.v2q
+
+            def inside(x: Tensor, anchors: Tensor, embed: Tensor) -> Tensor:
+                return v2q(volume, x, self._rotation_boxes(anchors), embed)
+
         h, w = batch.images.shape[-2:]
         det = self.detector(
             list(levels),
@@ -455,6 +504,7 @@ class QueryAggregation(nn.Module):
             timestamp=batch.timestamp,
             reset=reset,
             denoising=denoising,
+            v2q=inside,
         )
         new_state = None
         if det.state is not None:
@@ -468,8 +518,14 @@ class QueryAggregation(nn.Module):
             return QueryAggOutput(volume, None, det, none, det.boxes[-1], new_state)
         selected, boxes, classes = self._select(det, batch)
         queries = det.features if self.class_embed is None else self.class_embed(classes)
-        if self.v2q is not None:
-            queries = self.v2q(volume, queries, boxes, det.anchor_embed)
+        rot = boxes
+        if self.box_rotation == "sin_cos":  # the detector's raw (sin, cos); the ground truth's from its yaw
+            raw = det.encoded_boxes[-1][..., 6:8]
+            if self.gt_boxes:
+                raw = torch.stack([boxes[..., 6].sin(), boxes[..., 6].cos()], -1)
+            rot = torch.cat([boxes[..., :6], raw], -1)
+        if self.v2q is not None and inside is None:
+            queries = self.v2q(volume, queries, rot, det.anchor_embed)
         assert self.dqa is not None and self.ffn is not None
-        v_dqa = self.dqa(volume, queries, boxes, selected)
+        v_dqa = self.dqa(volume, queries, rot, selected)
         return QueryAggOutput(self.ffn(v_dqa), v_dqa, det, selected, boxes, new_state)

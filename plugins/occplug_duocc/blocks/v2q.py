@@ -7,7 +7,9 @@ QueryAgg (:mod:`.queryagg`) applies it to the detector's queries (``q_img`` -> `
 Assumptions (where the paper is silent; the public code's choices, from ``models/heads/queryagg/``, are these):
 
 * §3.2 V2Q (Eq. 6): ``heads x points`` learnable offsets per query within +-0.5 x box size, rotated by yaw
-  (the code adds the 7 fixed key points; here the offset bias starts on a spread pattern instead); weights are
+  (the code makes 7 of them fixed key points, ``fixed_key_points``; here the offset bias starts on a spread
+  pattern instead; the code's other choices are the switches ``offset_input``, ``value_bias``, ``box_rotation``);
+  weights are
   a zero-initialised Linear, softmax over each head's points; ``W'_h`` is a bias-free projection applied after
   sampling (identical to projecting the volume first, since trilinear sampling is linear) and ``W_h`` the output
   projection over the concatenated heads.
@@ -17,15 +19,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Annotated
+from typing import Annotated, Literal
 
 import torch
 from torch import Tensor, nn
 
-from occplug.constraints import Positive
+from occplug.constraints import Positive, check_choices
 from occplug.geometry import GridSpec, sample_volume
 
 from .boxes import box_points
+from .image_aggregation import FIXED_KEY_POINTS
 
 __all__ = ["VoxelToQuery"]
 
@@ -44,6 +47,15 @@ class VoxelToQuery(nn.Module):
         volume_channels: channels of the volume (default ``C``).
         heads, points: ``H`` heads with ``O`` points each (code 8 x 6).
         dropout: on the output.
+        offset_input: the offsets read the query plus ``query_pos`` (``"feature_and_anchor"``, as the weights) or,
+            as the public code, the query alone (``"feature"``).
+        value_bias: the public code's value projection with a bias, applied to the volume before sampling: zero
+            padding then scales the bias by the sampled in-grid mass (it fades at the grid faces).
+        fixed_key_points: the first 7 of the ``H * O`` points are the public code's fixed ones (centre and
+            +-0.45 of the box size along each box axis), the rest learnable (off: all learnable); point ``p`` of
+            the flat list belongs to head ``p // O`` in both.
+        box_rotation: ``"yaw"`` reads box column 6 as the yaw; ``"sin_cos"`` reads columns 6 and 7 as the
+            detector's raw, unnormalised ``(sin, cos)`` and rotates the offsets by them as they are (the code).
     """
 
     def __init__(
@@ -54,15 +66,27 @@ class VoxelToQuery(nn.Module):
         heads: Annotated[int, Positive] = 8,
         points: Annotated[int, Positive] = 6,
         dropout: float = 0.1,
+        offset_input: Literal["feature_and_anchor", "feature"] = "feature_and_anchor",
+        value_bias: bool = False,
+        fixed_key_points: bool = False,
+        box_rotation: Literal["yaw", "sin_cos"] = "yaw",
     ) -> None:
         super().__init__()
         if channels % heads:
             raise ValueError(f"VoxelToQuery: channels {channels} not divisible by heads {heads}")
+        check_choices(VoxelToQuery.__init__, "VoxelToQuery", offset_input=offset_input, box_rotation=box_rotation)
+        fixed = len(FIXED_KEY_POINTS) if fixed_key_points else 0
+        if heads * points <= fixed:
+            raise ValueError(
+                f"VoxelToQuery: fixed_key_points needs more than {fixed} points in all, got heads {heads} x points {points}"
+            )
         self.grid = GridSpec.from_config(grid)
         self.channels, self.heads, self.points = int(channels), int(heads), int(points)
-        self.offsets = nn.Linear(channels, heads * points * 3)
+        self.offset_input, self.box_rotation, self.fixed = offset_input, box_rotation, fixed
+        self.offsets = nn.Linear(channels, (heads * points - fixed) * 3)
         self.attn = nn.Linear(channels, heads * points)
         self.value_proj = nn.Linear(int(volume_channels or channels), channels, bias=False)
+        self.value_bias = nn.Parameter(torch.zeros(channels)) if value_bias else None
         self.out_proj = nn.Linear(channels, channels)
         self.drop = nn.Dropout(dropout)
         nn.init.zeros_(self.offsets.weight)
@@ -79,12 +103,21 @@ class VoxelToQuery(nn.Module):
                 ],
                 dim=-1,
             )
-            self.offsets.bias.copy_(torch.logit(frac + 0.5).flatten().float())
+            self.offsets.bias.copy_(torch.logit(frac + 0.5).flatten()[fixed * 3 :].float())
 
     def sample_points(self, queries: Tensor, boxes: Tensor) -> Tensor:
         """``(B, Q, H, O, 3)`` ego-frame sampling points of ``(B, Q, C)`` queries around ``(B, Q, >=7)`` boxes."""
         b, q = queries.shape[:2]
-        frac = self.offsets(queries).view(b, q, self.heads * self.points, 3).sigmoid() - 0.5
+        frac = self.offsets(queries).view(b, q, self.heads * self.points - self.fixed, 3).sigmoid() - 0.5
+        if self.fixed:
+            fixed = torch.tensor(FIXED_KEY_POINTS, dtype=frac.dtype, device=frac.device)
+            frac = torch.cat([fixed.expand(b, q, -1, -1), frac], dim=2)
+        if self.box_rotation == "sin_cos":  # the code's rotation matrix of the raw pair, unnormalised
+            local = frac * boxes[..., None, 3:6].clamp(min=1e-6)
+            s, c = boxes[..., None, 6], boxes[..., None, 7]
+            x, y, z = local.unbind(-1)
+            pts = torch.stack([c * x - s * y, s * x + c * y, z], dim=-1) + boxes[..., None, :3]
+            return pts.view(b, q, self.heads, self.points, 3)
         yaw = boxes[..., 6]
         enc = torch.cat(
             [boxes[..., :3], boxes[..., 3:6].clamp(min=1e-6).log(), yaw.sin()[..., None], yaw.cos()[..., None]], -1
@@ -97,7 +130,8 @@ class VoxelToQuery(nn.Module):
         Args:
             volume: ``V_S.A``, ``(B, C_v, X, Y, Z)`` on ``grid``, ego frame.
             queries: ``q_img``, ``(B, Q, C)``.
-            boxes: ``(B, Q, >=7)`` their boxes ``[cx, cy, cz, l, w, h, yaw, ...]``, ego frame.
+            boxes: ``(B, Q, >=7)`` their boxes ``[cx, cy, cz, l, w, h, yaw, ...]``, ego frame (``box_rotation="sin_cos"``:
+                ``(B, Q, >=8)`` ``[cx, cy, cz, l, w, h, sin, cos, ...]``).
             query_pos: ``(B, Q, C)`` added to the queries for predicting offsets and weights (e.g. the anchor
                 embedding), or None.
 
@@ -109,9 +143,14 @@ class VoxelToQuery(nn.Module):
         b, q, c = queries.shape
         h, o = self.heads, self.points
         src = queries if query_pos is None else queries + query_pos
-        pts = self.sample_points(src, boxes)
-        sampled = sample_volume(volume, self.grid, pts.reshape(b, q * h * o, 3).to(volume.dtype))  # (B, QHO, C_v)
-        values = self.value_proj(sampled.to(queries.dtype)).view(b, q, h, o, h, c // h)
+        pts = self.sample_points(queries if self.offset_input == "feature" else src, boxes)
+        flat_pts = pts.reshape(b, q * h * o, 3).to(volume.dtype)
+        sampled = sample_volume(volume, self.grid, flat_pts)  # (B, QHO, C_v)
+        values = self.value_proj(sampled.to(queries.dtype))
+        if self.value_bias is not None:  # biased values sampled with zero padding: the bias times the in-grid mass
+            mass = sample_volume(torch.ones_like(volume[:, :1]), self.grid, flat_pts)  # (B, QHO, 1)
+            values = values + mass.to(values) * self.value_bias
+        values = values.view(b, q, h, o, h, c // h)
         values = torch.diagonal(values, dim1=2, dim2=4).movedim(-1, 2)  # head h reads its own channels: (B,Q,H,O,d)
         alpha = self.attn(src).view(b, q, h, o).softmax(-1)
         out = (alpha[..., None] * values).sum(3).reshape(b, q, c)
