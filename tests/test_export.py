@@ -26,6 +26,10 @@ from occplug.plugins import ENTRY_POINT_GROUP, isolated
 from occplug.run import runner
 from occplug.testing import run_config
 
+# one pytest-xdist worker runs the whole module (pyproject: --dist loadgroup): each recipe is fitted and exported
+# once, and the tests after an export read its artefact (_EXPORTED)
+pytestmark = pytest.mark.xdist_group("export")
+
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = str(ROOT / "configs" / "baseline.yaml")
 TINY = ["data.preset=tiny", "trainer.max_steps=2"]
