@@ -36,20 +36,12 @@ from pathlib import Path
 from typing import Any
 from unittest import mock
 
+from occplug.testing import TINY_FIT
+
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = str(ROOT / "configs" / "baseline.yaml")
-#: One epoch of 2 steps on the tiny world, a checkpoint after every step.
-TINY = [
-    "data.preset=tiny",
-    "data.num_workers=0",
-    "trainer.accelerator=cpu",
-    "trainer.deterministic=true",
-    "trainer.enable_progress_bar=false",
-    "trainer.max_epochs=1",
-    "trainer.limit_train_batches=2",
-    "trainer.limit_val_batches=1",
-    "trainer.checkpoint_every_n_steps=1",
-]
+#: One epoch of 2 steps on the tiny world, a checkpoint after every step (occplug.testing.TINY_FIT).
+TINY = list(TINY_FIT)
 FIT = ["fit", "-c", BASELINE, *TINY]
 
 

@@ -1,5 +1,6 @@
 """Every shipped config composes, validates and trains a couple of steps on the tiny world."""
 
+import functools
 from pathlib import Path
 
 import pytest
@@ -21,9 +22,18 @@ def _plugin_files():
     return files
 
 
+# Collection asks for each file's composition several times (the recipe list twice, the real-data recipes' data
+# type): each file is composed once per process.
+@functools.cache
 def _partial(path):
     """A plugin's overlay meant to be composed onto a recipe (e.g. duocc/anchors/synthetic): no data section."""
     return "data" not in compose([str(path)]).data
+
+
+@functools.cache
+def _data_type(path):
+    """``data.type`` of the recipe ``path`` composed alone."""
+    return compose([str(path)]).resolved()["data"]["type"]
 
 
 def recipes():
@@ -72,7 +82,7 @@ def test_view_transform_ablation_swaps_with_one_override(view_transform, tmp_pat
 
 def _real_recipes():
     """Each real-data recipe, and the baseline on each real data set (README, "Real data sets"), as config lists."""
-    files = [[str(p)] for p in recipes() if compose([str(p)]).resolved()["data"]["type"] != "synthetic"]
+    files = [[str(p)] for p in recipes() if _data_type(p) != "synthetic"]
     baseline = str(ROOT / "configs" / "baseline.yaml")
     return files + [[baseline, "occplug/data/occ3d_nuscenes"], [baseline, "occplug/data/semantickitti"]]
 

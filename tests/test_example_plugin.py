@@ -55,9 +55,22 @@ def test_example_plugin_before_and_after_install(tmp_path):
     assert example["distribution"] == "occplug-example" and example["version"] == "0.1.0"
     assert example["components"] == {"head": ["tiny_mlp"]}
 
-    # the plugin's own test suite (registration via entry point, conformance, a fit of example/tiny)
+    # the plugin's own test suite (registration via entry point, conformance, a fit of example/tiny), in that one
+    # process (-n 0: this repository's addopts would start xdist workers, each importing torch again)
+    basetemp = tmp_path / "plugin-tests"
     tests = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(EXAMPLE / "tests")],
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            "-n",
+            "0",
+            f"--basetemp={basetemp}",
+            str(EXAMPLE / "tests"),
+        ],
         capture_output=True,
         text=True,
         env=env,
@@ -65,21 +78,10 @@ def test_example_plugin_before_and_after_install(tmp_path):
     )
     assert tests.returncode == 0, tests.stdout[-3000:] + tests.stderr[-2000:]
 
-    # a checkpoint made with the plugin names it (and its version) where the plugin is not installed
-    run = tmp_path / "run"
-    fitted = occplug(
-        "fit",
-        "-c",
-        "example/tiny",
-        "data.preset=tiny",
-        "trainer.max_steps=1",
-        "trainer.accelerator=cpu",
-        "trainer.enable_progress_bar=false",
-        "--run-dir",
-        str(run),
-        env=env,
-    )
-    assert fitted.returncode == 0, fitted.stderr[-2000:]
+    # a checkpoint made with the plugin names it (and its version) where the plugin is not installed: the one
+    # test_shipped_config_trains fitted (example/tiny with the plugin installed, as `occplug fit` runs it)
+    run = basetemp / "test_shipped_config_trains0" / "run"
+    assert (run / "checkpoints" / "last.ckpt").is_file(), sorted(p.name for p in basetemp.iterdir())
     missing = occplug("validate", "--ckpt", str(run / "checkpoints" / "last.ckpt"))
     assert missing.returncode == 2 and "Traceback" not in missing.stderr
     assert missing.stderr.strip() == (

@@ -10,6 +10,7 @@ import dataclasses
 import importlib
 import importlib.util
 import json
+import shutil
 import sys
 from collections.abc import Iterator
 from importlib import metadata
@@ -24,6 +25,10 @@ from occplug.export.tracing import _index_add_as_scatter_add, _inverse3
 from occplug.plugins import ENTRY_POINT_GROUP, isolated
 from occplug.run import runner
 from occplug.testing import run_config
+
+# one pytest-xdist worker runs the whole module (pyproject: --dist loadgroup): each recipe is fitted and exported
+# once, and the tests after an export read its artefact (_EXPORTED)
+pytestmark = pytest.mark.xdist_group("export")
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = str(ROOT / "configs" / "baseline.yaml")
@@ -95,6 +100,23 @@ def _fitted(recipe: tuple, factory) -> Path:
     return _FITTED[key]
 
 
+#: The artefact an export test wrote for (checkpoint, format) in this process. A test that needs the exported graph
+#: of a checkpoint takes it from here rather than export it again: every export of a checkpoint has the same template
+#: (its first validation frame, batch size 1: :func:`occplug.export.export_checkpoint` and :func:`_restored` alike).
+_EXPORTED: dict[tuple[Path, str], Path] = {}
+
+
+def _exported(ckpt: Path, fmt: str, factory) -> Path:
+    """``ckpt`` exported to ``fmt`` (``torch_export`` or ``onnx``): the artefact of an earlier test, else a new one."""
+    key = (ckpt, fmt)
+    if key not in _EXPORTED:
+        model, (batch,) = _restored(ckpt, frames=1)
+        out = factory.mktemp("exported") / ("model.pt2" if fmt == "torch_export" else "model.onnx")
+        ex.export_model(model, batch, fmt, out)
+        _EXPORTED[key] = out
+    return _EXPORTED[key]
+
+
 @pytest.fixture(scope="module", params=RECIPES)
 def checkpoint(request, tmp_path_factory) -> Iterator[Path]:
     with plugin_from_source(request.param[2]):
@@ -134,6 +156,7 @@ def test_export_parity(checkpoint, fmt, tmp_path, capsys):
     assert report["max_abs_logit_diff"] <= 1e-4
     assert report["eager_latency_ms"] > 0 and report["exported_latency_ms"] > 0
     assert report["versions"]["torch"] == torch.__version__
+    _EXPORTED.setdefault((checkpoint, fmt), out)
     if fmt == "onnx":
         import onnxruntime
 
@@ -148,18 +171,18 @@ def _assert_deterministic_across_threads(checkpoint: Path, artefact: Path) -> No
     model, (batch,) = _restored(checkpoint, frames=1)
     options = ort.SessionOptions()
     options.intra_op_num_threads = 4
+    # idle threads sleep: a spinning pool of 4 would burn, between the runs, the cores the other tests run on
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     session = ort.InferenceSession(str(artefact), options, providers=["CPUExecutionProvider"])
     feed = {i.name: a.numpy() for i, a in zip(session.get_inputs(), ex.example_inputs(model, batch), strict=True)}
     first = session.run(None, feed)[1]
     assert all((session.run(None, feed)[1] == first).all() for _ in range(8))
 
 
-def test_exported_graph_takes_the_calibration(checkpoint, tmp_path):
+def test_exported_graph_takes_the_calibration(checkpoint, tmp_path_factory):
     """Another rig through the same artefact: the output moves with the geometry and still matches eager."""
     model, (batch, _) = _restored(checkpoint)
-    out = tmp_path / "model.pt2"
-    ex.export_model(model, batch, "torch_export", out)
-    run = ex.load_exported(out, "torch_export")
+    run = ex.load_exported(_exported(checkpoint, "torch_export", tmp_path_factory), "torch_export")
     other = ex.perturb(batch, seed=3)
     args = ex.example_inputs(model, batch)  # a streaming model: the first frame of a stream
     same = run(*args)[1]
@@ -178,14 +201,12 @@ def occle_checkpoint(tmp_path_factory) -> Path:
     return _fitted((("occle/base",), OCCLE_SMALL, None), tmp_path_factory)
 
 
-def test_lidar_graph_takes_any_point_count_and_ignores_nan_padding(occle_checkpoint, tmp_path):
+def test_lidar_graph_takes_any_point_count_and_ignores_nan_padding(occle_checkpoint, tmp_path_factory):
     """A model reading LiDAR: points (NaN-padded, the count dynamic) and lidar_to_ego are graph inputs."""
     model, (batch, other) = _restored(occle_checkpoint)
     names = ex.graph_inputs(model)
     assert names == (*ex.INPUTS, "points", "lidar_to_ego")
-    out = tmp_path / "model.pt2"
-    ex.export_model(model, batch, "torch_export", out)
-    run = ex.load_exported(out, "torch_export")
+    run = ex.load_exported(_exported(occle_checkpoint, "torch_export", tmp_path_factory), "torch_export")
     # another frame's cloud (another count), then every other point of it, padded back with NaN rows
     count = int(other.points[0].shape[0])
     assert count != int(batch.points[0].shape[0])
@@ -287,15 +308,14 @@ def test_operation_without_onnx_translation_is_named(checkpoint, monkeypatch, tm
     assert list(tmp_path.iterdir()) == []  # nothing half-written
 
 
-def test_streaming_graph_takes_and_returns_its_state(streaming_checkpoint, tmp_path):
+def test_streaming_graph_takes_and_returns_its_state(streaming_checkpoint, tmp_path_factory):
     """State, poses, timestamps and frame indices are graph inputs; the state comes back as an output."""
     pytest.importorskip("onnxruntime")
     onnx = pytest.importorskip("onnx")
 
     model, (first, second) = _restored(streaming_checkpoint)
     assert ex.is_streaming(model)
-    out = tmp_path / "model.onnx"
-    ex.export_model(model, first, "onnx", out)
+    out = _exported(streaming_checkpoint, "onnx", tmp_path_factory)  # the graph of `first`
     graph = onnx.load(str(out)).graph
     assert [i.name for i in graph.input] == [*ex.INPUTS, *ex.STREAM_INPUTS, "prev_state.scene.history"]
     assert [o.name for o in graph.output] == [*ex.OUTPUTS, "state.scene.history"]
@@ -308,13 +328,11 @@ def test_streaming_graph_takes_and_returns_its_state(streaming_checkpoint, tmp_p
     assert float((continued - other_state).abs().max()) > 1e-3  # the state input is read
 
 
-def test_streaming_export_resets_as_the_eager_stream_does(streaming_checkpoint, tmp_path):
+def test_streaming_export_resets_as_the_eager_stream_does(streaming_checkpoint, tmp_path_factory):
     """A time gap and a frame jump restart the exported stream as they restart the eager StreamState."""
     model, (first, second) = _restored(streaming_checkpoint)
     assert model.scene.history.max_gap_s == 2.0 and model.scene.history.max_frame_step == 1
-    out = tmp_path / "model.pt2"
-    ex.export_model(model, first, "torch_export", out)
-    run = ex.load_exported(out, "torch_export")
+    run = ex.load_exported(_exported(streaming_checkpoint, "torch_export", tmp_path_factory), "torch_export")
     state = run(*ex.example_inputs(model, first))[2]
     fresh = run(*ex.inputs_of(second), *ex.stream_inputs(second, None), state)[1]  # is_start
     continued = run(*ex.inputs_of(second), *ex.stream_inputs(second, first), state)[1]
@@ -431,8 +449,16 @@ def test_cli_user_mistakes(tmp_path, capsys):
         ex.export_checkpoint(ckpt, "onnx", below)
 
 
-def test_parity_outside_the_thresholds_exits_1(checkpoint, tmp_path, monkeypatch, capsys):
-    """The artefact and its report stay for inspection; the command says which thresholds failed."""
+def test_parity_outside_the_thresholds_exits_1(checkpoint, tmp_path, tmp_path_factory, monkeypatch, capsys):
+    """The artefact and its report stay for inspection; the command says which thresholds failed.
+
+    The command's export is the checkpoint's artefact copied (test_export_parity runs the real one): what is checked
+    here is what follows a failed parity."""
+    artefact = _exported(checkpoint, "torch_export", tmp_path_factory)
+
+    def copy_artefact(model, template, fmt, out):
+        assert fmt == "torch_export" and template.images.shape[0] == 1
+        shutil.copyfile(artefact, out)
 
     def bad_parity(model, exported, batches, fmt, repeats=3):
         return {"format": fmt, "frames": len(batches), "frames_perturbed": len(batches), "voxels": 10,
@@ -440,6 +466,7 @@ def test_parity_outside_the_thresholds_exits_1(checkpoint, tmp_path, monkeypatch
                 "exported_latency_ms": 1.0, "versions": {"torch": torch.__version__}}
 
     monkeypatch.setattr("occplug.export.checkpoint.parity", bad_parity)
+    monkeypatch.setattr("occplug.export.checkpoint.export_model", copy_artefact)
     out = tmp_path / "model.pt2"
     assert main(["export", "--ckpt", str(checkpoint), "--format", "torch_export", "--out", str(out)]) == 1
     captured = capsys.readouterr()

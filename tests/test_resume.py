@@ -22,6 +22,10 @@ from occplug.data.datamodule import ResumableLoader
 from occplug.data.sequences import SceneIndex, StreamRunSampler
 from occplug.run.runner import AtomicCheckpointIO, load_config, write_json, write_text_atomic
 
+# one pytest-xdist worker runs the whole module (pyproject: --dist loadgroup): the uninterrupted schedules (a module
+# fixture) are fitted once
+pytestmark = pytest.mark.xdist_group("resume")
+
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = str(ROOT / "configs" / "baseline.yaml")
 #: 2 epochs of 2 steps (2 of the tiny world's 6 batches per epoch), a checkpoint after every step.

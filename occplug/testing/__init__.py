@@ -4,7 +4,7 @@ Fixtures: ``tiny_batch`` (a collated batch of the tiny synthetic world), ``isola
 (a registry with the built-ins plus only the plugins you name). Functions: :func:`hand_batch` /
 :func:`label_batch` (batches built by hand: cameras, or labels and masks for metric and supervision tests), :func:`check_component`
 (the conformance check every registered component passes) and :func:`run_config` (a short fit of
-a config, through the same code the CLI runs).
+a config, through the same code the CLI runs). :data:`TINY_FIT`: the overrides of a 2-step CPU fit.
 """
 
 from __future__ import annotations
@@ -17,10 +17,11 @@ from .fixtures import (
     make_tiny_batch,
     tiny_batch,
 )
-from .runs import run_config
+from .runs import TINY_FIT, run_config
 from .tools import check_tool_help, check_tool_main_guard, check_tools_import_quietly
 
 __all__ = [
+    "TINY_FIT",
     "check_component",
     "check_tool_help",
     "check_tool_main_guard",

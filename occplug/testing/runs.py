@@ -7,7 +7,22 @@ from pathlib import Path
 
 from occplug.run import runner
 
-__all__ = ["run_config"]
+__all__ = ["TINY_FIT", "run_config"]
+
+#: Overrides of a short fit on the CPU: one epoch of 2 steps on the tiny world, one validation batch, a checkpoint
+#: after every step, deterministic, no progress bar and no data workers (``occplug fit -c <config> *TINY_FIT``;
+#: the reliability tests and ``scripts/reliability_corpus.py`` damage and resume such runs).
+TINY_FIT: tuple[str, ...] = (
+    "data.preset=tiny",
+    "data.num_workers=0",
+    "trainer.accelerator=cpu",
+    "trainer.deterministic=true",
+    "trainer.enable_progress_bar=false",
+    "trainer.max_epochs=1",
+    "trainer.limit_train_batches=2",
+    "trainer.limit_val_batches=1",
+    "trainer.checkpoint_every_n_steps=1",
+)
 
 
 def run_config(*refs: str, run_dir: Path | str, overrides: Sequence[str] = (), debug: bool = True) -> dict[str, float]:

@@ -22,21 +22,12 @@ from occplug.cli import main
 from occplug.run import rundir, runner
 from occplug.run.checkpoints import RunError, load_checkpoint
 from occplug.run.runner import AtomicCheckpointIO, write_text_atomic
+from occplug.testing import TINY_FIT
 
 ROOT = Path(__file__).resolve().parents[2]
 BASELINE = str(ROOT / "configs" / "baseline.yaml")
-#: 1 epoch of 2 steps, a checkpoint after every step.
-TINY = [
-    "data.preset=tiny",
-    "data.num_workers=0",
-    "trainer.accelerator=cpu",
-    "trainer.deterministic=true",
-    "trainer.enable_progress_bar=false",
-    "trainer.max_epochs=1",
-    "trainer.limit_train_batches=2",
-    "trainer.limit_val_batches=1",
-    "trainer.checkpoint_every_n_steps=1",
-]
+#: One epoch of 2 steps on the tiny world, a checkpoint after every step (occplug.testing.TINY_FIT).
+TINY = list(TINY_FIT)
 
 
 class Payload:
