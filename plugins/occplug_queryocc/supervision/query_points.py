@@ -110,8 +110,8 @@ def in_current_frame(
             )
         for i, pts in enumerate(make(frame)):
             if k != 0 and frame.token[i] == batch.token[i]:  # clamped at the scene's end: the current frame again
-                continue
-            if k != 0:
+                pts = pts.select(torch.zeros(len(pts), dtype=torch.bool, device=pts.points.device))
+            elif k != 0:
                 pts = to_frame(pts, frame.ego_to_global[i], batch.ego_to_global[i])
             dt = float(frame.timestamp[i] - batch.timestamp[i]) if k != 0 else 0.0
             per_sample[i].append((pts, torch.full((len(pts),), dt, device=pts.points.device)))
