@@ -111,3 +111,23 @@ def test_the_lift_variants_train_one_step_on_tiny(config: str, tmp_path: Path):
     assert losses and all(math.isfinite(v) and v > 0 for v in losses)
     resolved = (tmp_path / "config.yaml").read_text()
     assert ("oracle_depth" if "perfect" in config else "camera_aware") in resolved
+
+
+def test_depth_bins_report_measures_shares_and_gaps():
+    from occplug_queryocc.tools import depth_bins
+
+    z = torch.zeros(1, 2, 2, 5)
+    z[0, 0, 0] = torch.tensor([5.0, 15.0, 25.0, 45.0, 0.0])  # camera 0: four surfaces, one sky pixel
+    z[0, 1, 0] = torch.tensor([2.0, 3.0, 4.0, 6.0, 8.0])
+    report = depth_bins.depth_report(z, ["a", "b"], [20.0, 40.0])
+    assert report["a"]["with_surface"] == pytest.approx(40.0)  # 4 of 10 pixels
+    assert report["a"]["beyond"] == {"20": pytest.approx(50.0), "40": pytest.approx(25.0)}
+    assert report["rig"]["beyond"]["20"] == pytest.approx(100.0 * 2 / 9)
+    bins = depth_bins.bins_report([(32, 1.0, 80.0)], p99=40.0)["32:1:80"]
+    c = log_linear_depths(32, 1.0, 80.0).double()
+    assert bins["bins_beyond_p99"] == pytest.approx(100.0 * float((c > 40.0).double().mean()))
+    i = int(torch.searchsorted(c, 20.0))
+    assert bins["gap_at"]["20"] == pytest.approx(float(c[i + 1] - c[i]))
+    with pytest.raises(ValueError, match="D:near:far"):
+        depth_bins.parse_bins("32:1")
+    assert depth_bins.main(["--bins", "32:80:1"]) == 2  # near >= far: one error line, nothing read
