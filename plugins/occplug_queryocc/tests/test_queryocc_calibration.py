@@ -131,3 +131,12 @@ def test_depth_bins_report_measures_shares_and_gaps():
     with pytest.raises(ValueError, match="D:near:far"):
         depth_bins.parse_bins("32:1")
     assert depth_bins.main(["--bins", "32:80:1"]) == 2  # near >= far: one error line, nothing read
+
+
+def test_the_depth_bins_tool_is_a_well_behaved_tool(tmp_path):
+    from occplug.testing import check_tool_help, check_tool_main_guard, check_tools_import_quietly
+
+    module = "occplug_queryocc.tools.depth_bins"
+    check_tool_help(module, tmp_path)
+    check_tools_import_quietly([module], tmp_path)
+    check_tool_main_guard(module)
