@@ -15,7 +15,9 @@ list of cells each. A cell is text with fields ``[[op arg ...]]`` computed from 
 * ``[[mean STEM KEY]]``: the mean alone (a floor that does not vary by seed);
 * ``[[n STEM]]``: how many seeds;
 * ``[[diff A B KEY]]``: mean of A minus mean of B, signed;
-* ``[[wins A B KEY]]``: ``k of n seeds`` on which A's value is above B's (the seeds both have).
+* ``[[wins A B KEY]]``: ``k of n seeds`` on which A's value is above B's (the seeds both have);
+* ``[[share A FLOOR CEILING KEY]]``: A's mean as a share of the ceiling's margin over the floor,
+  ``100 (A - FLOOR) / (CEILING - FLOOR)`` of the three means, in percent (``+12.3 %``; negative below the floor).
 
 A metric key with a space is quoted (``[[ms supervision/base "Sem.IoU w/o others"]]``). Commands::
 
@@ -74,14 +76,21 @@ def seed_files(root: Path, results: str, stem: str) -> list[Path]:
     return files
 
 
-ARITY = {"ms": 2, "mean": 2, "n": 1, "diff": 3, "wins": 3}
+ARITY = {"ms": 2, "mean": 2, "n": 1, "diff": 3, "wins": 3, "share": 4}
 
 
 def field(root: Path, results: str, text: str) -> str:
     """The value of one ``[[op arg ...]]`` field."""
     op, *args = shlex.split(text)
     if ARITY.get(op) != len(args):
-        raise SpecError(f"field [[{text}]]: expected ms/mean STEM KEY, n STEM or diff/wins A B KEY")
+        raise SpecError(
+            f"field [[{text}]]: expected ms/mean STEM KEY, n STEM, diff/wins A B KEY or share A FLOOR CEILING KEY"
+        )
+    if op == "share":
+        a, floor, ceiling = (statistics.mean(seed_values(root, results, stem, args[3]).values()) for stem in args[:3])
+        if ceiling == floor:
+            raise SpecError(f"field [[{text}]]: the ceiling equals the floor")
+        return f"{100.0 * (a - floor) / (ceiling - floor):+.1f} %"
     if op == "n":
         return str(len(seed_files(root, results, args[0])))
     if op in ("ms", "mean"):

@@ -66,7 +66,9 @@ class LiftContractSplat(ViewTransform):
         bins: ``log_linear`` (Eq. 2 with ``linear_mix``) or ``uniform``.
         linear_mix: ``s`` of Eq. 2 for ``log_linear``.
         point_encoding: encode each frustum point (see the module docstring) or splat raw features.
-        hidden: width of the depth net's 3x3 conv; depth_net: a ``depth_net`` node (default ``plain``).
+        hidden: width of the depth net's 3x3 conv; depth_net: a ``depth_net`` node (default ``plain``, which ignores
+            the calibration; ``camera_aware`` gates depth and context by each camera's intrinsics and extrinsics, the
+            paper's calibration encoding; ``oracle_depth`` the true depth in this transform's bins, a ceiling).
 
     Forward:
         ``(B, N, C_in, h, w)`` features -> :class:`Lifted` with ``volume`` ``(B, C, X, Y)`` on ``grid``,
@@ -99,7 +101,11 @@ class LiftContractSplat(ViewTransform):
         mix = 1.0 if bins == "uniform" else float(linear_mix)
         self.register_buffer("depth_centers", log_linear_depths(num_bins, depth_near, depth_far, mix), persistent=False)
         context = self.out_channels
-        self.depth_net = build_depth_net(depth_net, in_channels, int(num_bins), context, hidden=hidden)
+        # depth_centers: a depth net that reads true depth (``oracle_depth``, the perfect-depth ceiling) bins it into
+        # these log-linear centres, not its own uniform default; nets without the argument do not receive it
+        self.depth_net = build_depth_net(
+            depth_net, in_channels, int(num_bins), context, hidden=hidden, depth_centers=self.depth_centers
+        )
         if self.point_encoding:
             self.empty = nn.Parameter(torch.zeros(context))
             # P: one linear map of [p_d w + (1 - p_d) e, p_v, p_d, t_c], then ReLU

@@ -90,3 +90,16 @@ def test_a_spec_that_does_not_resolve_is_one_error_line_and_writes_nothing(scrip
     err = capsys.readouterr().err
     assert code == 2 and err.startswith("error: ") and message in err and err.count("\n") == 1
     assert (tree / "README.md").read_text() == before
+
+
+def test_share_is_the_rows_place_between_floor_and_ceiling(script, tree):
+    module = script("claims_tables")
+    for seed in range(3):
+        _seed(tree / "results" / "m", "ceiling", seed, 20.0)
+    spec = SPEC.replace(
+        '"[[n row_a]]"', '"[[n row_a]]; [[share row_a row_b ceiling mIoU]], [[share row_b row_a ceiling mIoU]]"'
+    )
+    (tree / "results" / "claims_tables.yaml").write_text(spec)
+    assert module.main(["--root", str(tree)]) == 0
+    # row_a's mean 10, floor row_b 9, ceiling 20: 1 / 11 of the margin; row_b against row_a: -1 / 10
+    assert "| 3; +9.1 %, -10.0 % |" in (tree / "README.md").read_text()

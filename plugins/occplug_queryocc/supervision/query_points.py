@@ -95,7 +95,12 @@ def in_current_frame(
     batch: Batch, offsets: list[int], make: Callable[[Batch], list[LabelledPoints]]
 ) -> list[tuple[LabelledPoints, Tensor]]:
     """Per sample: ``make(frame)``'s points of every frame offset in ``offsets``, moved into the current ego frame,
-    with ``(P,)`` times (seconds relative to the current frame)."""
+    with ``(P,)`` times (seconds relative to the current frame).
+
+    At a scene's ends the data clamps an adjacent frame to the current one (:meth:`~occplug.data.SceneIndex.neighbour`:
+    the same token); such a frame is left out, so a sample there uses only the neighbours that exist and no
+    frame is counted twice as if it were another time.
+    """
     per_sample: list[list[tuple[LabelledPoints, Tensor]]] = [[] for _ in range(len(batch))]
     for k in offsets:
         frame = batch if k == 0 else batch.adjacent.get(k)
@@ -104,7 +109,9 @@ def in_current_frame(
                 f"queryocc_query_points: frame offset {k} is not loaded (set data.adjacent_offsets to include {k})"
             )
         for i, pts in enumerate(make(frame)):
-            if k != 0:
+            if k != 0 and frame.token[i] == batch.token[i]:  # clamped at the scene's end: the current frame again
+                pts = pts.select(torch.zeros(len(pts), dtype=torch.bool, device=pts.points.device))
+            elif k != 0:
                 pts = to_frame(pts, frame.ego_to_global[i], batch.ego_to_global[i])
             dt = float(frame.timestamp[i] - batch.timestamp[i]) if k != 0 else 0.0
             per_sample[i].append((pts, torch.full((len(pts),), dt, device=pts.points.device)))

@@ -155,7 +155,7 @@ def sample_rays(
         cands = []  # (frame slot, cam, row, col, depth)
         for slot, (k, frame, rows, cols) in enumerate(frames):
             z = frame.pseudo_depth[i][:, rows][:, :, cols].float()  # (N, h', w')
-            keep = (z > 0) & (z <= max_depth)
+            keep = (z > 0) & (z <= max_depth) & (not _repeats_current(batch, frame, k, i))
             cam, ri, ci = torch.nonzero(keep, as_tuple=True)
             row, col, zz = rows[ri], cols[ci], z[cam, ri, ci]
             if near_range is not None and len(cam):
@@ -175,7 +175,7 @@ def sample_rays(
         slot, cam, row, col, target = slot[pick], cam[pick], row[pick], col[pick], zz[pick]
         jitter = torch.rand(r, s, generator=generator).to(device)
         if sky_rays > 0:
-            sky = _draw_sky(frames, i, free_label, sky_rays, generator)
+            sky = _draw_sky(batch, frames, i, free_label, sky_rays, generator)
             slot, cam, row, col = (torch.cat([a, c]) for a, c in zip((slot, cam, row, col), sky[:4], strict=True))
             target = torch.cat([target, torch.full((sky_rays,), float("inf"), device=device)])
             jitter = torch.cat([jitter, torch.rand(sky_rays, s, generator=generator).to(device)])
@@ -206,16 +206,24 @@ def sample_rays(
     )
 
 
+def _repeats_current(batch: Batch, frame: Batch, k: int, i: int) -> bool:
+    """Whether adjacent frame ``frame`` (offset ``k``) of sample ``i`` is the current frame again: the data clamps
+    an offset at the scene's ends (the same token), and such a frame is no other time, so it gives no rays."""
+    return k != 0 and frame.token[i] == batch.token[i]
+
+
 def _draw_sky(
-    frames: list, i: int, free_label: int, count: int, generator: torch.Generator | None
+    batch: Batch, frames: list, i: int, free_label: int, count: int, generator: torch.Generator | None
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """``count`` pixels of sample ``i`` drawn with replacement among the strided pixels of class ``free_label``
     of every frame slot: ``(slot, cam, row, col, valid)``, each ``(count,)`` (valid False: no such pixel)."""
     cands = []
-    for slot, (_, frame, rows, cols) in enumerate(frames):
+    for slot, (k, frame, rows, cols) in enumerate(frames):
         if frame.pseudo_semantics is None:
             raise ValueError("queryocc_render_points: sky_rays needs pseudo_semantics (set data.pseudo_labels)")
-        free = frame.pseudo_semantics[i][:, rows][:, :, cols] == free_label
+        free = (frame.pseudo_semantics[i][:, rows][:, :, cols] == free_label) & (
+            not _repeats_current(batch, frame, k, i)
+        )
         cam, ri, ci = torch.nonzero(free, as_tuple=True)
         cands.append((torch.full_like(cam, slot), cam, rows[ri], cols[ci]))
     slot, cam, row, col = (torch.cat(c) for c in zip(*cands, strict=True))

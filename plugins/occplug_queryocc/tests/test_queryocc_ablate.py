@@ -30,3 +30,17 @@ def test_a_rescored_run_equals_its_own_validation_and_is_cached(tmp_path, capsys
 
     monkeypatch.setattr(bench.subprocess, "run", no_process)
     ablate.main([*TINY, *SET, "--out", str(out), "--split", "test"])
+
+
+def test_the_calibrated_protocol_is_the_aligned_world_read_at_sub_voxels():
+    from occplug.data.synthetic import preset
+    from occplug.run.runner import load_config
+
+    world, overrides = ablate.PROTOCOLS["calibrated"]
+    cfg = load_config(["queryocc/base"], [f"data.preset={world}", *overrides])
+    aligned = preset(world).grid
+    assert tuple(cfg["grid"]["range"]) == tuple(aligned.lower) + tuple(aligned.upper)  # labels on its grid
+    bev = cfg["model"]["view_transform"]["grid"]["range"]
+    assert (bev[2], bev[5]) == (aligned.lower[2], aligned.upper[2])  # the BEV pools the scored heights
+    assert cfg["model"]["heads"]["occupancy"]["voxel_samples"] == 3
+    assert ablate.PROTOCOLS["default"] == ("default", [])  # the default protocol changes nothing

@@ -19,6 +19,7 @@ from occplug_queryocc.tools.diagnose import (
     first_hits_from_camera,
     height_above_ground,
     main,
+    seeing_camera,
 )
 
 FREE = 17
@@ -264,3 +265,33 @@ def test_the_diagnosis_names_a_bad_input_in_one_line_and_exits_2(tmp_path, capsy
     with pytest.raises(SystemExit) as exc:
         main([str(tmp_path / "junk.ckpt"), "--draws", "0"])
     assert exc.value.code == 2
+
+
+def test_the_tally_splits_false_occupied_voxels_by_the_camera_that_sees_them():
+    labels = _field()
+    pred = labels.clone()
+    for i, j, k in [(1, 0, 2), (5, 0, 2), (7, 0, 3)]:  # one free voxel behind the rig, two in front of it
+        pred[i, j, k] = 15
+    front = torch.eye(4)
+    front[:3, :3] = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # optical axis +x
+    front[:3, 3] = torch.tensor([4.0, 0.0, 1.5])
+    back = front.clone()
+    back[:3, :3] = torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # optical axis -x
+    cams = torch.stack([front, back])
+    voxels = torch.tensor([[1, 0, 2], [5, 0, 2], [3, 3, 3], [4, 1, 1]])
+    assert seeing_camera(GRID, cams, voxels).tolist() == [1, 0, 1, 0]  # centres at x < 4: the back camera
+    mask = torch.ones(GRID.shape, dtype=torch.bool)
+    tally = Tally()
+    none = torch.zeros(0, 3)
+    tally.add(pred, labels, mask, GRID, FREE, cams, none, none, [str(c) for c in range(18)], ("FRONT", "BACK"))
+    shares = tally.shares()
+    free = labels == FREE
+    n_back, n_front = int(free[:4].sum()), int(free[4:].sum())  # voxel x index < 4: centre x < 4
+    assert shares["by_camera_pct"] == {
+        "FRONT": pytest.approx(200 / 3, abs=0.01),
+        "BACK": pytest.approx(100 / 3, abs=0.01),
+    }
+    assert shares["false_occupied_pct_of_scored_free_by_camera"] == {
+        "FRONT": pytest.approx(round(200 / n_front, 2)),
+        "BACK": pytest.approx(round(100 / n_back, 2)),
+    }

@@ -16,6 +16,8 @@ the voxel labels and predicted occupied (any class). Each is tallied
   on the ray from the camera that sees it (the one whose optical axis is nearest its direction) through its
   centre, ``nothing in the grid`` when that ray leaves the grid without one (it sees the sky, or something
   beyond the grid);
+* by the **camera that sees it** (the same rule), also as a share of the scored free voxels that camera sees (the
+  back camera's 110° field of view against the others' 70°);
 * by **how many voxels lie between it and that first hit** (Chebyshev distance of the voxel indices; 1: the
   hit is its neighbour, so the field runs one voxel in front of a surface), or ``hit before it`` when that ray
   meets something before the voxel's centre (another camera sees it);
@@ -53,6 +55,7 @@ __all__ = [
     "first_hits_from_camera",
     "height_above_ground",
     "main",
+    "seeing_camera",
 ]
 
 #: Occ3D ground classes: driveable_surface, other_flat, sidewalk, terrain.
@@ -132,15 +135,10 @@ def first_hits_from_camera(
     """
     if len(voxels) == 0:
         return [], []
-    lower = torch.tensor(grid.lower, dtype=torch.float64)
-    size = torch.tensor(grid.voxel_size, dtype=torch.float64)
-    centres = lower + (voxels.double() + 0.5) * size  # (V, 3)
-    origins = cam_to_ego[:, :3, 3].double()  # (N, 3)
-    axes = cam_to_ego[:, :3, 2].double()  # (N, 3) optical axes in the ego frame
-    to_voxel = F.normalize(centres[:, None] - origins[None], dim=-1)  # (V, N, 3)
-    cam = (to_voxel * axes[None]).sum(-1).argmax(1)  # (V,)
-    o = origins[cam]
-    d = to_voxel[torch.arange(len(voxels)), cam]
+    centres = _centres(grid, voxels)
+    cam = seeing_camera(grid, cam_to_ego, voxels)
+    o = cam_to_ego[:, :3, 3].double()[cam]
+    d = F.normalize(centres - o, dim=-1)
     occupied = labels != free_label
     index, distance = first_hit(occupied, grid, o, d, float("inf"))
     reach = (centres - o).norm(dim=-1)
@@ -153,6 +151,25 @@ def first_hits_from_camera(
         classes.append(NO_HIT if i < 0 else int(labels[i, j, k]))
         gaps.append(None if i < 0 else (0 if before else int(gap)))
     return classes, gaps
+
+
+def _centres(grid: GridSpec, voxels: Tensor) -> Tensor:
+    """``(V, 3)`` float64 ego-frame centres of ``(V, 3)`` voxel indices."""
+    lower = torch.tensor(grid.lower, dtype=torch.float64)
+    size = torch.tensor(grid.voxel_size, dtype=torch.float64)
+    return lower + (voxels.double() + 0.5) * size
+
+
+def seeing_camera(grid: GridSpec, cam_to_ego: Tensor, voxels: Tensor) -> Tensor:
+    """``(V,)`` int64 index of the camera that sees each of ``voxels`` ``(V, 3)`` (voxel indices of ``grid``): the one
+    whose optical axis (camera ``+z`` of ``cam_to_ego`` ``(N, 4, 4)``) makes the smallest angle with the direction
+    from that camera to the voxel's centre."""
+    if len(voxels) == 0:
+        return torch.zeros(0, dtype=torch.int64)
+    origins = cam_to_ego[:, :3, 3].double()  # (N, 3)
+    axes = cam_to_ego[:, :3, 2].double()  # (N, 3) optical axes in the ego frame
+    to_voxel = F.normalize(_centres(grid, voxels)[:, None] - origins[None], dim=-1)  # (V, N, 3)
+    return (to_voxel * axes[None]).sum(-1).argmax(1)
 
 
 class Tally:
@@ -170,6 +187,9 @@ class Tally:
         self.no_positive = 0
         self.occupied: dict[str, int] = {}
         self.missed: dict[str, int] = {}
+        # per camera (the one that sees the voxel, :func:`seeing_camera`): scored free voxels, false-occupied ones
+        self.camera_free: dict[str, int] = {}
+        self.camera_false: dict[str, int] = {}
 
     def add(
         self,
@@ -182,13 +202,22 @@ class Tally:
         negatives: Tensor,
         positives: Tensor,
         class_names: Sequence[str],
+        camera_names: Sequence[str] = (),
     ) -> None:
         """One sample: ``pred``, ``labels`` ``(X, Y, Z)`` class ids, ``mask`` ``(X, Y, Z)`` bool (scored voxels),
-        ``negatives`` / ``positives`` ``(P, 3)`` the training queries drawn for it (ego frame, metres)."""
+        ``negatives`` / ``positives`` ``(P, 3)`` the training queries drawn for it (ego frame, metres),
+        ``camera_names`` those of ``cam_to_ego``'s cameras (default ``cam<i>``)."""
         free = mask & (labels == free_label)
         wrong = free & (pred != free_label)
         self.scored_free += int(free.sum())
         self.false_occupied += int(wrong.sum())
+        free_voxels = torch.nonzero(free)
+        cams = seeing_camera(grid, cam_to_ego, free_voxels)
+        is_wrong = wrong[free_voxels[:, 0], free_voxels[:, 1], free_voxels[:, 2]]
+        for c in range(len(cam_to_ego)):
+            name = camera_names[c] if c < len(camera_names) else f"cam{c}"
+            self.camera_free[name] = self.camera_free.get(name, 0) + int((cams == c).sum())
+            self.camera_false[name] = self.camera_false.get(name, 0) + int(((cams == c) & is_wrong).sum())
         occupied = mask & (labels != free_label) & (labels != 255)
         for c in labels[occupied].unique().tolist():
             name = class_names[c] if c < len(class_names) else str(c)
@@ -247,6 +276,10 @@ class Tally:
             "no_query_within_one_voxel_pct": pct(self.uncovered),
             "no_negative_within_one_voxel_pct": pct(self.no_negative),
             "no_positive_within_one_voxel_pct": pct(self.no_positive),
+            "by_camera_pct": {k: pct(v) for k, v in self.camera_false.items()},
+            "false_occupied_pct_of_scored_free_by_camera": {
+                k: round(100.0 * self.camera_false[k] / n_k, 2) for k, n_k in self.camera_free.items() if n_k
+            },
             "scored_occupied_voxels": sum(self.occupied.values()),
             "false_free_voxels": sum(self.missed.values()),
             "false_free_pct_by_class": {
@@ -331,6 +364,7 @@ def _diagnose(cfg: dict, dm, model, args: argparse.Namespace) -> dict:
             torch.cat(negatives),
             torch.cat(positives),
             names,
+            tuple(batch.camera_names),
         )
     return {**tally.shares(), "_samples": min(args.batches, len(dataset))}
 
