@@ -9,17 +9,24 @@ semantic branch's ``S`` (Phase I) for Tab. 3 and IoU of the geometric branch's `
     python -m occplug_occle.tools.ablate --dry-run                        # the planned runs and optimizer steps
     python -m occplug_occle.tools.ablate --seeds 0 --preset tiny --epochs 0.02 --rows three_phase_10pct baseline_10pct
 
+With ``--results DIR`` it writes one JSON per row and seed (``DIR/<row>-seed<N>.json``: the row's values, the
+budget, that run's own ``occplug fit`` overrides, the ablation's command line and the code's commit), the files
+``scripts/claims_tables.py`` reads.
+
 Pass/fail (printed when the rows ran): OccLE at 10 % labels (``three_phase_10pct``) beats the stated baseline at
 10 % (``baseline_10pct``: Tab. 4(b)'s "Baseline", OccLE with its semantic branch, geometric branch and projection
 supervision off, trained on the labelled 10 %), and reaches >= 75 % of its own full-label mIoU (``full_100pct``).
 The other rows (teacher vs student geometry, the pipeline ablations) are reported, not judged.
 
 Budget. ``--epochs`` scales every phase's ``max_epochs`` (at least 1); validation runs once, at the end of each
-phase (``trainer.check_val_every_n_epoch`` past the last epoch). Phases a row shares with the
-``three_phase_10pct`` run of the same seed (the same phase config, freeze, init_from and pseudo labels, in the
-same order from the first phase) are copied from that run instead of trained: ``geometry_teacher`` and
-``geometry_student`` train nothing, ``no_projection``, ``no_voxel_labels`` and ``teacher_in_fusion`` only Phase
-III, ``no_geometric`` only Phase III. ``--dry-run`` prints the optimizer steps each row trains.
+phase (``trainer.check_val_every_n_epoch`` past the last epoch). Every row trains every one of its phases in its
+own run (a table is then one command, each seed's run whole). ``--reuse-phases`` instead copies the phases a row
+shares with the ``three_phase_10pct`` run of the same seed (the same phase config, freeze, init_from and pseudo
+labels, in the same order from the first phase) from that run: ``geometry_teacher`` and ``geometry_student`` then
+train nothing, ``no_projection``, ``no_voxel_labels``, ``teacher_in_fusion`` and ``no_geometric`` only Phase III.
+That is cheaper and pairs the rows phase by phase; the copies are bit-equal to what the row would train itself
+(same seed, same code, one thread: ``trainer.deterministic`` runs are bit-reproducible on CPU, tested in
+``test_occle_model.py``), so only the cost differs. ``--dry-run`` prints the optimizer steps each row trains.
 
 CPU budget (OMP_NUM_THREADS=1, one core of a 2-core machine running two rows side by side; measured on the
 ``default`` world, batch 2, the recipes' 32 x 32 x 8 grid): a step takes ~0.9 s in Phase I, ~0.7 s in Phase II
@@ -56,7 +63,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from occplug.run.bench import fit_in_process, mean_std, write_table_seeds
+from occplug.run.bench import fit_in_process, mean_std, write_seed_result
 
 #: Row name (the config ``occle/<name>``) -> its label in the tables.
 ROWS = {
@@ -100,6 +107,7 @@ def overrides(name: str, seed: int, args: argparse.Namespace) -> list[str]:
     out = [
         f"seed={seed}",
         "trainer.enable_progress_bar=false",
+        "trainer.deterministic=true",  # bit-reproducible on CPU with the same seed and thread count
         f"data.preset={args.preset}",
         "trainer.check_val_every_n_epoch=100000",  # validate once, at the end of each phase
     ]
@@ -173,7 +181,7 @@ def _same(a: Any, b: Any) -> bool:
 
 def shared_phases(name: str, seed: int, args: argparse.Namespace) -> list[Any]:
     """The leading phases of a row that equal the donor's (same seed and budget)."""
-    if name == DONOR:
+    if name == DONOR or not args.reuse_phases:
         return []
     _, mine = specs(name, seed, args)
     _, donor = specs(DONOR, seed, args)
@@ -306,6 +314,11 @@ def main() -> None:
     )
     parser.add_argument("--until", help="train each row's phases up to and including this one (e.g. semantic: Tab. 3)")
     parser.add_argument("--dry-run", action="store_true", help="print the planned optimizer steps and stop")
+    parser.add_argument(
+        "--reuse-phases",
+        action="store_true",
+        help=f"copy the phases a row shares with {DONOR} of the same seed from that run instead of training them",
+    )
     args = parser.parse_args()
     args.rows = sorted(set(args.rows), key=lambda r: (r != DONOR, list(ROWS).index(r)))  # the donor first
     from occplug.config import ConfigError
@@ -408,7 +421,12 @@ def main() -> None:
     (Path(args.out) / file).write_text(json.dumps({"args": vars(args), "rows": rows}, indent=2) + "\n")
     if args.results:
         settings = {"epochs_scale": args.epochs, "preset": args.preset, "val_scenes": args.val_scenes, "set": args.set}
-        write_table_seeds(args.results, table, args.seeds, {**settings, "until": args.until})
+        settings.update(until=args.until, reuse_phases=args.reuse_phases, threads=os.environ.get("OMP_NUM_THREADS"))
+        for name, columns in table.items():
+            for i, seed in enumerate(args.seeds):
+                values = {column: per_seed[i] for column, per_seed in columns.items()}
+                row_settings = {**settings, "fit": ["-c", f"occle/{name}", *overrides(name, seed, args)]}
+                write_seed_result(args.results, name, seed, values, row_settings)
 
 
 if __name__ == "__main__":
