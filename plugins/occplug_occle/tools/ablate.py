@@ -63,7 +63,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from occplug.run.bench import fit_in_process, mean_std, write_seed_result
+from occplug.run.bench import evaluate_in_process, fit_in_process, mean_std, write_seed_result
 
 #: Row name (the config ``occle/<name>``) -> its label in the tables.
 ROWS = {
@@ -78,7 +78,13 @@ ROWS = {
     "no_voxel_labels": "OccLE 10 %, w/o voxel labels in Phase III",
     "geometry_teacher": "geometric branch, teacher (Ours-T)",
     "geometry_student": "geometric branch, student (Ours-S, strong aug.)",
+    # issue 55: the paper's pieces as options (not in the default rows)
+    "paper_protocol": "OccLE 10 %, the paper's protocol (no camera mask, class-frequency CE)",
+    "geometry_own_encoders": "OccLE 10 %, the geometric branch's own encoders",
+    "mamba_4_stages": "OccLE 10 %, 4-stage Dual Mamba",
 }
+#: The rows of the paper's tables (the default ``--rows``); the others are this project's options.
+OPTION_ROWS = ("paper_protocol", "geometry_own_encoders", "mamba_4_stages")
 #: The run other rows copy their shared phases from (it trains first).
 DONOR = "three_phase_10pct"
 #: The paper's numbers (SemanticKITTI val) per table and row, for reference.
@@ -265,6 +271,14 @@ def run(name: str, seed: int, args: argparse.Namespace) -> dict:
     return json.loads((out / "metrics.json").read_text())
 
 
+def _unmasked(name: str, seed: int, args: argparse.Namespace) -> float:
+    """mIoU of the row's final phase re-scored on every voxel (``eval_mask=none``; cached in that phase's folder)."""
+    out = run_folder(name, seed, args)
+    phases = list(json.loads((out / "metrics.json").read_text())["phases"])
+    record = evaluate_in_process(out / phases[-1], "val", ["eval_mask=none"], name="metrics_val_no_mask")
+    return float(record.get("mIoU", float("nan")))
+
+
 def planned_steps(name: str, args: argparse.Namespace) -> dict[str, int]:
     """``{phase: optimizer steps}`` of a row on the synthetic world (before any reuse)."""
     from occplug.data import LabelCut
@@ -302,7 +316,9 @@ def main() -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
+    parser.add_argument(
+        "--rows", nargs="+", default=[r for r in ROWS if r not in OPTION_ROWS], choices=list(ROWS)
+    )  # the option rows on request
     parser.add_argument("--epochs", type=float, default=1.0, help="scale every phase's max_epochs (the CPU budget)")
     parser.add_argument("--preset", default="default", help="synthetic world preset (default: default)")
     parser.add_argument("--val-scenes", type=int, default=None, help="validation scenes (default: the preset's)")
@@ -386,6 +402,17 @@ def main() -> None:
         [(n, [v], PAPER["tab4a"][n]) for n, v in geometry],
     )
     whole = not any(partial(n, args) for n in args.rows)
+    options = [n for n in (DONOR, *OPTION_ROWS) if n in results and any(o in results for o in OPTION_ROWS)]
+    if whole and options:  # every row also scored on every voxel, so paper_protocol's on/off is one protocol
+        unmasked = {n: [_unmasked(n, seed, args) for seed in args.seeds] for n in options}
+        section(
+            "Issue 55: the paper's pieces (mIoU / IoU as the row scores: paper_protocol every voxel, the others "
+            "the camera mask; then mIoU on every voxel)",
+            ["mIoU", "IoU", "mIoU, no mask"],
+            [(n, [values(n, "mIoU"), values(n, "IoU"), unmasked[n]], "—") for n in options],
+        )
+        for n in options:
+            table.setdefault(n, {})["mIoU_no_mask"] = unmasked[n]
     for title, paper in (
         ("Tab. 4(b) (overall pipeline)", PAPER["tab4b"]),
         ("Tab. C.2 (supplementary)", PAPER["tabc2"]),
@@ -393,7 +420,7 @@ def main() -> None:
         if whole:  # the pipeline's tables need every row's last phase
             section(title, ["mIoU", "IoU"], [(n, [values(n, "mIoU"), values(n, "IoU")], paper[n]) for n in paper])
     for name in results:
-        table[name] = {
+        table[name] = table.get(name, {}) | {
             "mIoU": values(name, "mIoU"),
             "IoU": values(name, "IoU"),
             "mIoU_S": values(name, "mIoU", "semantic"),
