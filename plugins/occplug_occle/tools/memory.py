@@ -99,7 +99,8 @@ def worker(job: dict[str, Any]) -> dict[str, Any]:
     model = runner.build_model(spec.config, dm)
     frozen = freeze(model, spec.freeze, f"phases.{phase}.freeze")
     dataset = dm.dataset("train")
-    batch = dm.collate([dataset[i] for i in range(job["batch"])])
+    frames = min(int(job["batch"]), len(dataset))  # a phase on the labelled subset of a small world has fewer
+    batch = dm.collate([dataset[i] for i in range(frames)])
     model.train()
     modules = dict(model.named_modules())
     for name in frozen:  # as the phase trains them (FrozenModulesEval)
@@ -132,6 +133,7 @@ def worker(job: dict[str, Any]) -> dict[str, Any]:
         "step_s": step,
         "loss": float(loss.detach()),
         "grid_shape": list(model.scene.grid.shape),
+        "batch_frames": frames,
     }
 
 
