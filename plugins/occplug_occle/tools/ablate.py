@@ -63,7 +63,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from occplug.run.bench import evaluate_in_process, fit_in_process, mean_std, write_seed_result
+from occplug.run.bench import code_commit, evaluate_in_process, fit_in_process, mean_std, write_seed_result
 
 #: Row name (the config ``occle/<name>``) -> its label in the tables.
 ROWS = {
@@ -354,6 +354,7 @@ def main() -> None:
         dry_run(args)
         return
     start = time.monotonic()
+    commit = code_commit()  # the code the runs start from (the JSON files record it, not a later commit)
     results: dict[str, list[dict]] = {}
     for name in args.rows:  # row by row: an interrupted ablation leaves whole rows
         for seed in args.seeds:
@@ -453,7 +454,7 @@ def main() -> None:
             for i, seed in enumerate(args.seeds):
                 values = {column: per_seed[i] for column, per_seed in columns.items()}
                 row_settings = {**settings, "fit": ["-c", f"occle/{name}", *overrides(name, seed, args)]}
-                write_seed_result(args.results, name, seed, values, row_settings)
+                write_seed_result(args.results, name, seed, values, row_settings, commit=commit)
 
 
 if __name__ == "__main__":
