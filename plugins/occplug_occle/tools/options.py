@@ -14,16 +14,18 @@ For each recipe and phase a child process (:func:`occplug_occle.tools.memory.run
 world (``--preset``, default ``tiny``; the recipes' 32 x 32 x 8 grid, batch ``--batch``), freezes what the phase
 freezes and runs ``--steps`` training steps on one batch: the step time is the median of the steps after the first,
 the peak the child's resident set over them. The children run one after another, each option right after the
-baseline of the same phase, so a machine's load drifts into both alike; run it alone with ``OMP_NUM_THREADS=1``::
+baseline of the same phase; ``--rounds R`` repeats the sweep (every other round in reverse order) and reports each
+cell's median step time and largest peak, as a loaded machine needs. Run it alone with ``OMP_NUM_THREADS=1``::
 
     python -m occplug_occle.tools.options [--options ...] [--phases semantic teacher student fusion] [--steps 6]
-                                          [--preset tiny] [--batch 2] [--json FILE]
+                                          [--preset tiny] [--batch 2] [--rounds 1] [--json FILE]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 from pathlib import Path
 
@@ -32,6 +34,22 @@ from occplug_occle.tools.memory import ROOT, run
 BASELINE = "three_phase_10pct"
 OPTIONS = ("paper_protocol", "geometry_own_encoders", "mamba_4_stages")
 PHASES = ("semantic", "teacher", "student", "fusion")
+
+
+def combined(rows: list[dict]) -> list[dict]:
+    """One row per (option, phase): the median step time and the largest peak over its rounds (an error if any)."""
+    out: dict[tuple[str, str], list[dict]] = {}
+    for row in rows:
+        out.setdefault((row["option"], row["phase"]), []).append(row)
+    merged = []
+    for group in out.values():
+        failed = [r for r in group if "error" in r]
+        if failed:
+            merged.append(failed[0])
+            continue
+        step = statistics.median(r["step_s"] for r in group)
+        merged.append({**group[0], "step_s": step, "peak_mib": max(r["peak_mib"] for r in group)})
+    return merged
 
 
 def table(rows: list[dict], options: list[str], phases: list[str]) -> str:
@@ -69,29 +87,32 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch", type=int, default=2)
     parser.add_argument("--timeout", type=float, default=1800.0)
     parser.add_argument("--max-rss-gib", type=float, default=10.0)
+    parser.add_argument("--rounds", type=int, default=1, help="sweeps; each cell's median step time, largest peak")
     parser.add_argument("--json", help="write every row here")
     args = parser.parse_args(argv)
-    if args.steps < 1:
-        print(f"error: --steps must be at least 1, got {args.steps}", file=sys.stderr)
+    if args.steps < 1 or args.rounds < 1:
+        print(f"error: --steps and --rounds must be at least 1, got {args.steps} and {args.rounds}", file=sys.stderr)
         return 2
     import subprocess
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
     commit = commit.stdout.strip() or "?"
     rows = []
-    for phase in args.phases:
-        for option in [BASELINE, *args.options]:
+    cells = [(phase, option) for phase in args.phases for option in [BASELINE, *args.options]]
+    for r in range(args.rounds):
+        for phase, option in cells if r % 2 == 0 else cells[::-1]:
             job = {"grid": [32, 32, 8], "setting": "plain", "batch": args.batch, "depth": 2, "phase": phase}
             job |= {"recipe": f"occle/{option}", "steps": args.steps, "set": [f"data.preset={args.preset}"]}
-            row = {**run(job, args.max_rss_gib, args.timeout), "option": option, "commit": commit}
+            row = {**run(job, args.max_rss_gib, args.timeout), "option": option, "commit": commit, "round": r}
             rows.append(row)
             summary = row.get("error") or f"step {row['step_s']:.3f} s, peak {row['peak_mib']:,.0f} MiB"
-            print(f"{phase} {option}: {summary}", file=sys.stderr, flush=True)
+            print(f"round {r} {phase} {option}: {summary}", file=sys.stderr, flush=True)
     print(
         f"OccLE options, training step per phase (median of {args.steps - 1 or 1} after the first), world "
-        f"'{args.preset}', batch {args.batch}, 32 x 32 x 8, CPU, commit {commit}; (x) = ratio to {BASELINE}\n"
+        f"'{args.preset}', batch {args.batch}, 32 x 32 x 8, CPU, {args.rounds} round(s), commit {commit}; "
+        f"(x) = ratio to {BASELINE}\n"
     )
-    print(table(rows, list(args.options), list(args.phases)))
+    print(table(combined(rows), list(args.options), list(args.phases)))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
     return 0
