@@ -11,7 +11,7 @@ semantic branch's ``S`` (Phase I) for Tab. 3 and IoU of the geometric branch's `
 
 With ``--results DIR`` it writes one JSON per row and seed (``DIR/<row>-seed<N>.json``: the row's values, the
 budget, that run's own ``occplug fit`` overrides, the ablation's command line and the code's commit), the files
-``scripts/claims_tables.py`` reads.
+files the claims tables script (``claims_tables.py``) reads.
 
 Pass/fail (printed when the rows ran): OccLE at 10 % labels (``three_phase_10pct``) beats the stated baseline at
 10 % (``baseline_10pct``: Tab. 4(b)'s "Baseline", OccLE with its semantic branch, geometric branch and projection
