@@ -10,7 +10,7 @@ semantic branch's ``S`` (Phase I) for Tab. 3 and IoU of the geometric branch's `
     python -m occplug_occle.tools.ablate --seeds 0 --preset tiny --epochs 0.02 --rows three_phase_10pct baseline_10pct
 
 With ``--results DIR`` it writes one JSON per row and seed (``DIR/<row>-seed<N>.json``: the row's values, the
-budget, that run's own ``occplug fit`` overrides, the ablation's command line and the code's commit), the files
+budget, that run's own ``occplug fit`` overrides, the ablation's command line and the code's commit), the
 files the claims tables script (``claims_tables.py``) reads.
 
 Pass/fail (printed when the rows ran): OccLE at 10 % labels (``three_phase_10pct``) beats the stated baseline at
