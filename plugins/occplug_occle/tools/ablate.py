@@ -24,9 +24,10 @@ own run (a table is then one command, each seed's run whole). ``--reuse-phases``
 shares with the ``three_phase_10pct`` run of the same seed (the same phase config, freeze, init_from and pseudo
 labels, in the same order from the first phase) from that run: ``geometry_teacher`` and ``geometry_student`` then
 train nothing, ``no_projection``, ``no_voxel_labels``, ``teacher_in_fusion`` and ``no_geometric`` only Phase III.
-That is cheaper and pairs the rows phase by phase; the copies are bit-equal to what the row would train itself
-(same seed, same code, one thread: ``trainer.deterministic`` runs are bit-reproducible on CPU, tested in
-``test_occle_model.py``), so only the cost differs. ``--dry-run`` prints the optimizer steps each row trains.
+That is cheaper and pairs the rows phase by phase; with the same code and thread count a copy should equal what
+the row would train itself (a phase's run is bit-reproducible on CPU for a seed, code and thread count, tested in
+``test_occle_reproducibility.py``; a row against the donor was not compared), but a copy made at other code is not
+(``results/occle/reproducibility``). ``--dry-run`` prints the optimizer steps each row trains.
 
 CPU budget (OMP_NUM_THREADS=1, one core of a 2-core machine running two rows side by side; measured on the
 ``default`` world, batch 2, the recipes' 32 x 32 x 8 grid): a step takes ~0.9 s in Phase I, ~0.7 s in Phase II
