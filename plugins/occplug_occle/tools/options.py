@@ -12,10 +12,11 @@ Options (``--options``, default all):
 
 For each recipe and phase a child process (:func:`occplug_occle.tools.memory.run`) builds the phase on the synthetic
 world (``--preset``, default ``tiny``; the recipes' 32 x 32 x 8 grid, batch ``--batch``), freezes what the phase
-freezes and runs ``--steps`` training steps on one batch: the step time is the median of the steps after the first,
-the peak the child's resident set over them. The children run one after another, each option right after the
-baseline of the same phase; ``--rounds R`` repeats the sweep (every other round in reverse order) and reports each
-cell's median step time and largest peak, as a loaded machine needs. Run it alone with ``OMP_NUM_THREADS=1``::
+freezes and runs ``--steps`` training steps on one batch: the step time is the median CPU time (``process_time``:
+with one thread, what the step computes, which a shared machine's wall time does not show) of the steps after the
+first (wall times are in ``--json``), the peak the child's resident set over them. The children run one after
+another, each option right after the baseline of the same phase; ``--rounds R`` repeats the sweep (every other
+round in reverse order) and reports each cell's median step time and largest peak. Run it alone with ``OMP_NUM_THREADS=1``::
 
     python -m occplug_occle.tools.options [--options ...] [--phases semantic teacher student fusion] [--steps 6]
                                           [--preset tiny] [--batch 2] [--rounds 1] [--json FILE]
@@ -48,30 +49,32 @@ def combined(rows: list[dict]) -> list[dict]:
             merged.append(failed[0])
             continue
         step = statistics.median(r["step_s"] for r in group)
-        merged.append({**group[0], "step_s": step, "peak_mib": max(r["peak_mib"] for r in group)})
+        cpu = statistics.median(r.get("step_cpu_s", r["step_s"]) for r in group)
+        peak = max(r["peak_mib"] for r in group)
+        merged.append({**group[0], "step_s": step, "step_cpu_s": cpu, "peak_mib": peak})
     return merged
 
 
 def table(rows: list[dict], options: list[str], phases: list[str]) -> str:
     """Per phase: the baseline's step time and peak, then each option's and its ratio to the baseline."""
     by = {(r["option"], r["phase"]): r for r in rows}
-    head = ["phase", f"{BASELINE} step s", f"{BASELINE} peak MiB"]
+    head = ["phase", f"{BASELINE} step CPU s", f"{BASELINE} peak MiB"]
     for option in options:
-        head += [f"{option} step s (x)", f"{option} peak MiB (x)"]
+        head += [f"{option} step CPU s (x)", f"{option} peak MiB (x)"]
     lines = ["| " + " | ".join(head) + " |", "|---|" + "--:|" * (len(head) - 1)]
     for phase in phases:
         base = by.get((BASELINE, phase), {})
         if "error" in base or not base:
             lines.append(f"| {phase} | {base.get('error', 'not run')} |" + " |" * (len(head) - 2))
             continue
-        cells = [phase, f"{base['step_s']:.3f}", f"{base['peak_mib']:,.0f}"]
+        cells = [phase, f"{base['step_cpu_s']:.3f}", f"{base['peak_mib']:,.0f}"]
         for option in options:
             row = by.get((option, phase), {})
             if "error" in row or not row:
                 cells += [row.get("error", "not run"), ""]
                 continue
             cells += [
-                f"{row['step_s']:.3f} ({row['step_s'] / base['step_s']:.2f})",
+                f"{row['step_cpu_s']:.3f} ({row['step_cpu_s'] / base['step_cpu_s']:.2f})",
                 f"{row['peak_mib']:,.0f} ({row['peak_mib'] / base['peak_mib']:.2f})",
             ]
         lines.append("| " + " | ".join(cells) + " |")
@@ -105,7 +108,10 @@ def main(argv: list[str] | None = None) -> int:
             job |= {"recipe": f"occle/{option}", "steps": args.steps, "set": [f"data.preset={args.preset}"]}
             row = {**run(job, args.max_rss_gib, args.timeout), "option": option, "commit": commit, "round": r}
             rows.append(row)
-            summary = row.get("error") or f"step {row['step_s']:.3f} s, peak {row['peak_mib']:,.0f} MiB"
+            summary = row.get("error") or (
+                f"step {row['step_s']:.3f} s ({row.get('step_cpu_s', float('nan')):.3f} CPU s), "
+                f"peak {row['peak_mib']:,.0f} MiB"
+            )
             print(f"round {r} {phase} {option}: {summary}", file=sys.stderr, flush=True)
     print(
         f"OccLE options, training step per phase (median of {args.steps - 1 or 1} after the first), world "
