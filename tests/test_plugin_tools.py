@@ -15,6 +15,7 @@ TOOLS = [
     "occplug_occle.tools.ablate",
     "occplug_occle.tools.bench",
     "occplug_occle.tools.memory",
+    "occplug_occle.tools.options",
     "occplug_duocc.tools.ablate",
     "occplug_duocc.tools.bench",
     "occplug_duocc.tools.fit_anchors",

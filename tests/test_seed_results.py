@@ -41,3 +41,8 @@ def test_the_commit_is_the_checkouts():
 
 def test_outside_git_there_is_no_commit(tmp_path):
     assert code_commit(tmp_path) is None
+
+
+def test_a_script_records_the_commit_it_started_at(tmp_path):
+    path = write_seed_result(tmp_path, "base", 0, {"mIoU": 1.0}, {}, commit="0123abc")
+    assert json.loads(path.read_text())["commit"] == "0123abc"

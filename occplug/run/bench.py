@@ -133,13 +133,19 @@ def _program() -> str:
 
 
 def write_seed_result(
-    folder: Path | str, row: str, seed: int, values: dict[str, float], settings: dict[str, Any]
+    folder: Path | str,
+    row: str,
+    seed: int,
+    values: dict[str, float],
+    settings: dict[str, Any],
+    commit: str | None = None,
 ) -> Path:
     """Write one ablation row's numbers for one seed to ``<folder>/<row>-seed<seed>.json`` and return the path.
 
     The file is small, made to be committed beside a plugin's RESULTS.md, so that a table's mean ± std can be
     checked against the seeds it came from. It records the values, the settings the row ran with (budget, world,
-    overrides), the command line and the code's commit (:func:`code_commit`).
+    overrides), the command line and the code's commit: ``commit`` where given (a script passes the commit it
+    started at, so a commit made while it ran is not recorded), else :func:`code_commit` now.
     """
     path = Path(folder) / f"{row}-seed{seed}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -149,7 +155,7 @@ def write_seed_result(
         "values": {k: None if v != v else float(v) for k, v in values.items()},  # NaN (no such class) as null
         "settings": settings,
         "command": [_program(), *sys.argv[1:]],
-        "commit": code_commit(),
+        "commit": code_commit() if commit is None else commit,
     }
     path.write_text(json.dumps(record, indent=2) + "\n")
     return path

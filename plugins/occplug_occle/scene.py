@@ -30,10 +30,20 @@ import torch
 import torch.utils.checkpoint
 from torch import Tensor, nn
 
+from occplug.config import Slot
 from occplug.constraints import Length, NonNegative, Positive, check_choices
 from occplug.data import Batch
 from occplug.geometry import GridSpec
-from occplug.interfaces import DenseVoxelScene, Lifted, ModelOutputs, SceneRepresentation
+from occplug.interfaces import (
+    DenseVoxelScene,
+    ImageEncoder,
+    Lifted,
+    ModelOutputs,
+    PointEncoder,
+    SceneRepresentation,
+    ViewTransform,
+    feature_levels,
+)
 from occplug.nn import BasicBlock3d, UNet3d
 
 from .blocks.geometry_branch import Conv3dDeformableBaseline, CrossPlaneFusion
@@ -138,6 +148,14 @@ class OccleScene(SceneRepresentation):
             grids, ``T = len(history) + 1``, a Conv1D over frames per modality); each must be in the model's
             ``input_history`` (``outputs.history``). Empty: one frame. The semantic branch reads the current
             frame only.
+        geometry_encoder, geometry_view_transform, geometry_point_encoder: the geometric branch's own image
+            encoder, lift and LiDAR encoder (§4.1: the paper's branch has its own ResNet-50 and sparse Conv3D),
+            all three or none, under ``model.scene.geometric_inputs`` (``encoder``, ``view_transform``,
+            ``point_encoder``): built as the model builds its own (the lift's ``in_channels`` / ``image_stride``
+            from this encoder, ``grid`` the scene's), run on the batch's images and points, and fed to the
+            geometric branch in place of the model's shared lifted image and LiDAR grids (which the semantic
+            branch still reads). None (default): the branch reads the shared grids. One frame only (no
+            ``history``).
 
     Forward:
         ``lifted`` (volume ``(B, C_img, X, Y, Z)``), ``batch``, ``outputs`` (``encoded[lidar_encoder]``
@@ -169,6 +187,9 @@ class OccleScene(SceneRepresentation):
         semantic_checkpoint: bool = False,
         compute: Literal["all", "semantic", "geometric"] = "all",
         history: list[int] | None = None,
+        geometry_encoder: Annotated[dict | None, Slot("encoder")] = None,
+        geometry_view_transform: Annotated[dict | None, Slot("view_transform")] = None,
+        geometry_point_encoder: Annotated[dict | None, Slot("point_encoder")] = None,
     ) -> None:
         super().__init__()
         check_choices(OccleScene.__init__, "occle_scene", compute=compute, geometry=geometry, fusion=fusion)
@@ -196,6 +217,19 @@ class OccleScene(SceneRepresentation):
             )
         frames = len(self.history) + 1
         both = self.in_channels + self.lidar_channels
+        own = (geometry_encoder, geometry_view_transform, geometry_point_encoder)
+        geo_image, geo_lidar = self.in_channels, self.lidar_channels  # what the geometric branch reads
+        if any(node is not None for node in own):
+            if any(node is None for node in own):
+                raise ValueError(
+                    "occle_scene: geometry_encoder, geometry_view_transform and geometry_point_encoder go together "
+                    "(the geometric branch's own image encoder, lift and LiDAR encoder); set all three or none"
+                )
+            if not geometric or self.history:
+                raise ValueError("occle_scene: the geometric branch's own encoders need geometric: true and no history")
+            self.geometric_inputs = _own_inputs(geometry_encoder, geometry_view_transform, geometry_point_encoder, grid)
+            geo_image = int(self.geometric_inputs["view_transform"].out_channels)
+            geo_lidar = int(self.geometric_inputs["point_encoder"].out_channels)
         # plain stems stand in for a switched-off branch, so the fusion always sees two grids
         self.stems = nn.ModuleDict()
         if self.semantic:
@@ -207,8 +241,8 @@ class OccleScene(SceneRepresentation):
         if self.geometric:
             if geometry == "cross_plane":
                 self.geometric_branch: nn.Module = CrossPlaneFusion(
-                    self.lidar_channels,
-                    self.in_channels,
+                    geo_lidar,
+                    geo_image,
                     self.grid,
                     c,
                     num_frames=frames,
@@ -217,7 +251,7 @@ class OccleScene(SceneRepresentation):
                 )
             else:
                 baseline = Conv3dDeformableBaseline(
-                    self.lidar_channels, self.in_channels, self.grid, c, num_frames=frames, heads=attention_heads
+                    geo_lidar, geo_image, self.grid, c, num_frames=frames, heads=attention_heads
                 )
                 baseline.head = nn.Identity()  # G's header is the occle_geometry head component
                 self.geometric_branch = baseline
@@ -255,7 +289,7 @@ class OccleScene(SceneRepresentation):
             )
         lidar_semantic = semantic = geometry = None
         if self.compute == "geometric":
-            geometry = self.geometric_branch(*self._frames(lidar, image, outputs))
+            geometry = self.geometric_branch(*self._frames(lidar, image, batch, outputs))
             return OccleGrids(None, self.grid, geometry=geometry, projection=self.projection)
         if self.semantic:
             if self.semantic_checkpoint and torch.is_grad_enabled():
@@ -270,7 +304,7 @@ class OccleScene(SceneRepresentation):
         else:
             sem_in = self.stems["semantic"](torch.cat([image, lidar], dim=1))
         if self.geometric:
-            lidar_frames, image_frames = self._frames(lidar, image, outputs)
+            lidar_frames, image_frames = self._frames(lidar, image, batch, outputs)
             geometry = self.geometric_branch(lidar_frames, image_frames)
             geo_in = geometry
         else:
@@ -283,8 +317,14 @@ class OccleScene(SceneRepresentation):
         lidar_semantic = self.semantic_branch["lidar_unet"].features(lidar)
         return lidar_semantic, self.semantic_branch["mix"](torch.cat([image, lidar_semantic], dim=1))
 
-    def _frames(self, lidar: Tensor, image: Tensor, outputs: ModelOutputs) -> tuple[Tensor, Tensor]:
-        """``(B, T, C, X, Y, Z)`` LiDAR and image grids: the ``history`` frames in order, then the current one."""
+    def _frames(self, lidar: Tensor, image: Tensor, batch: Batch, outputs: ModelOutputs) -> tuple[Tensor, Tensor]:
+        """``(B, T, C, X, Y, Z)`` LiDAR and image grids: the ``history`` frames in order, then the current one
+        (with the branch's own encoders: their grids of the current frame, ``T = 1``)."""
+        if hasattr(self, "geometric_inputs"):
+            own = self.geometric_inputs
+            features = feature_levels(own["encoder"](batch.images))[own["encoder"].primary_level]
+            lifted = own["view_transform"](features, batch)
+            return own["point_encoder"](batch).unsqueeze(1), lifted.volume.unsqueeze(1)
         missing = [k for k in self.history if k not in outputs.history]
         if missing:
             raise ValueError(
@@ -306,6 +346,36 @@ class OccleScene(SceneRepresentation):
         outputs = ModelOutputs(image_features=None, lifted=None, scene=None, heads={}, query=_no_query)
         outputs.encoded["lidar"] = lidar
         return (Lifted(volume=image, grid=grid), batch, outputs)
+
+
+def _own_inputs(encoder: dict, view_transform: dict, point_encoder: dict, grid: GridSpec | dict) -> nn.ModuleDict:
+    """The geometric branch's own image encoder, lift and LiDAR encoder, built from their config nodes with the
+    arguments the core model gives its own (``in_channels`` / ``image_stride`` / levels from the encoder, the grid)."""
+    from occplug.plugins import get_registry  # late: the registry is filled by importing the components
+
+    registry = get_registry()
+    grid_node = GridSpec.from_config(grid).to_dict()
+    enc = registry.build("encoder", encoder)
+    lift = registry.build(
+        "view_transform",
+        view_transform,
+        in_channels=enc.out_channels,
+        image_stride=enc.stride,
+        level_channels=list(enc.level_channels),
+        level_strides=list(enc.level_strides),
+        grid=grid_node,
+    )
+    points = registry.build("point_encoder", point_encoder, grid=grid_node)
+    for built, kind, want in (
+        (enc, "encoder", ImageEncoder),
+        (lift, "view_transform", ViewTransform),
+        (points, "point_encoder", PointEncoder),
+    ):
+        if not isinstance(built, want):
+            raise TypeError(f"occle_scene geometry_{kind}: '{built.__class__.__name__}' is not a {want.__name__}")
+    if getattr(lift, "reads_outputs", False) or getattr(lift, "reads", ()):
+        raise ValueError("occle_scene geometry_view_transform: a lift that reads the model's outputs cannot run here")
+    return nn.ModuleDict({"encoder": enc, "view_transform": lift, "point_encoder": points})
 
 
 def _no_query(*args: Any, **kwargs: Any) -> Any:

@@ -9,17 +9,25 @@ semantic branch's ``S`` (Phase I) for Tab. 3 and IoU of the geometric branch's `
     python -m occplug_occle.tools.ablate --dry-run                        # the planned runs and optimizer steps
     python -m occplug_occle.tools.ablate --seeds 0 --preset tiny --epochs 0.02 --rows three_phase_10pct baseline_10pct
 
+With ``--results DIR`` it writes one JSON per row and seed (``DIR/<row>-seed<N>.json``: the row's values, the
+budget, that run's own ``occplug fit`` overrides, the ablation's command line and the code's commit), the
+files the claims tables script (``claims_tables.py``) reads.
+
 Pass/fail (printed when the rows ran): OccLE at 10 % labels (``three_phase_10pct``) beats the stated baseline at
 10 % (``baseline_10pct``: Tab. 4(b)'s "Baseline", OccLE with its semantic branch, geometric branch and projection
 supervision off, trained on the labelled 10 %), and reaches >= 75 % of its own full-label mIoU (``full_100pct``).
 The other rows (teacher vs student geometry, the pipeline ablations) are reported, not judged.
 
 Budget. ``--epochs`` scales every phase's ``max_epochs`` (at least 1); validation runs once, at the end of each
-phase (``trainer.check_val_every_n_epoch`` past the last epoch). Phases a row shares with the
-``three_phase_10pct`` run of the same seed (the same phase config, freeze, init_from and pseudo labels, in the
-same order from the first phase) are copied from that run instead of trained: ``geometry_teacher`` and
-``geometry_student`` train nothing, ``no_projection``, ``no_voxel_labels`` and ``teacher_in_fusion`` only Phase
-III, ``no_geometric`` only Phase III. ``--dry-run`` prints the optimizer steps each row trains.
+phase (``trainer.check_val_every_n_epoch`` past the last epoch). Every row trains every one of its phases in its
+own run (a table is then one command, each seed's run whole). ``--reuse-phases`` instead copies the phases a row
+shares with the ``three_phase_10pct`` run of the same seed (the same phase config, freeze, init_from and pseudo
+labels, in the same order from the first phase) from that run: ``geometry_teacher`` and ``geometry_student`` then
+train nothing, ``no_projection``, ``no_voxel_labels``, ``teacher_in_fusion`` and ``no_geometric`` only Phase III.
+That is cheaper and pairs the rows phase by phase; with the same code and thread count a copy should equal what
+the row would train itself (a phase's run is bit-reproducible on CPU for a seed, code and thread count, tested in
+``test_occle_reproducibility.py``; a row against the donor was not compared), but a copy made at other code is not
+(``results/occle/reproducibility``). ``--dry-run`` prints the optimizer steps each row trains.
 
 CPU budget (OMP_NUM_THREADS=1, one core of a 2-core machine running two rows side by side; measured on the
 ``default`` world, batch 2, the recipes' 32 x 32 x 8 grid): a step takes ~0.9 s in Phase I, ~0.7 s in Phase II
@@ -56,7 +64,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from occplug.run.bench import fit_in_process, mean_std, write_table_seeds
+from occplug.run.bench import code_commit, evaluate_in_process, fit_in_process, mean_std, write_seed_result
 
 #: Row name (the config ``occle/<name>``) -> its label in the tables.
 ROWS = {
@@ -71,7 +79,13 @@ ROWS = {
     "no_voxel_labels": "OccLE 10 %, w/o voxel labels in Phase III",
     "geometry_teacher": "geometric branch, teacher (Ours-T)",
     "geometry_student": "geometric branch, student (Ours-S, strong aug.)",
+    # issue 55: the paper's pieces as options (not in the default rows)
+    "paper_protocol": "OccLE 10 %, the paper's protocol (no camera mask, class-frequency CE)",
+    "geometry_own_encoders": "OccLE 10 %, the geometric branch's own encoders",
+    "mamba_4_stages": "OccLE 10 %, 4-stage Dual Mamba",
 }
+#: The rows of the paper's tables (the default ``--rows``); the others are this project's options.
+OPTION_ROWS = ("paper_protocol", "geometry_own_encoders", "mamba_4_stages")
 #: The run other rows copy their shared phases from (it trains first).
 DONOR = "three_phase_10pct"
 #: The paper's numbers (SemanticKITTI val) per table and row, for reference.
@@ -100,6 +114,7 @@ def overrides(name: str, seed: int, args: argparse.Namespace) -> list[str]:
     out = [
         f"seed={seed}",
         "trainer.enable_progress_bar=false",
+        "trainer.deterministic=true",  # bit-reproducible on CPU with the same seed and thread count
         f"data.preset={args.preset}",
         "trainer.check_val_every_n_epoch=100000",  # validate once, at the end of each phase
     ]
@@ -173,7 +188,7 @@ def _same(a: Any, b: Any) -> bool:
 
 def shared_phases(name: str, seed: int, args: argparse.Namespace) -> list[Any]:
     """The leading phases of a row that equal the donor's (same seed and budget)."""
-    if name == DONOR:
+    if name == DONOR or not args.reuse_phases:
         return []
     _, mine = specs(name, seed, args)
     _, donor = specs(DONOR, seed, args)
@@ -257,6 +272,14 @@ def run(name: str, seed: int, args: argparse.Namespace) -> dict:
     return json.loads((out / "metrics.json").read_text())
 
 
+def _unmasked(name: str, seed: int, args: argparse.Namespace) -> float:
+    """mIoU of the row's final phase re-scored on every voxel (``eval_mask=none``; cached in that phase's folder)."""
+    out = run_folder(name, seed, args)
+    phases = list(json.loads((out / "metrics.json").read_text())["phases"])
+    record = evaluate_in_process(out / phases[-1], "val", ["eval_mask=none"], name="metrics_val_no_mask")
+    return float(record.get("mIoU", float("nan")))
+
+
 def planned_steps(name: str, args: argparse.Namespace) -> dict[str, int]:
     """``{phase: optimizer steps}`` of a row on the synthetic world (before any reuse)."""
     from occplug.data import LabelCut
@@ -294,7 +317,9 @@ def main() -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
+    parser.add_argument(
+        "--rows", nargs="+", default=[r for r in ROWS if r not in OPTION_ROWS], choices=list(ROWS)
+    )  # the option rows on request
     parser.add_argument("--epochs", type=float, default=1.0, help="scale every phase's max_epochs (the CPU budget)")
     parser.add_argument("--preset", default="default", help="synthetic world preset (default: default)")
     parser.add_argument("--val-scenes", type=int, default=None, help="validation scenes (default: the preset's)")
@@ -306,6 +331,11 @@ def main() -> None:
     )
     parser.add_argument("--until", help="train each row's phases up to and including this one (e.g. semantic: Tab. 3)")
     parser.add_argument("--dry-run", action="store_true", help="print the planned optimizer steps and stop")
+    parser.add_argument(
+        "--reuse-phases",
+        action="store_true",
+        help=f"copy the phases a row shares with {DONOR} of the same seed from that run instead of training them",
+    )
     args = parser.parse_args()
     args.rows = sorted(set(args.rows), key=lambda r: (r != DONOR, list(ROWS).index(r)))  # the donor first
     from occplug.config import ConfigError
@@ -325,6 +355,7 @@ def main() -> None:
         dry_run(args)
         return
     start = time.monotonic()
+    commit = code_commit()  # the code the runs start from (the JSON files record it, not a later commit)
     results: dict[str, list[dict]] = {}
     for name in args.rows:  # row by row: an interrupted ablation leaves whole rows
         for seed in args.seeds:
@@ -373,6 +404,17 @@ def main() -> None:
         [(n, [v], PAPER["tab4a"][n]) for n, v in geometry],
     )
     whole = not any(partial(n, args) for n in args.rows)
+    options = [n for n in (DONOR, *OPTION_ROWS) if n in results and any(o in results for o in OPTION_ROWS)]
+    if whole and options:  # every row also scored on every voxel, so paper_protocol's on/off is one protocol
+        unmasked = {n: [_unmasked(n, seed, args) for seed in args.seeds] for n in options}
+        section(
+            "Issue 55: the paper's pieces (mIoU / IoU as the row scores: paper_protocol every voxel, the others "
+            "the camera mask; then mIoU on every voxel)",
+            ["mIoU", "IoU", "mIoU, no mask"],
+            [(n, [values(n, "mIoU"), values(n, "IoU"), unmasked[n]], "—") for n in options],
+        )
+        for n in options:
+            table.setdefault(n, {})["mIoU_no_mask"] = unmasked[n]
     for title, paper in (
         ("Tab. 4(b) (overall pipeline)", PAPER["tab4b"]),
         ("Tab. C.2 (supplementary)", PAPER["tabc2"]),
@@ -380,7 +422,7 @@ def main() -> None:
         if whole:  # the pipeline's tables need every row's last phase
             section(title, ["mIoU", "IoU"], [(n, [values(n, "mIoU"), values(n, "IoU")], paper[n]) for n in paper])
     for name in results:
-        table[name] = {
+        table[name] = table.get(name, {}) | {
             "mIoU": values(name, "mIoU"),
             "IoU": values(name, "IoU"),
             "mIoU_S": values(name, "mIoU", "semantic"),
@@ -408,7 +450,12 @@ def main() -> None:
     (Path(args.out) / file).write_text(json.dumps({"args": vars(args), "rows": rows}, indent=2) + "\n")
     if args.results:
         settings = {"epochs_scale": args.epochs, "preset": args.preset, "val_scenes": args.val_scenes, "set": args.set}
-        write_table_seeds(args.results, table, args.seeds, {**settings, "until": args.until})
+        settings.update(until=args.until, reuse_phases=args.reuse_phases, threads=os.environ.get("OMP_NUM_THREADS"))
+        for name, columns in table.items():
+            for i, seed in enumerate(args.seeds):
+                values = {column: per_seed[i] for column, per_seed in columns.items()}
+                row_settings = {**settings, "fit": ["-c", f"occle/{name}", *overrides(name, seed, args)]}
+                write_seed_result(args.results, name, seed, values, row_settings, commit=commit)
 
 
 if __name__ == "__main__":
