@@ -47,9 +47,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     from occplug.ceilings import parse_readout, read_voxels, training_prior
-    from occplug.data.synthetic import SyntheticDataModule
-    from occplug.data.synthetic.field import scene_field_samples
-    from occplug.data.synthetic.world import build_scene
+    from occplug.data.synthetic import SyntheticDataModule, build_scene
+    from occplug.data.synthetic.testbed import scene_field_samples
     from occplug.metrics import Occ3DMIoU, RayIoU
 
     try:

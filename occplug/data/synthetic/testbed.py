@@ -43,7 +43,7 @@ from .labels import agent_boxes, voxel_labels
 from .render import camera_rig
 from .world import build_scene
 
-__all__ = ["HEADROOM_PROTOCOLS", "MASKS", "measure", "object_pixel_heights"]
+__all__ = ["HEADROOM_PROTOCOLS", "MASKS", "measure", "object_pixel_heights", "scene_field_samples"]
 
 #: The evaluation masks :func:`measure` scores under.
 MASKS: tuple[str, ...] = ("camera", "camera1", "lidar", "none")

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from occplug.components.depth_nets import CameraAwareDepthNet, OracleDepthNet
+from occplug.components import CameraAwareDepthNet, OracleDepthNet
 from occplug.data.synthetic import preset
 from occplug.testing import make_tiny_batch, run_config
 from occplug_queryocc import LiftContractSplat, log_linear_depths, supervision_points
