@@ -21,6 +21,7 @@ from occplug.components.view_transforms import (
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, make_pose, project_to_image, unproject_from_image
 from occplug.testing import hand_batch
+from occplug.testing.conformance import tiny_context
 
 H, W, S, F = 32, 64, 8, 40.0
 CAM_TO_EGO_R = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -356,6 +357,7 @@ def test_lss_with_a_camera_aware_depth_net_trains_its_gates() -> None:
         depth_bins=[1.0, 25.0, 1.0],
         hidden=8,
         depth_net={"type": "camera_aware", "camera_hidden": 8},
+        context=tiny_context(GRID),  # the depth-net node is built through the run context
     )
     assert type(lss.depth_net).__name__ == "CameraAwareDepthNet" and lss.depth_net.num_bins == 24
     assert lss.depth_net.reduce[0].out_channels == 8  # LSS's hidden reached the depth net
