@@ -18,8 +18,8 @@ from occplug.geometry import GridSpec, relative_pose
 from occplug.interfaces.encoder import feature_levels
 from occplug.interfaces.model import OccupancyModel
 from occplug.metrics.base import EvalMask
+from occplug.optim import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
 from occplug.queries import check_query_support, registered_types
-from occplug.run.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
 from occplug.slots import Slot
 
 __all__ = ["OccModel", "frame_in_current_ego", "head_order"]

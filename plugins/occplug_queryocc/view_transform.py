@@ -23,6 +23,7 @@ from typing import Annotated, Literal
 import torch
 from torch import Tensor, nn
 
+from occplug import RunContext
 from occplug.components import build_depth_net
 from occplug.config import Slot
 from occplug.constraints import NonNegative, Positive, UnitInterval, check_choices
@@ -67,6 +68,7 @@ class LiftContractSplat(ViewTransform):
         linear_mix: ``s`` of Eq. 2 for ``log_linear``.
         point_encoding: encode each frustum point (see the module docstring) or splat raw features.
         hidden: width of the depth net's 3x3 conv; depth_net: a ``depth_net`` node (default ``plain``).
+        context: the run context (handed in by the builder); a ``depth_net`` node is built through it.
 
     Forward:
         ``(B, N, C_in, h, w)`` features -> :class:`Lifted` with ``volume`` ``(B, C, X, Y)`` on ``grid``,
@@ -89,6 +91,7 @@ class LiftContractSplat(ViewTransform):
         point_encoding: bool = True,
         hidden: Annotated[int, NonNegative] = 64,
         depth_net: Annotated[dict | None, Slot("depth_net")] = None,
+        context: RunContext | None = None,
     ) -> None:
         super().__init__()
         check_choices(LiftContractSplat.__init__, "queryocc_lift_contract_splat", bins=bins)
@@ -98,8 +101,10 @@ class LiftContractSplat(ViewTransform):
         self.point_encoding = bool(point_encoding)
         mix = 1.0 if bins == "uniform" else float(linear_mix)
         self.register_buffer("depth_centers", log_linear_depths(num_bins, depth_near, depth_far, mix), persistent=False)
-        context = self.out_channels
-        self.depth_net = build_depth_net(depth_net, in_channels, int(num_bins), context, hidden=hidden)
+        run_context, context = context, self.out_channels  # below, `context` is the depth net's context width
+        self.depth_net = build_depth_net(
+            depth_net, in_channels, int(num_bins), context, hidden=hidden, context=run_context
+        )
         if self.point_encoding:
             self.empty = nn.Parameter(torch.zeros(context))
             # P: one linear map of [p_d w + (1 - p_d) e, p_v, p_d, t_c], then ReLU
