@@ -110,12 +110,13 @@ class OccModel(OccupancyModel):
             the encoder's primary level; ``level_channels``/``level_strides`` where it takes them).
         scene: the ``scene`` node (``in_channels`` defaults to the view transform's, ``level_channels`` to the
             encoder's where it takes them).
-        heads: named ``head`` nodes; a ``null`` entry is switched off.
+        heads: named ``head`` nodes; a ``null`` entry is switched off. A head that declares ``scene_downsample``
+            (in its ``given``) receives the scene's ``downsample`` attribute (1 where the scene has none).
         point_encoders: named ``point_encoder`` nodes (a LiDAR branch); ``grid`` defaults to the
             evaluation grid; a ``null`` entry is switched off.
         supervision: named ``supervision`` nodes; each returns losses scaled by its ``weight``.
         grid: the evaluation grid (filled from the config's top-level ``grid``).
-        class_names: names of the label ids (filled from the data module).
+        class_names: names of the label ids (filled from the run context; none given: the context's).
         free_label: id of empty space (filled from the data module).
         ignore_label: id ignored by losses and metrics (filled from the data module).
         occupancy_head: which head answers :meth:`predict_occupancy`.
@@ -170,8 +171,10 @@ class OccModel(OccupancyModel):
         build = context.build
         # the run's grid, one GridSpec: the one route by which it reaches every component that takes a `grid`
         run_grid = self.grid
-        self.class_names = list(class_names) if class_names else []
-        self.num_classes = len(self.class_names) or 18
+        self.class_names = list(class_names) if class_names else list(context.class_names)
+        if not self.class_names:
+            raise ValueError("model.class_names: the run has no class names (its data module declares none)")
+        self.num_classes = len(self.class_names)
         self.free_label = free_label
         self.eval_mask = eval_mask
         self.occupancy_head = occupancy_head
@@ -212,6 +215,9 @@ class OccModel(OccupancyModel):
                     free_label=free_label,
                     grid=run_grid,
                     image_channels=self.encoder.out_channels,
+                    # the scene's declared downsampling of the run grid (1 where it declares none), for a head
+                    # that upsamples back to the grid and must not be told the factor a second time
+                    scene_downsample=int(getattr(self.scene, "downsample", 1)),
                 )
                 for name, spec in heads.items()
                 if spec is not None

@@ -38,12 +38,7 @@ def import_graph(root: Path) -> dict[str, set[str]]:
             if isinstance(node, ast.Import):
                 targets.update(alias.name for alias in node.names)
                 continue
-            if node.level:
-                base = module.split(".") if is_package else module.split(".")[:-1]
-                base = base[: len(base) - node.level + 1]
-                source = ".".join(base + ([node.module] if node.module else []))
-            else:
-                source = node.module or ""
+            source = _source(node, module, is_package)
             targets.add(source)
             targets.update(f"{source}.{alias.name}" for alias in node.names)  # `from pkg import submodule`
         deps: set[str] = set()
@@ -55,6 +50,15 @@ def import_graph(root: Path) -> dict[str, set[str]]:
                     deps.add(dep)
         graph[module] = deps
     return graph
+
+
+def _source(node: ast.ImportFrom, module: str, is_package: bool) -> str:
+    """The absolute module a ``from ... import`` in ``module`` reads from (relative levels resolved)."""
+    if not node.level:
+        return node.module or ""
+    base = module.split(".") if is_package else module.split(".")[:-1]
+    base = base[: len(base) - node.level + 1]
+    return ".".join(base + ([node.module] if node.module else []))
 
 
 def _imports(tree: ast.AST) -> list[ast.Import | ast.ImportFrom]:
@@ -141,12 +145,7 @@ def upward_imports(root: Path, layers: tuple[tuple[str, tuple[str, ...]], ...] =
             if isinstance(node, ast.Import):
                 targets = [alias.name for alias in node.names]
             else:
-                if node.level:
-                    base = module.split(".") if is_package else module.split(".")[:-1]
-                    base = base[: len(base) - node.level + 1]
-                    source = ".".join(base + ([node.module] if node.module else []))
-                else:
-                    source = node.module or ""
+                source = _source(node, module, is_package)
                 # `from pkg import submodule` imports the submodule; `from pkg import name` the package itself
                 targets = [f"{source}.{a.name}" if f"{source}.{a.name}" in files else source for a in node.names]
             for target in targets:

@@ -187,11 +187,11 @@ class DuOccStream(_DuOccVoxels):
         self,
         in_channels: int,
         grid: GridSpec | dict,
+        num_classes: Annotated[int, Positive],
         channels: Annotated[int, Positive] = 32,
         downsample: Annotated[int, Range(low=1, high=2)] = 2,
         fpn_channels: Annotated[list[Annotated[int, Positive]], Length(exact=3)] = [16, 32, 32],  # noqa: B006
         fpn_blocks: Annotated[list[Annotated[int, Positive]], Length(exact=3)] = [1, 1, 1],  # noqa: B006
-        num_classes: Annotated[int, Positive] = 18,
         stream: bool = True,
         fusion: Literal["add", "concat"] = "add",
         refine: bool = True,

@@ -47,9 +47,13 @@ def _small_model(**kwargs):
 
 def _context(grid):
     from occplug.context import RunContext
+    from occplug.data.classes import OCC3D_CLASSES
     from occplug.plugins import get_registry
 
-    return RunContext(GridSpec.from_config(grid), (), free_label=17, ignore_label=255, registry=get_registry())
+    # the Occ3D taxonomy: 18 classes, as the model assumed before it took its classes from the run context
+    return RunContext(
+        GridSpec.from_config(grid), OCC3D_CLASSES, free_label=17, ignore_label=255, registry=get_registry()
+    )
 
 
 def test_the_model_gives_the_eval_mask_to_metrics_that_take_one():

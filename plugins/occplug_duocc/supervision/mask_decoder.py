@@ -328,12 +328,12 @@ class DuOccMask(_AuxLoss):
     def __init__(
         self,
         grid: GridSpec | dict,
+        num_classes: Annotated[int, Positive],
         in_channels: Annotated[int, Positive] = 32,
         downsample: Annotated[int, Range(low=1, high=2)] = 2,
         num_queries: Annotated[int, Positive] = 100,
         num_groups: Annotated[int, Positive] | None = None,
         group_split: list[Annotated[list[list[Annotated[int, NonNegative]]], Length(min=1)]] | None = None,
-        num_classes: Annotated[int, Positive] = 18,
         channels: Annotated[int, Positive] = 256,
         num_layers: Annotated[int, Positive] = 1,
         heads: Annotated[int, Positive] = 8,

@@ -407,7 +407,7 @@ class QuerySupervision(SupervisionSource):
 
         from ..heads import QueryDecoder
 
-        head = QueryDecoder(channels, hidden=16)
+        head = QueryDecoder(channels, num_classes=18, hidden=16)  # the tiny world's Occ3D classes
         scene = BevScene(torch.randn(len(batch), channels, *grid.shape[:2], requires_grad=True), grid)
         return ModelOutputs(
             image_features=None,
