@@ -21,7 +21,19 @@ from occplug.geometry import GridSpec
 if TYPE_CHECKING:
     from occplug.registry import Registry
 
-__all__ = ["ComponentBuilder", "RunContext"]
+__all__ = ["ComponentBuilder", "RunContext", "parse_grid"]
+
+
+def parse_grid(value: GridSpec | Mapping[str, Any]) -> GridSpec:
+    """A grid as a config writes it (``{range, voxel_size, contraction?}``) as a :class:`GridSpec` (one passes
+    through): the one place a grid is parsed. The builder (:meth:`occplug.Registry.build`, for an argument annotated
+    ``GridSpec``), the runner's run context, the config validator and the synthetic world's knobs call it; a
+    component receives a ``GridSpec`` and parses nothing.
+
+    Raises:
+        ValueError: not a grid (the message names what is wrong).
+    """
+    return GridSpec.from_config(value)
 
 
 @runtime_checkable

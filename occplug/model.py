@@ -115,7 +115,8 @@ class OccModel(OccupancyModel):
         point_encoders: named ``point_encoder`` nodes (a LiDAR branch); ``grid`` defaults to the
             evaluation grid; a ``null`` entry is switched off.
         supervision: named ``supervision`` nodes; each returns losses scaled by its ``weight``.
-        grid: the evaluation grid (filled from the config's top-level ``grid``).
+        grid: the evaluation grid (filled from the config's top-level ``grid``), kept as a hyper-parameter; the
+            model evaluates on the run context's grid, the same one.
         class_names: names of the label ids (filled from the run context; none given: the context's).
         free_label: id of empty space (filled from the data module).
         ignore_label: id ignored by losses and metrics (filled from the data module).
@@ -161,11 +162,11 @@ class OccModel(OccupancyModel):
                 f"model.input_history: frame offsets other than 0, each once, got {list(input_history or [])}"
             )
         self.input_history = history
-        self.grid = GridSpec.from_config(grid)
-        if isinstance(grid, GridSpec):  # hyper-parameters stay plain data (weights_only checkpoint loading)
-            grid = self.grid.to_dict()
         if context is None or context.registry is None:
             raise ValueError("occ_model is built by the registry with a run context (RunContext.build), not called")
+        self.grid = context.grid
+        if isinstance(grid, GridSpec):  # hyper-parameters stay plain data (weights_only checkpoint loading)
+            grid = grid.to_dict()
         self.save_hyperparameters(ignore=["context"])
         self.context = context
         build = context.build

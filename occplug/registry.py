@@ -10,6 +10,7 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from .context import parse_grid
 from .errors import ComponentArgumentError, closest
 from .geometry import GridSpec
 from .kinds import KINDS, given_arguments
@@ -23,7 +24,6 @@ __all__ = [
     "Entry",
     "Registry",
     "UnknownComponentError",
-    "parse_grid",
 ]
 
 
@@ -237,16 +237,6 @@ def _takes_grid_only(annotation: Any) -> bool:
         plain = [typing.get_origin(a) or a for a in args]
         return GridSpec in plain and not any(a in (dict, Mapping) for a in plain)
     return annotation is GridSpec
-
-
-def parse_grid(value: GridSpec | Mapping[str, Any] | Any) -> GridSpec:
-    """A config's grid (``{range, voxel_size, contraction?}``) as a :class:`GridSpec` (one passes through): the one
-    place a grid written in a config is parsed (the builder, the runner's run context and the validator call it).
-
-    Raises:
-        ValueError: not a grid (the message names what is wrong).
-    """
-    return GridSpec.from_config(value)
 
 
 def _grid_arguments(params: Mapping[str, tuple[inspect.Parameter, Any]], arguments: dict[str, Any]) -> dict[str, Any]:

@@ -164,7 +164,7 @@ class LSSViewTransform(ViewTransform):
         self,
         in_channels: int,
         image_stride: int,
-        grid: GridSpec | dict,
+        grid: GridSpec,
         out_channels: Annotated[int, Positive] = 64,
         depth_bins: DepthBins = [1.0, 45.0, 1.0],  # noqa: B006 - read only, never mutated
         hidden: Annotated[int, NonNegative] = 64,
@@ -174,7 +174,7 @@ class LSSViewTransform(ViewTransform):
     ) -> None:
         super().__init__()
         check_choices(LSSViewTransform.__init__, "lss", splat=splat)
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.image_stride = int(image_stride)
         self.out_channels = int(out_channels)
         self.splat_mode = splat
@@ -298,7 +298,7 @@ class BackwardProjection(ViewTransform):
         self,
         in_channels: int,
         image_stride: int,
-        grid: GridSpec | dict,
+        grid: GridSpec,
         out_channels: Annotated[int, Positive] = 64,
         depth_bins: DepthBins = [1.0, 45.0, 1.0],  # noqa: B006 - read only, never mutated
         hidden: Annotated[int, NonNegative] = 64,
@@ -308,7 +308,7 @@ class BackwardProjection(ViewTransform):
         if points_per_voxel < 1:
             raise ValueError(f"backward_projection points_per_voxel must be >= 1, got {points_per_voxel}")
         depth_bin_centers(depth_bins)  # validates
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.image_stride = int(image_stride)
         self.out_channels = int(out_channels)
         self.depth_range = (float(depth_bins[0]), float(depth_bins[1]))

@@ -30,6 +30,7 @@ from occplug.constraints import (
     constraints_of,
     violated,
 )
+from occplug.context import parse_grid
 from occplug.geometry import GridSpec
 from occplug.kinds import given_arguments
 from occplug.registry import Registry, closest
@@ -265,7 +266,7 @@ def _validate_grid(value: Any) -> None:
         if key not in value:
             raise ConfigError(f"grid: missing '{key}'")
     try:
-        GridSpec.from_config(value)
+        parse_grid(value)
     except (ValueError, TypeError) as exc:
         raise ConfigError(f"grid: {exc}") from None
 

@@ -38,14 +38,13 @@ from lightning.pytorch.callbacks import BasePredictionWriter, Callback, ModelChe
 
 from occplug.config import ConfigError, compose, validate
 from occplug.config.defaults import run_config_text
-from occplug.context import RunContext
+from occplug.context import RunContext, parse_grid
 from occplug.data.classes import class_groups
 from occplug.data.datamodule import OccDataModule
 from occplug.data.formats import FormatError
 from occplug.errors import UserError
 from occplug.interfaces.model import OccupancyModel
 from occplug.plugins import get_registry, plugin_reports
-from occplug.registry import parse_grid
 from occplug.run import preflight, ranks
 from occplug.run.checkpoints import RunError, RunInterrupted, WriteError, check_resume_checkpoint, load_checkpoint
 from occplug.run.loggers import build_loggers, quiet_lightning_tips

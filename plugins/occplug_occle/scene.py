@@ -149,7 +149,7 @@ class OccleScene(SceneRepresentation):
     def __init__(
         self,
         in_channels: Annotated[int, Positive],
-        grid: GridSpec | dict,
+        grid: GridSpec,
         lidar_channels: Annotated[int, Positive] | None = None,
         lidar_encoder: str = "lidar",
         point_channels: dict[str, int] | None = None,
@@ -175,7 +175,7 @@ class OccleScene(SceneRepresentation):
         if compute != "all" and not (semantic if compute == "semantic" else geometric):
             raise ValueError(f"occle_scene compute: {compute} runs the {compute} branch alone, which is switched off")
         self.compute = compute
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         if lidar_channels is None and point_channels is not None:
             if lidar_encoder not in point_channels:
                 raise ValueError(

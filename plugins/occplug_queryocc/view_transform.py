@@ -81,7 +81,7 @@ class LiftContractSplat(ViewTransform):
         self,
         in_channels: int,
         image_stride: int,
-        grid: GridSpec | dict,
+        grid: GridSpec,
         out_channels: Annotated[int, Positive] = 64,
         num_bins: Annotated[int, Positive] = 32,
         depth_near: Annotated[float, Positive] = 1.0,
@@ -95,7 +95,7 @@ class LiftContractSplat(ViewTransform):
     ) -> None:
         super().__init__()
         check_choices(LiftContractSplat.__init__, "queryocc_lift_contract_splat", bins=bins)
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.image_stride = int(image_stride)
         self.out_channels = int(out_channels)
         self.point_encoding = bool(point_encoding)

@@ -45,7 +45,7 @@ def test_lss_with_the_oracle_lifts_onto_the_true_depth():
     vt = LSSViewTransform(
         in_channels=8,
         image_stride=4,
-        grid=batch_grid(),
+        grid=GridSpec.from_config(batch_grid()),
         out_channels=4,
         depth_bins=[1.0, 41.0, 2.0],
         depth_net={"type": "oracle_depth", "hidden": 0},

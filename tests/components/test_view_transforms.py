@@ -246,7 +246,7 @@ def test_both_view_transforms_take_the_same_arguments_and_output_the_same_shape(
     torch.manual_seed(0)
     batch = make_batch(b=2, n=2)
     args = dict(
-        in_channels=4, image_stride=S, grid=GRID.to_dict(), out_channels=5, depth_bins=[1.0, 20.0, 1.0], hidden=8
+        in_channels=4, image_stride=S, grid=GRID, out_channels=5, depth_bins=[1.0, 20.0, 1.0], hidden=8
     )
     feats = torch.randn(2, 2, 4, 4, 8, requires_grad=True)
     shapes = []
@@ -391,7 +391,7 @@ def test_lss_on_a_contracted_grid_keeps_far_mass() -> None:
     """A contracted LSS grid keeps every frustum point inside its z range: the volume sums the whole (z-valid) frustum."""
     torch.manual_seed(0)
     batch = make_batch(b=1, n=1)
-    grid = {"range": [-8.0, -8.0, -1.03, 8.0, 8.0, 5.37], "voxel_size": 0.8, "contraction": {"near": 4.0, "kappa": 0.5}}
+    grid = GridSpec((-8.0, -8.0, -1.03, 8.0, 8.0, 5.37), 0.8, contraction={"near": 4.0, "kappa": 0.5})
     lss = LSSViewTransform(
         in_channels=4, image_stride=S, grid=grid, out_channels=2, depth_bins=[1.0, 45.0, 1.0], hidden=8
     )

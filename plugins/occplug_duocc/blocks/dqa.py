@@ -33,7 +33,7 @@ Paper versus the public code (``projects/mmdet3d_plugin/models/heads/queryagg/dq
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Annotated, Literal
 
 import torch
@@ -289,7 +289,7 @@ class DynamicQueryAggregation(nn.Module):
     def __init__(
         self,
         channels: Annotated[int, Positive],
-        grid: GridSpec | Mapping,
+        grid: GridSpec,
         query_channels: int | None = None,
         heads: Annotated[int, Positive] = 8,
         coverage: Literal["center", "aabb"] = "center",
@@ -299,7 +299,7 @@ class DynamicQueryAggregation(nn.Module):
         if channels % heads:
             raise ValueError(f"DynamicQueryAggregation: channels {channels} not divisible by heads {heads}")
         check_choices(DynamicQueryAggregation.__init__, "DynamicQueryAggregation", coverage=coverage)
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         if self.grid.is_contracted:
             raise ValueError("DynamicQueryAggregation needs a metric grid (boxes are found by voxel index)")
         self.channels, self.heads, self.coverage = int(channels), int(heads), coverage

@@ -16,7 +16,6 @@ Assumptions (where the paper is silent; the public code's choices, from ``models
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from typing import Annotated
 
 import torch
@@ -49,7 +48,7 @@ class VoxelToQuery(nn.Module):
     def __init__(
         self,
         channels: Annotated[int, Positive],
-        grid: GridSpec | Mapping,
+        grid: GridSpec,
         volume_channels: int | None = None,
         heads: Annotated[int, Positive] = 8,
         points: Annotated[int, Positive] = 6,
@@ -58,7 +57,7 @@ class VoxelToQuery(nn.Module):
         super().__init__()
         if channels % heads:
             raise ValueError(f"VoxelToQuery: channels {channels} not divisible by heads {heads}")
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.channels, self.heads, self.points = int(channels), int(heads), int(points)
         self.offsets = nn.Linear(channels, heads * points * 3)
         self.attn = nn.Linear(channels, heads * points)

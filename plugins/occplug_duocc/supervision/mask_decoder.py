@@ -327,7 +327,7 @@ class DuOccMask(_AuxLoss):
 
     def __init__(
         self,
-        grid: GridSpec | dict,
+        grid: GridSpec,
         num_classes: Annotated[int, Positive],
         in_channels: Annotated[int, Positive] = 32,
         downsample: Annotated[int, Range(low=1, high=2)] = 2,
@@ -354,7 +354,7 @@ class DuOccMask(_AuxLoss):
         ignore_label: int | None = 255,
     ) -> None:
         super().__init__(weight, camera_mask, free_label, ignore_label)
-        self.label_grid = GridSpec.from_config(grid)
+        self.label_grid = grid
         self.grid = coarse_grid(self.label_grid, int(downsample))
         split = [list(map(list, g)) for g in (OCC3D_GROUP_SPLIT if group_split is None else group_split)]
         groups = 1 + len(split) if num_groups is None else int(num_groups)
