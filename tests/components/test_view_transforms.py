@@ -245,9 +245,7 @@ def test_backward_projection_averages_over_cameras_and_points() -> None:
 def test_both_view_transforms_take_the_same_arguments_and_output_the_same_shape() -> None:
     torch.manual_seed(0)
     batch = make_batch(b=2, n=2)
-    args = dict(
-        in_channels=4, image_stride=S, grid=GRID, out_channels=5, depth_bins=[1.0, 20.0, 1.0], hidden=8
-    )
+    args = dict(in_channels=4, image_stride=S, grid=GRID, out_channels=5, depth_bins=[1.0, 20.0, 1.0], hidden=8)
     feats = torch.randn(2, 2, 4, 4, 8, requires_grad=True)
     shapes = []
     for cls in (LSSViewTransform, BackwardProjection):

@@ -28,9 +28,7 @@ TINY = dict(in_channels=8, num_queries=4, num_groups=3, channels=16, heads=2, po
 
 def _source(**kwargs):
     torch.manual_seed(0)
-    return DuOccMask(
-        grid=label_grid(make_tiny_batch()), **{"num_classes": 18, **TINY, "dropout": 0.0, **kwargs}
-    )
+    return DuOccMask(grid=label_grid(make_tiny_batch()), **{"num_classes": 18, **TINY, "dropout": 0.0, **kwargs})
 
 
 def _outputs(source, batch, seed=1):
