@@ -9,7 +9,9 @@ mistake costs seconds and leaves no run directory behind.
 
 from __future__ import annotations
 
-__all__ = ["ConfigError", "UserError"]
+import difflib
+
+__all__ = ["ComponentArgumentError", "ConfigError", "UserError", "closest"]
 
 
 class UserError(ValueError):
@@ -20,3 +22,22 @@ class UserError(ValueError):
 class ConfigError(UserError):
     """A user mistake in a config file or override. ``str(err)`` is the one-line message
     (also importable as ``occplug.config.ConfigError``)."""
+
+
+def closest(name: str, choices: list[str]) -> str | None:
+    """The closest of ``choices`` to ``name`` (difflib), or None if nothing is close: the "did you mean" of an
+    error message."""
+    match = difflib.get_close_matches(name, choices, n=1, cutoff=0.6)
+    return match[0] if match else None
+
+
+class ComponentArgumentError(ValueError):
+    """A node's argument the factory does not take, or a given argument the parent does not pass.
+
+    Attributes:
+        key: the argument's name (a caller that knows the node's config path prefixes it).
+    """
+
+    def __init__(self, message: str, key: str) -> None:
+        super().__init__(message)
+        self.key = key

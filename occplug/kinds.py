@@ -6,7 +6,7 @@ fields, capabilities such as ``queryable`` or ``stateful``), how the conformance
 (``conformance_inputs``) and the check itself (``check_conformance``). Its :class:`Kind` entry here adds where
 it sits in a run's config (``place``) and the contract in one line (``contract``); the registry, the config
 validator, the model builder, the conformance check and the table of kinds in ``docs/plugins.md``
-(:func:`markdown_table`) all read it from here.
+(:func:`occplug.docs.markdown_table`) all read it from here.
 
 Adding a kind takes its interface class and one :class:`Kind` line; the registry, validation, ``occplug
 plugins``, the conformance sweep and the docs table follow from them. Where the kind's components are *called*
@@ -25,7 +25,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["KINDS", "Kind", "given_arguments", "markdown_table", "public_name"]
+__all__ = ["KINDS", "Kind", "given_arguments"]
 
 
 @dataclass(frozen=True)
@@ -155,33 +155,6 @@ KINDS: dict[str, Kind] = {
         ),
     )
 }
-
-
-def public_name(cls: type) -> str:
-    """The shortest public import path of ``cls``: the first module of :data:`occplug.PUBLIC_MODULES` (the facade
-    first) that exports it, else its own module (Lightning's ``Callback``, from ``lightning.pytorch``)."""
-    import importlib
-
-    import occplug
-
-    for name in occplug.PUBLIC_MODULES:
-        module = importlib.import_module(name)
-        if cls.__name__ in getattr(module, "__all__", ()) and getattr(module, cls.__name__, None) is cls:
-            return f"{name}.{cls.__name__}"
-    top = "lightning.pytorch" if cls.__module__.startswith("lightning.pytorch") else cls.__module__
-    return f"{top}.{cls.__qualname__}"
-
-
-def markdown_table() -> str:
-    """The table of kinds in ``docs/plugins.md``, generated from :data:`KINDS` and the interfaces (a test
-    holds the docs to it)."""
-    lines = ["| kind | interface | place in a config | given | contract |", "|---|---|---|---|---|"]
-    for kind in KINDS.values():
-        given = ", ".join(f"`{g}`" for g in kind.given()) or "—"
-        lines.append(
-            f"| {kind.name} | `{public_name(kind.interface())}` | `{kind.place}` | {given} | {kind.contract} |"
-        )
-    return "\n".join(lines) + "\n"
 
 
 def given_arguments(kind: str, factory: Callable[..., Any] | None = None) -> set[str]:

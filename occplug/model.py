@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import sys
 import warnings
 from typing import Annotated, Any
@@ -13,49 +12,17 @@ from torch import Tensor, nn
 
 from occplug import interfaces as I
 from occplug.constraints import NonNegative
+from occplug.context import RunContext
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, relative_pose
 from occplug.interfaces.encoder import feature_levels
 from occplug.interfaces.model import OccupancyModel
-from occplug.kinds import KINDS, given_arguments
 from occplug.metrics.base import EvalMask
-from occplug.plugins import get_registry
+from occplug.optim import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
 from occplug.queries import check_query_support, registered_types
-from occplug.run.training import EffectiveBatch, batch_notice, build_optimizer, build_scheduler, scaled_lr
-from occplug.slots import Slot, component_params
+from occplug.slots import Slot
 
-__all__ = ["OccModel", "build_component", "frame_in_current_ego", "head_order"]
-
-
-def build_component(kind: str, spec: dict[str, Any] | str, **defaults: Any) -> Any:
-    """Build a registered component and check it implements its kind's interface.
-
-    ``defaults`` fill the constructor arguments the node leaves out and the factory accepts (the
-    kind's ``given``: ``in_channels`` from the previous component, ...).
-    """
-    node = {"type": spec} if isinstance(spec, str) else spec
-    entry = get_registry().get(kind, node["type"])
-    not_passed = [
-        name
-        for name, (param, _) in component_params(entry.factory).items()
-        if param.default is inspect.Parameter.empty
-        and name not in node
-        and name not in defaults
-        and name in given_arguments(kind, entry.factory)
-    ]
-    if not_passed:
-        raise ValueError(
-            f"{kind} '{entry.name}' (plugin {entry.plugin}) expects its parent to give '{not_passed[0]}', which this model "
-            f"does not pass (it passes: {', '.join(sorted(defaults)) or 'nothing'}); set it in the config"
-        )
-    obj = get_registry().build(kind, node, **defaults)
-    base = KINDS[kind].interface() if kind in KINDS else None
-    if base is not None and not isinstance(obj, base):
-        entry = get_registry().get(kind, node["type"])
-        raise TypeError(
-            f"{kind} '{entry.name}' (plugin {entry.plugin}) built a {type(obj).__name__}, not a {base.__name__}"
-        )
-    return obj
+__all__ = ["OccModel", "frame_in_current_ego", "head_order"]
 
 
 def head_order(heads: dict[str, Any], where: str = "model.heads") -> list[str]:
@@ -143,12 +110,14 @@ class OccModel(OccupancyModel):
             the encoder's primary level; ``level_channels``/``level_strides`` where it takes them).
         scene: the ``scene`` node (``in_channels`` defaults to the view transform's, ``level_channels`` to the
             encoder's where it takes them).
-        heads: named ``head`` nodes; a ``null`` entry is switched off.
+        heads: named ``head`` nodes; a ``null`` entry is switched off. A head that declares ``scene_downsample``
+            (in its ``given``) receives the scene's ``downsample`` attribute (1 where the scene has none).
         point_encoders: named ``point_encoder`` nodes (a LiDAR branch); ``grid`` defaults to the
             evaluation grid; a ``null`` entry is switched off.
         supervision: named ``supervision`` nodes; each returns losses scaled by its ``weight``.
-        grid: the evaluation grid (filled from the config's top-level ``grid``).
-        class_names: names of the label ids (filled from the data module).
+        grid: the evaluation grid (filled from the config's top-level ``grid``), kept as a hyper-parameter; the
+            model evaluates on the run context's grid, the same one.
+        class_names: names of the label ids (filled from the run context; none given: the context's).
         free_label: id of empty space (filled from the data module).
         ignore_label: id ignored by losses and metrics (filled from the data module).
         occupancy_head: which head answers :meth:`predict_occupancy`.
@@ -162,6 +131,8 @@ class OccModel(OccupancyModel):
             frames; each must be loaded (``data.adjacent_offsets``). Empty: the current frame only.
         eval_mask: the run's evaluation mask (filled by the runner from the top-level ``eval_mask``), given to the
             metrics that take a ``mask``; None: each metric's own default.
+        context: the run context (handed in by the builder); every component is built through it
+            (:meth:`~occplug.context.RunContext.build`), so a component that declares a ``context`` receives it.
     """
 
     def __init__(
@@ -182,6 +153,7 @@ class OccModel(OccupancyModel):
         point_encoders: Annotated[dict, Slot("point_encoder", mapping=True)] | None = None,
         input_history: list[int] | None = None,
         eval_mask: EvalMask | None = None,
+        context: RunContext | None = None,
     ) -> None:
         super().__init__()
         history = [int(k) for k in (input_history or [])]
@@ -190,26 +162,32 @@ class OccModel(OccupancyModel):
                 f"model.input_history: frame offsets other than 0, each once, got {list(input_history or [])}"
             )
         self.input_history = history
-        self.grid = GridSpec.from_config(grid)
+        if context is None or context.registry is None:
+            raise ValueError("occ_model is built by the registry with a run context (RunContext.build), not called")
+        self.grid = context.grid
         if isinstance(grid, GridSpec):  # hyper-parameters stay plain data (weights_only checkpoint loading)
-            grid = self.grid.to_dict()
-        self.save_hyperparameters()
-        # the run's grid, normalised once: the one route by which it reaches every component that takes a `grid`
-        run_grid = self.grid.to_dict()
-        self.class_names = list(class_names) if class_names else []
-        self.num_classes = len(self.class_names) or 18
+            grid = grid.to_dict()
+        self.save_hyperparameters(ignore=["context"])
+        self.context = context
+        build = context.build
+        # the run's grid, one GridSpec: the one route by which it reaches every component that takes a `grid`
+        run_grid = self.grid
+        self.class_names = list(class_names) if class_names else list(context.class_names)
+        if not self.class_names:
+            raise ValueError("model.class_names: the run has no class names (its data module declares none)")
+        self.num_classes = len(self.class_names)
         self.free_label = free_label
         self.eval_mask = eval_mask
         self.occupancy_head = occupancy_head
-        self.encoder = build_component("encoder", encoder)
+        self.encoder = build("encoder", encoder)
         self.point_encoders = nn.ModuleDict(
             {
-                name: build_component("point_encoder", spec, grid=run_grid)
+                name: build("point_encoder", spec, grid=run_grid)
                 for name, spec in (point_encoders or {}).items()
                 if spec is not None
             }
         )
-        self.view_transform = build_component(
+        self.view_transform = build(
             "view_transform",
             view_transform,
             in_channels=self.encoder.out_channels,
@@ -218,7 +196,7 @@ class OccModel(OccupancyModel):
             level_strides=list(self.encoder.level_strides),
             grid=run_grid,
         )
-        self.scene = build_component(
+        self.scene = build(
             "scene",
             scene,
             in_channels=self.view_transform.out_channels,
@@ -230,7 +208,7 @@ class OccModel(OccupancyModel):
         )
         self.heads = nn.ModuleDict(
             {
-                name: build_component(
+                name: build(
                     "head",
                     spec,
                     in_channels=self.scene.out_channels,
@@ -238,6 +216,9 @@ class OccModel(OccupancyModel):
                     free_label=free_label,
                     grid=run_grid,
                     image_channels=self.encoder.out_channels,
+                    # the scene's declared downsampling of the run grid (1 where it declares none), for a head
+                    # that upsamples back to the grid and must not be told the factor a second time
+                    scene_downsample=int(getattr(self.scene, "downsample", 1)),
                 )
                 for name, spec in heads.items()
                 if spec is not None
@@ -251,7 +232,7 @@ class OccModel(OccupancyModel):
             )
         self.supervision = nn.ModuleDict(
             {
-                name: build_component(
+                name: build(
                     "supervision",
                     spec,
                     free_label=free_label,
@@ -286,14 +267,14 @@ class OccModel(OccupancyModel):
             node = {"type": spec} if isinstance(spec, str) else dict(spec)
             name = node["type"]
             key = name if name not in out else f"{name}_{len(out)}"
-            out[key] = build_component(
+            out[key] = self.context.build(
                 "metric",
                 node,
                 num_classes=self.num_classes,
                 class_names=self.class_names or None,
                 free_label=self.free_label,
                 ignore_label=ignore_label,
-                grid=self.grid.to_dict(),
+                grid=self.grid,
                 **({} if self.eval_mask is None else {"mask": self.eval_mask}),
             )
         return out

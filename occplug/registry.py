@@ -2,17 +2,30 @@
 
 from __future__ import annotations
 
-import difflib
 import fnmatch
 import inspect
+import types
+import typing
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from .kinds import KINDS
+from .context import parse_grid
+from .errors import ComponentArgumentError, closest
+from .geometry import GridSpec
+from .kinds import KINDS, given_arguments
 from .settings import settings_arguments
+from .slots import component_params
 
-__all__ = ["KINDS", "ComponentClashError", "Entry", "Registry", "UnknownComponentError"]
+__all__ = [
+    "KINDS",
+    "ComponentArgumentError",
+    "ComponentClashError",
+    "Entry",
+    "Registry",
+    "UnknownComponentError",
+]
+
 
 class UnknownComponentError(LookupError):
     """No component of that kind has that name."""
@@ -50,12 +63,6 @@ class Entry:
     def source(self) -> str:
         """``module:qualname`` of the factory, so a reader finds its code."""
         return f"{self.factory.__module__}:{getattr(self.factory, '__qualname__', self.factory)}"
-
-
-def closest(name: str, choices: list[str]) -> str | None:
-    """The closest of ``choices`` to ``name`` (difflib), or None if nothing is close."""
-    match = difflib.get_close_matches(name, choices, n=1, cutoff=0.6)
-    return match[0] if match else None
 
 
 class Registry:
@@ -143,25 +150,102 @@ class Registry:
             if kind is None or key[0] == kind:
                 yield self._entries[key]
 
-    def build(self, kind: str, spec: Mapping[str, Any], **defaults: Any) -> Any:
-        """Build a component from a config node ``{type: name, **kwargs}``.
+    def build(self, kind: str, spec: Mapping[str, Any] | str, /, **given: Any) -> Any:
+        """Build a component from its config node ``{type: name, **arguments}`` (or the bare name): the one way
+        the core and its plugins build a component.
 
-        ``defaults`` are passed for parameters the factory accepts and the node does not set
-        (the model uses this to fill ``in_channels`` from the previous component). The node is
-        assumed validated (:mod:`occplug.config.validate`); this does no type checking. A mapping given to
-        an argument annotated with a settings class (:func:`occplug.config.settings`) becomes that class.
+        ``given`` are the values the parent passes (the kind's ``given``: ``in_channels`` from the previous
+        component, the run's ``grid``, ``context``, ...); each fills a constructor parameter the node leaves
+        out, where the factory takes it. Before calling the factory the builder turns a mapping given to a
+        settings argument (:func:`occplug.config.settings`) into that class and a mapping given to a
+        ``GridSpec`` argument into a :class:`~occplug.geometry.GridSpec` (the one place a config's grid is
+        parsed, so a component always receives a ``GridSpec``). A factory that declares a ``registry``
+        parameter (a data module, which builds its label sources and transforms) receives this registry.
+        The node's values are assumed validated
+        (:mod:`occplug.config.validate`) and are not type-checked here.
+
+        Raises:
+            UnknownComponentError: no ``kind`` named ``type``.
+            ComponentArgumentError: the node sets an argument the factory does not take (naming the closest),
+                or the factory needs a given argument the parent does not pass.
+            TypeError: the factory built an object that is not its kind's interface.
         """
-        spec = dict(spec)
-        name = spec.pop("type", None)
+        node = {"type": spec} if isinstance(spec, str) else dict(spec)
+        name = node.pop("type", None)
         if name is None:
             raise ValueError(f"a {kind} node needs a 'type:' naming a registered {kind}")
         entry = self.get(kind, name)
-        params = inspect.signature(entry.factory).parameters
-        accepts_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
-        for key, value in defaults.items():
-            if key not in spec and (key in params or accepts_any):
-                spec[key] = value
-        return entry.factory(**settings_arguments(entry.factory, spec))
+        params = component_params(entry.factory)
+        if not _takes_any(entry.factory):
+            for key in node:
+                if key not in params:
+                    hint = closest(str(key), list(params))
+                    raise ComponentArgumentError(
+                        f"unknown argument of {kind} '{name}'{f'; did you mean {hint!r}?' if hint else ''} "
+                        f"(valid: {', '.join(params)})",
+                        key=str(key),
+                    )
+        own = inspect.signature(entry.factory).parameters
+        accepts_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in own.values())
+        if "registry" in own and "registry" not in given:  # a factory that builds nested nodes itself (a data module)
+            given = {**given, "registry": self}
+        for key, value in given.items():
+            if key not in node and (key in own or accepts_any):
+                node[key] = value
+        not_passed = [
+            arg
+            for arg, (param, _) in params.items()
+            if param.default is inspect.Parameter.empty
+            and arg not in node
+            and arg in given_arguments(kind, entry.factory)
+        ]
+        if not_passed:
+            raise ComponentArgumentError(
+                f"{kind} '{entry.name}' (plugin {entry.plugin}) expects its parent to give '{not_passed[0]}', which "
+                f"this model does not pass (it passes: {', '.join(sorted(given)) or 'nothing'}); set it in the config",
+                key=not_passed[0],
+            )
+        obj = entry.factory(**_grid_arguments(params, settings_arguments(entry.factory, node)))
+        base = KINDS[kind].interface() if kind in KINDS else None
+        if base is not None and not isinstance(obj, base):
+            raise TypeError(
+                f"{kind} '{entry.name}' (plugin {entry.plugin}) built a {type(obj).__name__}, not a {base.__name__}"
+            )
+        return obj
+
+
+def _takes_any(factory: Callable[..., Any]) -> bool:
+    """Whether ``factory`` takes any keyword: its ``**kwargs`` reach no constructor that names its arguments."""
+    owners = [c for c in factory.__mro__ if "__init__" in vars(c)] if inspect.isclass(factory) else [factory]
+    for owner in owners:
+        try:
+            params = inspect.signature(owner.__init__ if inspect.isclass(owner) else owner).parameters
+        except (TypeError, ValueError):
+            return True
+        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            return False
+    return True
+
+
+def _takes_grid_only(annotation: Any) -> bool:
+    """Whether ``annotation`` takes a :class:`GridSpec` and no mapping (``GridSpec``, ``GridSpec | None``): a
+    parameter the builder gives a parsed grid. One that also takes a ``dict`` keeps what the config wrote."""
+    if isinstance(annotation, str):  # an annotation the type hints could not resolve
+        return "GridSpec" in annotation and "dict" not in annotation and "Mapping" not in annotation
+    args = typing.get_args(annotation) if typing.get_origin(annotation) in (typing.Union, types.UnionType) else ()
+    if args:
+        plain = [typing.get_origin(a) or a for a in args]
+        return GridSpec in plain and not any(a in (dict, Mapping) for a in plain)
+    return annotation is GridSpec
+
+
+def _grid_arguments(params: Mapping[str, tuple[inspect.Parameter, Any]], arguments: dict[str, Any]) -> dict[str, Any]:
+    """``arguments`` with the config form of a grid (``{range, voxel_size}``) given to a ``GridSpec`` parameter
+    made into a :class:`GridSpec`."""
+    for key, value in arguments.items():
+        if key in params and isinstance(value, (Mapping, list, tuple)) and _takes_grid_only(params[key][1]):
+            arguments[key] = parse_grid(value)
+    return arguments
 
 
 def _dist(distribution: str | None) -> str:

@@ -14,7 +14,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["TOP_LEVEL", "Slot", "component_params", "slot_of", "slot_at"]
+__all__ = ["BUILDER_ARGUMENTS", "TOP_LEVEL", "Slot", "component_params", "slot_of", "slot_at"]
+
+#: Constructor parameters the builder hands in and a config never sets: the run context
+#: (:class:`occplug.context.RunContext`) and, for a data module, the registry its nested nodes are built from.
+BUILDER_ARGUMENTS: tuple[str, ...] = ("context", "registry")
 
 
 @dataclass(frozen=True)
@@ -44,6 +48,9 @@ TOP_LEVEL: dict[str, Slot | str] = {
 }
 
 
+_STARRED = (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)
+
+
 def _hints(factory: Callable[..., Any]) -> dict[str, Any]:
     target = factory.__init__ if inspect.isclass(factory) else factory
     try:
@@ -56,7 +63,8 @@ def component_params(factory: Callable[..., Any]) -> dict[str, tuple[inspect.Par
     """Constructor parameters of a factory (minus ``self``/``*args``/``**kwargs``) with resolved annotations.
 
     A class whose ``__init__`` takes ``**kwargs`` and hands them to its base (a plugin's subclass of
-    ``occ_model`` adding one argument) also accepts the base's parameters, found along the MRO.
+    ``occ_model`` adding one argument) also accepts the base's parameters, found along the MRO. The
+    :data:`BUILDER_ARGUMENTS` are left out: no config sets them.
     """
     out: dict[str, tuple[inspect.Parameter, Any]] = {}
     owners = [c for c in factory.__mro__ if "__init__" in vars(c)] if inspect.isclass(factory) else [factory]
@@ -68,7 +76,7 @@ def component_params(factory: Callable[..., Any]) -> dict[str, tuple[inspect.Par
             break
         hints = _hints(owner)
         for name, p in params.items():
-            if name == "self" or p.kind in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD):
+            if name == "self" or name in BUILDER_ARGUMENTS or p.kind in _STARRED:
                 continue
             out.setdefault(name, (p, hints.get(name, p.annotation)))
         if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):

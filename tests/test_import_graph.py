@@ -1,4 +1,8 @@
-"""The core has no import circle: no chain of imports among ``occplug``'s modules leads back to where it started.
+"""The core has no import circle, and its imports point one way: down the layers.
+
+No circle: no chain of imports among ``occplug``'s modules leads back to where it started. One way: every module
+sits in one of :data:`LAYERS` and imports only from its own layer or those below it (an import that runs up the
+layers is how a circle starts, even before it closes).
 
 Every import statement counts, also one deferred into a function (a deferred import hides a circle from the
 interpreter, not from the design); only imports under ``if TYPE_CHECKING:`` are left out. Importing
@@ -34,12 +38,7 @@ def import_graph(root: Path) -> dict[str, set[str]]:
             if isinstance(node, ast.Import):
                 targets.update(alias.name for alias in node.names)
                 continue
-            if node.level:
-                base = module.split(".") if is_package else module.split(".")[:-1]
-                base = base[: len(base) - node.level + 1]
-                source = ".".join(base + ([node.module] if node.module else []))
-            else:
-                source = node.module or ""
+            source = _source(node, module, is_package)
             targets.add(source)
             targets.update(f"{source}.{alias.name}" for alias in node.names)  # `from pkg import submodule`
         deps: set[str] = set()
@@ -51,6 +50,15 @@ def import_graph(root: Path) -> dict[str, set[str]]:
                     deps.add(dep)
         graph[module] = deps
     return graph
+
+
+def _source(node: ast.ImportFrom, module: str, is_package: bool) -> str:
+    """The absolute module a ``from ... import`` in ``module`` reads from (relative levels resolved)."""
+    if not node.level:
+        return node.module or ""
+    base = module.split(".") if is_package else module.split(".")[:-1]
+    base = base[: len(base) - node.level + 1]
+    return ".".join(base + ([node.module] if node.module else []))
 
 
 def _imports(tree: ast.AST) -> list[ast.Import | ast.ImportFrom]:
@@ -85,6 +93,77 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
     return None
 
 
+#: The core's layers, lowest first: (name, module prefixes). A module belongs to the layer of its longest
+#: matching prefix. ``occplug`` itself is the facade, above everything: a core module that imports it (rather
+#: than a submodule through it) runs up to the top.
+LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    (
+        "leaves",
+        (
+            "occplug.errors", "occplug.constraints", "occplug.slots", "occplug.settings", "occplug.hookspecs",
+            "occplug.queries", "occplug.geometry", "occplug.nn", "occplug.ops", "occplug.streams", "occplug.context",
+            "occplug.optim",
+        ),
+    ),
+    ("data and metrics", ("occplug.data", "occplug.metrics", "occplug.ceilings")),
+    ("interfaces and registry", ("occplug.interfaces", "occplug.kinds", "occplug.registry")),
+    ("components and model", ("occplug.components", "occplug.model")),
+    ("plugin manager", ("occplug.plugins",)),
+    ("config", ("occplug.config",)),
+    ("runs", ("occplug.run", "occplug.export", "occplug.viz", "occplug.testing", "occplug.builtin")),
+    ("command line", ("occplug.cli",)),
+    ("facade", ("occplug", "occplug.docs")),
+)  # fmt: skip
+
+
+def layer_of(module: str, layers: tuple[tuple[str, tuple[str, ...]], ...] = LAYERS) -> int:
+    """Index in ``layers`` of the layer whose longest prefix matches ``module``."""
+    best: tuple[int, int] | None = None
+    for index, (_, prefixes) in enumerate(layers):
+        for prefix in prefixes:
+            if (module == prefix or module.startswith(prefix + ".")) and (best is None or len(prefix) > best[1]):
+                best = (index, len(prefix))
+    if best is None:
+        raise AssertionError(f"module {module} is in no layer; add it to LAYERS")
+    return best[0]
+
+
+def upward_imports(root: Path, layers: tuple[tuple[str, tuple[str, ...]], ...] = LAYERS) -> list[str]:
+    """``"module:line -> target (layer -> layer)"`` for every import of the package at ``root`` whose target sits
+    in a higher layer than the importing module (deferred imports count; ``TYPE_CHECKING`` ones do not)."""
+    files: dict[str, bool] = {}
+    paths: dict[str, Path] = {}
+    for path in sorted(root.rglob("*.py")):
+        parts = list(path.relative_to(root.parent).with_suffix("").parts)
+        is_package = parts[-1] == "__init__"
+        name = ".".join(parts[:-1] if is_package else parts)
+        files[name], paths[name] = is_package, path
+    top = root.name
+    found: list[str] = []
+    for module, is_package in files.items():
+        for node in _imports(ast.parse(paths[module].read_text())):
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            else:
+                source = _source(node, module, is_package)
+                # `from pkg import submodule` imports the submodule; `from pkg import name` the package itself
+                targets = [f"{source}.{a.name}" if f"{source}.{a.name}" in files else source for a in node.names]
+            for target in targets:
+                if target != top and not target.startswith(top + "."):
+                    continue
+                while target not in files:
+                    target = target.rpartition(".")[0]
+                if target != top and module.startswith(target + "."):
+                    continue  # a module's own packages run before it anyway
+                if module == target:
+                    continue
+                low, high = layer_of(module, layers), layer_of(target, layers)
+                line = f"{module}:{node.lineno} -> {target} ({layers[low][0]} -> {layers[high][0]})"
+                if high > low and line not in found:  # one line per import statement and target
+                    found.append(line)
+    return found
+
+
 def _write(root: Path, files: dict[str, str]) -> Path:
     for name, text in files.items():
         (root / name).parent.mkdir(parents=True, exist_ok=True)
@@ -117,6 +196,24 @@ def test_importing_a_submodule_depends_on_the_packages_above_it(tmp_path):
     graph = import_graph(pkg)
     assert graph["pkg.x"] == {"pkg.sub", "pkg.sub.y"}
     assert find_cycle(graph) == ["pkg.sub", "pkg.x", "pkg.sub"]
+
+
+def test_an_import_up_the_layers_is_found_also_deferred_and_through_the_facade(tmp_path):
+    pkg = _write(tmp_path, {
+        "pkg/__init__.py": "from .low import f\n",
+        "pkg/low.py": "def f():\n    from pkg.high import g\n    import pkg\n",
+        "pkg/high.py": "from typing import TYPE_CHECKING\nfrom pkg import low\nif TYPE_CHECKING:\n    import pkg\n",
+    })
+    layers = (("low", ("pkg.low",)), ("high", ("pkg.high",)), ("facade", ("pkg",)))
+    assert upward_imports(pkg, layers) == [
+        "pkg.low:2 -> pkg.high (low -> high)",
+        "pkg.low:3 -> pkg (low -> facade)",
+    ]
+
+
+def test_the_core_imports_point_down_the_layers():
+    found = upward_imports(Path(occplug.__file__).parent)
+    assert not found, f"{len(found)} imports run up the layers:\n" + "\n".join(found)
 
 
 def test_the_core_has_no_import_circle():

@@ -5,14 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import occplug
-from occplug.kinds import KINDS, markdown_table, public_name
+from occplug.docs import markdown_table, public_name
+from occplug.kinds import KINDS
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "plugins.md"
 
 
 def test_the_docs_table_is_the_generated_one():
     assert markdown_table() in DOCS.read_text(), (
-        "docs/plugins.md's table of kinds differs from occplug.kinds.markdown_table(); paste its output there"
+        "docs/plugins.md's table of kinds differs from occplug.docs.markdown_table(); paste its output there"
     )
 
 

@@ -337,7 +337,9 @@ def test_query_supervision_trains_through_model_outputs(isolated_registry) -> No
 
 def test_model_injects_free_label_into_heads(isolated_registry) -> None:
     isolated_registry(plugins=[("toyq", ToyQueryPlugin())])
+    from occplug.context import RunContext
     from occplug.model import OccModel
+    from occplug.plugins import get_registry
 
     grid = GRID.to_dict()
     model = OccModel(
@@ -349,6 +351,7 @@ def test_model_injects_free_label_into_heads(isolated_registry) -> None:
         grid=grid,
         class_names=["a", "free", "b", "c"],
         free_label=1,
+        context=RunContext(GRID, ("a", "free", "b", "c"), free_label=1, registry=get_registry()),
     )
     assert model.heads["occupancy"].free_label == 1
     model.eval()

@@ -32,7 +32,7 @@ class VoxelClassifier(OccupancyHead):
     temporal = False
 
     def __init__(
-        self, in_channels: int, num_classes: Annotated[int, Positive] = 18, hidden: Annotated[int, NonNegative] = 64
+        self, in_channels: int, num_classes: Annotated[int, Positive], hidden: Annotated[int, NonNegative] = 64
     ) -> None:
         super().__init__()
         if hidden < 0:

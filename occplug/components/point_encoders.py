@@ -72,14 +72,14 @@ class VoxelPoints(PointEncoder):
 
     def __init__(
         self,
-        grid: GridSpec | dict,
+        grid: GridSpec,
         out_channels: Annotated[int, Positive] = 16,
         num_layers: Annotated[int, Positive] = 2,
     ) -> None:
         super().__init__()
         if num_layers < 1:
             raise ValueError(f"voxel_points num_layers must be >= 1, got {num_layers}")
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.out_channels = int(out_channels)
         layers: list[nn.Module] = []
         channels = len(STATISTICS)

@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from occplug.constraints import Length, NonNegative, Positive, check_choices
+from occplug.context import RunContext
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, project_to_image
 from occplug.interfaces import Lifted, ViewTransform
@@ -44,7 +45,7 @@ from occplug.ops.splat import (
 )
 from occplug.slots import Slot
 
-from .depth_nets import DepthNet
+from .depth_nets import DepthNet, PlainDepthNet
 
 __all__ = [
     "BackwardProjection",
@@ -150,6 +151,7 @@ class LSSViewTransform(ViewTransform):
             (the naive :func:`splat`; for checking and benchmarking).
         depth_net: a ``depth_net`` node (default ``{type: plain}``) or a built :class:`DepthNet`;
             its ``in_channels``, ``num_bins`` and ``out_channels`` are filled in.
+        context: the run context (handed in by the builder); a ``depth_net`` node is built through it.
 
     Forward:
         ``features`` ``(B, N, C_in, h, w)`` and a batch with ``intrinsics``, ``cam_to_ego``,
@@ -162,16 +164,17 @@ class LSSViewTransform(ViewTransform):
         self,
         in_channels: int,
         image_stride: int,
-        grid: GridSpec | dict,
+        grid: GridSpec,
         out_channels: Annotated[int, Positive] = 64,
         depth_bins: DepthBins = [1.0, 45.0, 1.0],  # noqa: B006 - read only, never mutated
         hidden: Annotated[int, NonNegative] = 64,
         splat: Literal["fast", "reference"] = "fast",
         depth_net: Annotated[dict | DepthNet | None, Slot("depth_net")] = None,
+        context: RunContext | None = None,
     ) -> None:
         super().__init__()
         check_choices(LSSViewTransform.__init__, "lss", splat=splat)
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.image_stride = int(image_stride)
         self.out_channels = int(out_channels)
         self.splat_mode = splat
@@ -182,6 +185,7 @@ class LSSViewTransform(ViewTransform):
             in_channels,
             self.num_depth_bins,
             self.out_channels,
+            context=context,
             hidden=hidden,
             depth_centers=self.depth_centers,
         )
@@ -219,24 +223,39 @@ class LSSViewTransform(ViewTransform):
 
 
 def build_depth_net(
-    node: dict | DepthNet | None, in_channels: int, num_bins: int, out_channels: int, **defaults: object
+    node: dict | DepthNet | None,
+    in_channels: int,
+    num_bins: int,
+    out_channels: int,
+    *,
+    context: RunContext | None = None,
+    **defaults: object,
 ) -> DepthNet:
-    """A :class:`DepthNet` from a ``depth_net`` node (``None``: ``{type: plain}``) or passed through.
+    """A :class:`DepthNet` from a ``depth_net`` node (``None``: the plain depth net) or passed through.
 
-    ``in_channels``, ``num_bins``, ``out_channels`` and ``defaults`` fill the parameters the
-    node leaves out (where the registered factory accepts them).
+    A node is built through the run ``context`` (:meth:`~occplug.context.RunContext.build`, which the view
+    transform was handed); ``in_channels``, ``num_bins``, ``out_channels`` and ``defaults`` fill the parameters the
+    node leaves out (where the registered factory accepts them). Without a node no context is needed: the plain
+    depth net is built directly (a view transform constructed in Python, outside a run).
+
+    Raises:
+        ValueError: a node but no context, or a depth net whose bins / channels differ from the view transform's.
     """
     if isinstance(node, DepthNet):
         net = node
+    elif node is None and context is None:
+        hidden = defaults.get("hidden")
+        net = PlainDepthNet(in_channels, num_bins, out_channels, **({} if hidden is None else {"hidden": hidden}))
     else:
-        from occplug.plugins import get_registry  # late: the registry is filled by importing the components
-
+        if context is None:
+            raise ValueError(
+                f"depth_net {node!r}: a depth_net node is built through the run context; build the view transform "
+                "with the registry (RunContext.build) or pass a built DepthNet"
+            )
         spec = {"type": "plain"} if node is None else node
-        net = get_registry().build(
+        net = context.build(
             "depth_net", spec, in_channels=in_channels, num_bins=num_bins, out_channels=out_channels, **defaults
         )
-        if not isinstance(net, DepthNet):
-            raise TypeError(f"depth_net '{spec.get('type')}' built a {type(net).__name__}, not a DepthNet")
     if net.num_bins != num_bins or net.out_channels != out_channels:
         raise ValueError(
             f"depth_net gives {net.num_bins} depth bins and {net.out_channels} context channels; "
@@ -279,7 +298,7 @@ class BackwardProjection(ViewTransform):
         self,
         in_channels: int,
         image_stride: int,
-        grid: GridSpec | dict,
+        grid: GridSpec,
         out_channels: Annotated[int, Positive] = 64,
         depth_bins: DepthBins = [1.0, 45.0, 1.0],  # noqa: B006 - read only, never mutated
         hidden: Annotated[int, NonNegative] = 64,
@@ -289,7 +308,7 @@ class BackwardProjection(ViewTransform):
         if points_per_voxel < 1:
             raise ValueError(f"backward_projection points_per_voxel must be >= 1, got {points_per_voxel}")
         depth_bin_centers(depth_bins)  # validates
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.image_stride = int(image_stride)
         self.out_channels = int(out_channels)
         self.depth_range = (float(depth_bins[0]), float(depth_bins[1]))

@@ -30,6 +30,7 @@ from occplug.constraints import (
     constraints_of,
     violated,
 )
+from occplug.context import parse_grid
 from occplug.geometry import GridSpec
 from occplug.kinds import given_arguments
 from occplug.registry import Registry, closest
@@ -37,6 +38,7 @@ from occplug.settings import is_settings, settings_type
 from occplug.slots import TOP_LEVEL, Slot, component_params, slot_of
 
 from .errors import ConfigError
+from .loggers import check_loggers
 
 __all__ = [
     "RUN_CONSTRAINTS",
@@ -264,7 +266,7 @@ def _validate_grid(value: Any) -> None:
         if key not in value:
             raise ConfigError(f"grid: missing '{key}'")
     try:
-        GridSpec.from_config(value)
+        parse_grid(value)
     except (ValueError, TypeError) as exc:
         raise ConfigError(f"grid: {exc}") from None
 
@@ -367,7 +369,7 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     from occplug.metrics.base import EvalMask
-    from occplug.run.training import (
+    from occplug.optim import (
         OPTIMIZER_EXTRAS,
         check_param_groups,
         optimizer_class,
@@ -427,8 +429,6 @@ def validate(config: dict[str, Any], registry: Registry) -> list[UsedComponent]:
     if config.get("trainer") is not None:
         trainer = config["trainer"]
         if isinstance(trainer, dict) and "loggers" in trainer:  # occplug's own key, not a Trainer argument
-            from occplug.run.loggers import check_loggers
-
             check_loggers(trainer["loggers"], check_type=check_type)
             trainer = {k: v for k, v in trainer.items() if k != "loggers"}
         _validate_kwargs(trainer, "trainer", L.Trainer, {"callbacks", "logger", "default_root_dir"}, TRAINER_EXTRAS)

@@ -353,7 +353,7 @@ _PHOTOMETRIC_STAGES = {
 def _check_keys(mapping: Any, valid: Sequence[str], where: str) -> dict[str, Any]:
     if not isinstance(mapping, dict):
         raise ValueError(f"{where}: expected a mapping, got {type(mapping).__name__} {mapping!r}")
-    from occplug.registry import closest
+    from occplug.errors import closest
 
     for key in mapping:
         if key not in valid:

@@ -14,6 +14,7 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 
+from occplug.context import parse_grid
 from occplug.geometry import GridSpec
 
 from .frame import Batch, FieldRule, Frame, FrameCollator
@@ -59,7 +60,7 @@ class OccDataModule(L.LightningDataModule):
         ignore_label: int | None = 255,
     ) -> None:
         super().__init__()
-        self.grid = GridSpec.from_config(grid)
+        self.grid = parse_grid(grid)  # a data module's own `grid` knob, as its config (or a caller) wrote it
         self.batch_size = batch_size
         self.num_workers = num_workers
         self.class_names = tuple(class_names)

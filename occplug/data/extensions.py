@@ -35,12 +35,12 @@ when their constructor takes them.
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
+from occplug.context import ComponentBuilder
+from occplug.errors import ComponentArgumentError, closest
 from occplug.geometry import GridSpec
-from occplug.registry import closest
 
 from .frame import FieldRule, Frame, field_rule
 
@@ -88,12 +88,11 @@ class FrameTransform:
         raise NotImplementedError
 
 
-def _build(kind: str, node: Any, path: str, context: Mapping[str, Any]) -> Any:
-    from occplug.plugins import get_registry
-
+def _build(kind: str, node: Any, path: str, context: Mapping[str, Any], registry: ComponentBuilder | None) -> Any:
     if not isinstance(node, Mapping) or "type" not in node:
         raise ValueError(f"{path}: expected a mapping with a 'type:' naming a registered {kind}, got {node!r}")
-    registry = get_registry()
+    if registry is None:
+        raise ValueError(f"{path}: the data module was built without a registry (build it with Registry.build)")
     name = str(node["type"])
     if not registry.has(kind, name):
         names = registry.names(kind)
@@ -102,18 +101,10 @@ def _build(kind: str, node: Any, path: str, context: Mapping[str, Any]) -> Any:
             f"{path}.type: no {kind} '{name}'{f'; did you mean {hint!r}?' if hint else ''} "
             f"(registered: {', '.join(names) or 'none'})"
         )
-    factory = registry.get(kind, name).factory
-    params = inspect.signature(factory).parameters
-    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-        for key in node:
-            if key != "type" and key not in params:
-                hint = closest(str(key), list(params))
-                raise ValueError(
-                    f"{path}.{key}: unknown argument of {kind} '{name}'"
-                    f"{f'; did you mean {hint!r}?' if hint else ''} (valid: {', '.join(params)})"
-                )
     try:
         return registry.build(kind, node, **context)
+    except ComponentArgumentError as exc:
+        raise ValueError(f"{path}.{exc.key}: {exc}") from None
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{path}: {exc}") from None
 
@@ -125,6 +116,8 @@ class DataExtensions:
         label_sources: name -> ``{type: <label_source>, ...}``.
         transforms: list of ``{type: <transform>, splits: [...], ...}``.
         fields: name -> collate rule (``stack`` / ``list`` / ``pad`` or ``{collate, pad_value}``).
+        registry: the registry the label sources and transforms are built from (the one the data module was
+            built from; the builder hands it in).
         class_names, grid, free_label, ignore_label: the data module's, passed to factories that take them.
 
     Raises:
@@ -137,6 +130,7 @@ class DataExtensions:
         transforms: Sequence[Any] | None = None,
         fields: Mapping[str, Any] | None = None,
         *,
+        registry: ComponentBuilder | None = None,
         class_names: Sequence[str] = (),
         grid: GridSpec | None = None,
         free_label: int | None = None,
@@ -160,7 +154,7 @@ class DataExtensions:
         for name, node in (label_sources or {}).items():
             if node is None:  # `name: null` switches a layered entry off
                 continue
-            source = _build("label_source", node, f"data.label_sources.{name}", context)
+            source = _build("label_source", node, f"data.label_sources.{name}", context, registry)
             if not callable(getattr(source, "attach", None)):
                 raise ValueError(f"data.label_sources.{name}: '{node['type']}' has no attach(frame) method")
             self.label_sources[str(name)] = source
@@ -173,7 +167,7 @@ class DataExtensions:
             bad = sorted(chosen - set(SPLIT_NAMES))
             if bad:
                 raise ValueError(f"{path}.splits: unknown split '{bad[0]}' (valid: {', '.join(SPLIT_NAMES)})")
-            transform = _build("transform", node, path, context)
+            transform = _build("transform", node, path, context, registry)
             if not callable(transform):
                 raise ValueError(f"{path}: '{node['type']}' is not callable on a frame")
             self.transforms.append((transform, chosen))

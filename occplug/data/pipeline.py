@@ -30,6 +30,7 @@ from typing import Any, Protocol
 import torch
 from torch.utils.data import Dataset, Sampler
 
+from occplug.context import ComponentBuilder
 from occplug.geometry import GridSpec
 
 from .augment import Augmentation, ImageTransform, apply_image_transforms
@@ -284,6 +285,7 @@ class ReaderDataModule(OccDataModule):
             (:mod:`occplug.data.label_fraction`).
         subset: ``all``, ``labelled`` or ``unlabelled``: the training frames used.
         label_unit: ``frame`` (interval sampling of frames) or ``scene`` (of whole scenes).
+        registry: the registry ``label_sources`` and ``transforms`` are built from (the builder hands in its own).
     """
 
     def __init__(self, *, grid: GridSpec | dict, class_names: Sequence[str], free_label: int, ignore_label: int | None,
@@ -292,7 +294,8 @@ class ReaderDataModule(OccDataModule):
                  sequential: bool | dict = False, augment: str | dict | None = None, pseudo_labels: dict | None = None,
                  cache_dir: str | None = None, pseudo: PseudoLabeler | None = None,
                  label_sources: dict | None = None, transforms: list | None = None, fields: dict | None = None,
-                 label_fraction: float = 1.0, subset: str = "all", label_unit: str = "frame") -> None:
+                 label_fraction: float = 1.0, subset: str = "all", label_unit: str = "frame",
+                 registry: ComponentBuilder | None = None) -> None:
         super().__init__(grid=grid, batch_size=batch_size, num_workers=num_workers, class_names=class_names,
                          free_label=free_label, ignore_label=ignore_label)
         self.label_cut = LabelCut(label_fraction, subset, label_unit)
@@ -308,7 +311,7 @@ class ReaderDataModule(OccDataModule):
         self.augmentation = Augmentation(augment, self.grid, fill_label=fill)
         self.pseudo: PseudoLabeler | None = pseudo or PseudoLabelSource.from_config(pseudo_labels, self.class_names)
         self.cache_dir = cache_dir
-        self.extensions = DataExtensions(label_sources, transforms, fields, class_names=self.class_names,
+        self.extensions = DataExtensions(label_sources, transforms, fields, registry=registry, class_names=self.class_names,
                                          grid=self.grid, free_label=free_label, ignore_label=ignore_label)
         self.field_rules = dict(self.extensions.fields)
 

@@ -71,7 +71,7 @@ import torch
 import yaml
 from torch import Tensor
 
-from occplug.registry import closest
+from occplug.errors import closest
 
 from .formats import FormatError, load_npz
 from .frame import Frame

@@ -284,7 +284,7 @@ class RayIoU(OccMetric):
         class_names: Sequence[str] | None = None,
         free_label: Annotated[int, NonNegative] = 17,
         ignore_label: int | None = 255,
-        grid: GridSpec | dict | None = None,
+        grid: GridSpec | None = None,
         thresholds: Annotated[Sequence[Annotated[float, Positive]], Length(min=1)] = (1.0, 2.0, 4.0),
         origin_limit: Annotated[float, Positive] = 39.0,
         max_origins: Annotated[int, Positive] = 8,
@@ -302,7 +302,7 @@ class RayIoU(OccMetric):
         if not thresholds or min(thresholds) <= 0:
             raise ValueError(f"rayiou thresholds must be positive distances in metres, got {list(thresholds)}")
         self.free_label = free_label
-        self.grid = None if grid is None else GridSpec.from_config(grid)
+        self.grid = grid
         self.thresholds = tuple(float(t) for t in thresholds)
         self.origin_limit = float(origin_limit)
         self.max_origins = int(max_origins)

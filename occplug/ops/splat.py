@@ -579,7 +579,7 @@ class FrustumSplatter:
         check_choices(FrustumSplatter.__init__, "splat", mode=mode)
         if int(image_stride) < 1:
             raise ValueError(f"image_stride must be >= 1, got {image_stride}")
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.image_stride = int(image_stride)
         self.bev = bool(bev)
         self.mode = mode

@@ -157,7 +157,7 @@ def check_run(
             sequential = check_sequential_eval(dm, split, plan.world_size)
             problem = sequential and f"{plan.describe()}; {sequential}"
     if problem is None and model is not None and cfg.get("optimizer") is not None:
-        from occplug.run.training import parameter_groups
+        from occplug.optim import parameter_groups
 
         try:
             parameter_groups(model, cfg["optimizer"], 1.0)

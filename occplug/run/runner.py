@@ -38,6 +38,8 @@ from lightning.pytorch.callbacks import BasePredictionWriter, Callback, ModelChe
 
 from occplug.config import ConfigError, compose, validate
 from occplug.config.defaults import run_config_text
+from occplug.context import RunContext, parse_grid
+from occplug.data.classes import class_groups
 from occplug.data.datamodule import OccDataModule
 from occplug.data.formats import FormatError
 from occplug.errors import UserError
@@ -80,6 +82,7 @@ __all__ = [
     "read_run_config",
     "resolve_run_config",
     "restore_run",
+    "run_context",
     "write_text_atomic",
 ]
 
@@ -144,27 +147,41 @@ def build_datamodule(cfg: dict[str, Any]) -> OccDataModule:
     return dm
 
 
+def run_context(cfg: dict[str, Any], dm: OccDataModule) -> RunContext:
+    """The run's one :class:`~occplug.context.RunContext`: the config's ``grid`` (parsed here, once; the data
+    module's own when the config has none), the data set's classes with their groups, its free and ignore ids,
+    the evaluation mask and the registry the run's components are built from."""
+    grid = parse_grid(cfg["grid"]) if cfg.get("grid") is not None else dm.grid
+    return RunContext(
+        grid=grid,
+        class_names=tuple(dm.class_names),
+        free_label=dm.free_label,
+        ignore_label=dm.ignore_label,
+        class_groups=class_groups(dm.class_names) or {},
+        eval_mask=cfg.get("eval_mask") or DEFAULT_EVAL_MASK,
+        registry=get_registry(),
+    )
+
+
 def build_model(cfg: dict[str, Any], dm: OccDataModule) -> OccupancyModel:
-    """The model of ``cfg['model']``, given the data module's classes, the config's grid and its evaluation mask
-    (``eval_mask``, which the model gives its metrics that take a ``mask``).
+    """The model of ``cfg['model']``, built through the run context (:func:`run_context`), given its grid, classes
+    and evaluation mask (``eval_mask``, which the model gives its metrics that take a ``mask``).
 
     The runner reads a model only through :class:`~occplug.interfaces.model.OccupancyModel`, so a
     plugin's own model class (kind ``model``) fits, validates, predicts and checkpoints the same way.
     """
-    from occplug.model import build_component  # the model module pulls in every interface
-
-    grid = cfg.get("grid") or dm.grid.to_dict()
-    model = build_component(
+    context = run_context(cfg, dm)
+    model = context.build(
         "model",
         cfg["model"],
-        grid=grid,
-        class_names=list(dm.class_names) or None,
-        free_label=dm.free_label,
-        ignore_label=dm.ignore_label,
+        grid=context.grid.to_dict(),  # a plugin's model may keep it as a hyper-parameter: plain data
+        class_names=list(context.class_names) or None,
+        free_label=context.free_label,
+        ignore_label=context.ignore_label,
         optimizer=cfg.get("optimizer"),
         scheduler=cfg.get("scheduler"),
         metrics=cfg.get("metrics"),
-        eval_mask=cfg.get("eval_mask") or DEFAULT_EVAL_MASK,
+        eval_mask=context.eval_mask,
     )
     model.run_config = cfg  # stored in every checkpoint (self-contained checkpoints)
     return model

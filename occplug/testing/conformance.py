@@ -12,15 +12,18 @@ from typing import Any
 
 import torch
 
+from occplug.context import RunContext
+from occplug.data.classes import OCC3D_CLASSES, class_groups
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec
 from occplug.interfaces.checks import CHECK_CHANNELS
 from occplug.kinds import KINDS, given_arguments
-from occplug.model import OccModel, build_component
+from occplug.model import OccModel
 from occplug.plugins import get_registry
 from occplug.slots import component_params
 
 __all__ = ["CHECKED_KINDS", "check_component", "label_grid"]
+
 
 def label_grid(batch: Batch) -> GridSpec:
     """The grid of a tiny-world batch's labels (the ``tiny`` preset's grid)."""
@@ -59,10 +62,11 @@ def check_component(kind: str, name: str, spec: dict[str, Any] | None = None, *,
         "level_strides": [4],
         "num_bins": 6,
         "out_channels": CHECK_CHANNELS,
+        "scene_downsample": 2,  # a head that declares it reads a scene at half the grid's resolution
     }
     defaults = {k: values[k] for k in given_arguments(kind, entry.factory) if k in values}
     torch.manual_seed(0)
-    comp = build_component(kind, node, **defaults)
+    comp = get_registry().build(kind, node, context=tiny_context(grid), **defaults)
     base = KINDS[kind].interface()
     assert isinstance(comp, base), f"{kind} '{name}' is not a {base.__name__}"
     pickle.loads(pickle.dumps(comp))
@@ -81,10 +85,24 @@ def check_component(kind: str, name: str, spec: dict[str, Any] | None = None, *,
     return comp
 
 
+def tiny_context(grid: GridSpec) -> RunContext:
+    """The run context a parent hands a checked component: ``grid``, the Occ3D classes (``free`` = 17)."""
+    return RunContext(
+        grid=grid,
+        class_names=OCC3D_CLASSES,
+        free_label=17,
+        ignore_label=255,
+        class_groups=class_groups(OCC3D_CLASSES) or {},
+        registry=get_registry(),
+    )
+
+
 def small_model(grid: GridSpec) -> OccModel:
     """A small LSS model on ``grid`` (small CNN, ``lss``, dense voxels, a voxel classifier), whose outputs the
     supervision check trains a source on."""
-    return OccModel(
+    return tiny_context(grid).build(
+        "model",
+        {"type": "occ_model"},
         encoder={"type": "small_cnn", "out_channels": CHECK_CHANNELS, "width": 8, "stride": 4},
         # lss: it also predicts depth distributions, which depth supervision reads
         view_transform={
@@ -98,6 +116,7 @@ def small_model(grid: GridSpec) -> OccModel:
         heads={"occupancy": {"type": "voxel_classifier", "hidden": 8}},
         supervision={},
         grid=grid.to_dict(),
+        class_names=list(OCC3D_CLASSES),
     )
 
 

@@ -7,7 +7,7 @@ from typing import Annotated, Any
 import torch
 from torch import Tensor, nn
 
-from occplug.constraints import Positive, Range
+from occplug.constraints import Positive
 from occplug.data import Batch
 from occplug.geometry import GridSpec, sample_volume
 from occplug.interfaces import DEFAULT_QUERY_CHUNK, DenseVoxelScene, OccupancyHead, QueryResult, Scene
@@ -23,13 +23,16 @@ class DuOccDecoder(OccupancyHead):
     convolutions). Queryable: a point reads ``V_up`` trilinearly and goes through the same MLP, so queries at
     label-voxel centres equal the voxel logits (and any query supervision can train it). Not temporal.
 
-    The label grid is the scene's ``label_grid`` when it has one (:class:`~occplug_duocc.scene.StreamVoxelScene`),
-    otherwise the scene's grid at ``1 / scale`` of its voxel size (same range, ego frame).
+    Both the output grid and the upsampling factor come from the run, once: the label grid is the run's ``grid``
+    (the run context's, ego frame) and ``s`` is the scene's declared ``downsample`` (the model gives it as
+    ``scene_downsample``), so they cannot disagree with the scene's own setting.
 
     Args:
         in_channels: ``C`` of ``V_fin``.
-        num_classes: ``K`` (free included).
-        scale: the upsampling factor ``s`` (the scene's ``downsample``; DuOcc: 2; 1: a 1x1x1 conv instead).
+        grid: the label grid ``(X, Y, Z)`` ``V_up`` lies on (the run's; given by the model).
+        scene_downsample: the upsampling factor ``s``, the scene's ``downsample`` (given by the model; DuOcc: 2;
+            1: a 1x1x1 conv instead).
+        num_classes: ``K`` (free included; given by the model).
         hidden: channels of ``V_up`` (code: 64).
         mlp_hidden: hidden width of the per-voxel MLP (code: 256).
 
@@ -39,18 +42,26 @@ class DuOccDecoder(OccupancyHead):
 
     queryable = True
     temporal = False
+    #: besides a head's given arguments, the scene's declared downsampling of the run grid
+    given = (*OccupancyHead.given, "scene_downsample")
 
     def __init__(
         self,
         in_channels: int,
-        num_classes: Annotated[int, Positive] = 18,
-        scale: Annotated[int, Range(low=1, high=2)] = 2,
+        grid: GridSpec,
+        scene_downsample: int,
+        num_classes: Annotated[int, Positive],
         hidden: Annotated[int, Positive] = 32,
         mlp_hidden: Annotated[int, Positive] = 64,
     ) -> None:
         super().__init__()
+        if scene_downsample not in (1, 2):
+            raise ValueError(
+                f"duocc_decoder: the scene downsamples the grid by {scene_downsample}; the decoder upsamples by 1 or 2"
+            )
+        self.grid = grid
         self.num_classes = int(num_classes)
-        self.scale = int(scale)
+        self.scale = int(scene_downsample)
         up = (
             nn.ConvTranspose3d(in_channels, hidden, self.scale, stride=self.scale, bias=False)
             if self.scale > 1
@@ -62,11 +73,8 @@ class DuOccDecoder(OccupancyHead):
         )
 
     def label_grid(self, scene: Scene) -> GridSpec:
-        """The grid ``V_up`` lies on (ego frame)."""
-        grid = getattr(scene, "label_grid", None)
-        if grid is None:
-            grid = GridSpec(scene.grid.range, tuple(v / self.scale for v in scene.grid.voxel_size))
-        return grid
+        """The grid ``V_up`` lies on (ego frame): the run's grid, whatever the scene."""
+        return self.grid
 
     def upsampled(self, scene: Scene) -> Tensor:
         """``V_up`` ``(B, hidden, X, Y, Z)`` on :meth:`label_grid`, memoised in the scene's ``cache`` when it has one."""
@@ -78,8 +86,8 @@ class DuOccDecoder(OccupancyHead):
         grid = self.label_grid(scene)
         if tuple(up.shape[2:]) != grid.shape:
             raise ValueError(
-                f"duocc_decoder: scale {self.scale} turns the scene's {tuple(scene.features.shape[2:])} voxels into "
-                f"{tuple(up.shape[2:])}, not the label grid {grid.shape}; set scale to the scene's downsample"
+                f"duocc_decoder: upsampling by the scene's downsample {self.scale} turns its "
+                f"{tuple(scene.features.shape[2:])} voxels into {tuple(up.shape[2:])}, not the label grid {grid.shape}"
             )
         if cache is not None:
             cache[key] = up

@@ -90,7 +90,7 @@ class _DuOccVoxels(SceneRepresentation):
     def __init__(
         self,
         in_channels: int,
-        grid: GridSpec | dict,
+        grid: GridSpec,
         channels: int,
         downsample: int,
         fpn_channels: Sequence[int],
@@ -99,7 +99,7 @@ class _DuOccVoxels(SceneRepresentation):
         super().__init__()
         if downsample not in (1, 2):
             raise ValueError(f"downsample must be 1 or 2 (DuOcc: 2), got {downsample}")
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.downsample = int(downsample)
         self.coarse = coarse_grid(self.grid, self.downsample)
         self.out_channels = int(channels)
@@ -196,12 +196,12 @@ class DuOccStream(_DuOccVoxels):
     def __init__(
         self,
         in_channels: int,
-        grid: GridSpec | dict,
+        grid: GridSpec,
+        num_classes: Annotated[int, Positive],
         channels: Annotated[int, Positive] = 32,
         downsample: Annotated[int, Range(low=1, high=2)] = 2,
         fpn_channels: Annotated[list[Annotated[int, Positive]], Length(exact=3)] = [16, 32, 32],  # noqa: B006
         fpn_blocks: Annotated[list[Annotated[int, Positive]], Length(exact=3)] = [1, 1, 1],  # noqa: B006
-        num_classes: Annotated[int, Positive] = 18,
         stream: bool = True,
         fusion: Literal["add", "concat"] = "add",
         refine: bool = True,
@@ -315,7 +315,7 @@ class DuOccStacking(_DuOccVoxels):
     def __init__(
         self,
         in_channels: int,
-        grid: GridSpec | dict,
+        grid: GridSpec,
         channels: Annotated[int, Positive] = 32,
         downsample: Annotated[int, Range(low=1, high=2)] = 2,
         fpn_channels: Annotated[list[Annotated[int, Positive]], Length(exact=3)] = [16, 32, 32],  # noqa: B006

@@ -46,7 +46,7 @@ class _GridHead(OccupancyHead):
     def __init__(
         self,
         in_channels: Annotated[int, Positive],
-        num_classes: Annotated[int, Positive] = 18,
+        num_classes: Annotated[int, Positive],
         hidden: Annotated[int, Positive] = 32,
         layers: Annotated[int, NonNegative] = 1,
     ) -> None:
@@ -131,7 +131,7 @@ class GeometryOccupancyHead(_GridHead):
     def __init__(
         self,
         in_channels: Annotated[int, Positive],
-        num_classes: Annotated[int, Positive] = 18,
+        num_classes: Annotated[int, Positive],
         free_label: Annotated[int, NonNegative] = 17,
         occupied_label: Annotated[int, NonNegative] | None = None,
         hidden: Annotated[int, Positive] = 32,
@@ -189,7 +189,7 @@ class ImageSemanticHead(Head):
 
     def __init__(
         self,
-        num_classes: Annotated[int, Positive] = 18,
+        num_classes: Annotated[int, Positive],
         image_channels: Annotated[int, Positive] = _IMAGE_CHANNELS,
         base_channels: Annotated[int, Positive] = 16,
         depth: Annotated[int, NonNegative] = 1,
@@ -245,7 +245,7 @@ class ProjectedSegmentationHead(Head):
     def __init__(
         self,
         in_channels: Annotated[int, Positive],
-        num_classes: Annotated[int, Positive] = 18,
+        num_classes: Annotated[int, Positive],
         stride: Annotated[int, Positive] = 4,
         mode: Literal["sum", "distance"] = "sum",
         hidden: Annotated[int, NonNegative] = 32,

@@ -43,7 +43,7 @@ class OccleLidarVoxels(PointEncoder):
 
     def __init__(
         self,
-        grid: GridSpec | dict,
+        grid: GridSpec,
         out_channels: Annotated[int, Positive] = 32,
         hidden: Annotated[int, Positive] = 32,
         max_points: Annotated[int, Positive] = 35,

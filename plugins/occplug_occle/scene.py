@@ -30,6 +30,7 @@ import torch
 import torch.utils.checkpoint
 from torch import Tensor, nn
 
+from occplug import RunContext
 from occplug.config import Slot
 from occplug.constraints import Length, NonNegative, Positive, check_choices
 from occplug.data import Batch
@@ -156,6 +157,8 @@ class OccleScene(SceneRepresentation):
             geometric branch in place of the model's shared lifted image and LiDAR grids (which the semantic
             branch still reads). None (default): the branch reads the shared grids. One frame only (no
             ``history``).
+        context: the run context (handed in by the builder); the geometric branch's own encoders are built
+            through it.
 
     Forward:
         ``lifted`` (volume ``(B, C_img, X, Y, Z)``), ``batch``, ``outputs`` (``encoded[lidar_encoder]``
@@ -167,7 +170,7 @@ class OccleScene(SceneRepresentation):
     def __init__(
         self,
         in_channels: Annotated[int, Positive],
-        grid: GridSpec | dict,
+        grid: GridSpec,
         lidar_channels: Annotated[int, Positive] | None = None,
         lidar_encoder: str = "lidar",
         point_channels: dict[str, int] | None = None,
@@ -190,13 +193,14 @@ class OccleScene(SceneRepresentation):
         geometry_encoder: Annotated[dict | None, Slot("encoder")] = None,
         geometry_view_transform: Annotated[dict | None, Slot("view_transform")] = None,
         geometry_point_encoder: Annotated[dict | None, Slot("point_encoder")] = None,
+        context: RunContext | None = None,
     ) -> None:
         super().__init__()
         check_choices(OccleScene.__init__, "occle_scene", compute=compute, geometry=geometry, fusion=fusion)
         if compute != "all" and not (semantic if compute == "semantic" else geometric):
             raise ValueError(f"occle_scene compute: {compute} runs the {compute} branch alone, which is switched off")
         self.compute = compute
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         if lidar_channels is None and point_channels is not None:
             if lidar_encoder not in point_channels:
                 raise ValueError(
@@ -227,7 +231,14 @@ class OccleScene(SceneRepresentation):
                 )
             if not geometric or self.history:
                 raise ValueError("occle_scene: the geometric branch's own encoders need geometric: true and no history")
-            self.geometric_inputs = _own_inputs(geometry_encoder, geometry_view_transform, geometry_point_encoder, grid)
+            if context is None:
+                raise ValueError(
+                    "occle_scene: the geometric branch's own encoders are built through the run context; build the "
+                    "scene with the registry (RunContext.build)"
+                )
+            self.geometric_inputs = _own_inputs(
+                context, geometry_encoder, geometry_view_transform, geometry_point_encoder, grid
+            )
             geo_image = int(self.geometric_inputs["view_transform"].out_channels)
             geo_lidar = int(self.geometric_inputs["point_encoder"].out_channels)
         # plain stems stand in for a switched-off branch, so the fusion always sees two grids
@@ -348,24 +359,23 @@ class OccleScene(SceneRepresentation):
         return (Lifted(volume=image, grid=grid), batch, outputs)
 
 
-def _own_inputs(encoder: dict, view_transform: dict, point_encoder: dict, grid: GridSpec | dict) -> nn.ModuleDict:
-    """The geometric branch's own image encoder, lift and LiDAR encoder, built from their config nodes with the
-    arguments the core model gives its own (``in_channels`` / ``image_stride`` / levels from the encoder, the grid)."""
-    from occplug.plugins import get_registry  # late: the registry is filled by importing the components
-
-    registry = get_registry()
-    grid_node = GridSpec.from_config(grid).to_dict()
-    enc = registry.build("encoder", encoder)
-    lift = registry.build(
+def _own_inputs(
+    context: RunContext, encoder: dict, view_transform: dict, point_encoder: dict, grid: GridSpec
+) -> nn.ModuleDict:
+    """The geometric branch's own image encoder, lift and LiDAR encoder, built through the run ``context`` from their
+    config nodes with the arguments the core model gives its own (``in_channels`` / ``image_stride`` / levels from
+    the encoder, the grid)."""
+    enc = context.build("encoder", encoder)
+    lift = context.build(
         "view_transform",
         view_transform,
         in_channels=enc.out_channels,
         image_stride=enc.stride,
         level_channels=list(enc.level_channels),
         level_strides=list(enc.level_strides),
-        grid=grid_node,
+        grid=grid,
     )
-    points = registry.build("point_encoder", point_encoder, grid=grid_node)
+    points = context.build("point_encoder", point_encoder, grid=grid)
     for built, kind, want in (
         (enc, "encoder", ImageEncoder),
         (lift, "view_transform", ViewTransform),

@@ -158,7 +158,7 @@ class OccleSemantic(SupervisionSource):
 
     def __init__(
         self,
-        grid: GridSpec | dict,
+        grid: GridSpec,
         weight: Annotated[float, NonNegative] = 1.0,
         image_head: str = "image_semantic",
         lidar_head: str = "lidar_semantic",
@@ -169,7 +169,7 @@ class OccleSemantic(SupervisionSource):
         ignore_label: int | None = 255,
     ) -> None:
         super().__init__()
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.weight = float(weight)
         self.image_head, self.lidar_head = image_head, lidar_head
         self.min_points = int(min_points)

@@ -73,7 +73,7 @@ class QueryDecoder(OccupancyHead):
     def __init__(
         self,
         in_channels: int,
-        num_classes: Annotated[int, Positive] = 18,
+        num_classes: Annotated[int, Positive],
         free_label: int | None = 17,
         hidden: Annotated[int, Positive] = 64,
         offsets: Annotated[int, NonNegative] = 4,

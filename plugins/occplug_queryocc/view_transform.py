@@ -23,6 +23,7 @@ from typing import Annotated, Literal
 import torch
 from torch import Tensor, nn
 
+from occplug import RunContext
 from occplug.components import build_depth_net
 from occplug.config import Slot
 from occplug.constraints import NonNegative, Positive, UnitInterval, check_choices
@@ -69,6 +70,7 @@ class LiftContractSplat(ViewTransform):
         hidden: width of the depth net's 3x3 conv; depth_net: a ``depth_net`` node (default ``plain``, which ignores
             the calibration; ``camera_aware`` gates depth and context by each camera's intrinsics and extrinsics, the
             paper's calibration encoding; ``oracle_depth`` the true depth in this transform's bins, a ceiling).
+        context: the run context (handed in by the builder); a ``depth_net`` node is built through it.
 
     Forward:
         ``(B, N, C_in, h, w)`` features -> :class:`Lifted` with ``volume`` ``(B, C, X, Y)`` on ``grid``,
@@ -81,7 +83,7 @@ class LiftContractSplat(ViewTransform):
         self,
         in_channels: int,
         image_stride: int,
-        grid: GridSpec | dict,
+        grid: GridSpec,
         out_channels: Annotated[int, Positive] = 64,
         num_bins: Annotated[int, Positive] = 32,
         depth_near: Annotated[float, Positive] = 1.0,
@@ -91,20 +93,27 @@ class LiftContractSplat(ViewTransform):
         point_encoding: bool = True,
         hidden: Annotated[int, NonNegative] = 64,
         depth_net: Annotated[dict | None, Slot("depth_net")] = None,
+        context: RunContext | None = None,
     ) -> None:
         super().__init__()
         check_choices(LiftContractSplat.__init__, "queryocc_lift_contract_splat", bins=bins)
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.image_stride = int(image_stride)
         self.out_channels = int(out_channels)
         self.point_encoding = bool(point_encoding)
         mix = 1.0 if bins == "uniform" else float(linear_mix)
         self.register_buffer("depth_centers", log_linear_depths(num_bins, depth_near, depth_far, mix), persistent=False)
-        context = self.out_channels
+        run_context, context = context, self.out_channels  # below, `context` is the depth net's context width
         # depth_centers: a depth net that reads true depth (``oracle_depth``, the perfect-depth ceiling) bins it into
         # these log-linear centres, not its own uniform default; nets without the argument do not receive it
         self.depth_net = build_depth_net(
-            depth_net, in_channels, int(num_bins), context, hidden=hidden, depth_centers=self.depth_centers
+            depth_net,
+            in_channels,
+            int(num_bins),
+            context,
+            hidden=hidden,
+            depth_centers=self.depth_centers,
+            context=run_context,
         )
         if self.point_encoding:
             self.empty = nn.Parameter(torch.zeros(context))

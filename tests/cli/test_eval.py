@@ -14,6 +14,7 @@ from occplug.data.formats import FormatError, read_prediction, write_prediction
 from occplug.data.frame import Batch
 from occplug.data.nuscenes import format as occ3d
 from occplug.data.semantickitti import format as kitti
+from occplug.geometry import GridSpec
 from occplug.metrics import Occ3DMIoU, RayIoU, SSCMetrics
 from occplug.testing.fixtures import make_tiny_batch
 
@@ -212,7 +213,7 @@ def test_eval_equals_the_metrics_on_the_same_batch(occ3d_tree, tmp_path, capsys)
     assert "RayIoU_geometry=" in summary and "RayIoU_dynamic=" in summary and "RayIoU_car=" not in summary
     scores = json.loads(out.read_text())
     assert scores["samples"] == 2 and set(scores["metrics"]) == {"miou", "rayiou", "ssc"}
-    grid = {"range": [-16, -16, -1, 16, 16, 5.4], "voxel_size": 0.8}
+    grid = GridSpec((-16, -16, -1, 16, 16, 5.4), 0.8)
     expected = {
         "miou": Occ3DMIoU(class_names=OCC3D_CLASSES),
         "rayiou": RayIoU(class_names=OCC3D_CLASSES, grid=grid),
@@ -340,7 +341,7 @@ def test_labels_predictions_and_origins_outside_what_can_be_scored(occ3d_tree, t
     expect_error(capsys, f"token {first}: {pred / (first + '.npz')}: predicted class id 255 is outside 0..17")
     assert not out.exists()
     assert run_eval(gt, pred, "--metric", "rayiou", "--origins", str(origins), *TINY_GRID, "--json", str(out)) == 0
-    expected = RayIoU(class_names=OCC3D_CLASSES, grid={"range": [-16, -16, -1, 16, 16, 5.4], "voxel_size": 0.8})
+    expected = RayIoU(class_names=OCC3D_CLASSES, grid=GridSpec((-16, -16, -1, 16, 16, 5.4), 0.8))
     expected.update(torch.stack([unknown, preds[1]]), batch)
     got = json.loads(out.read_text())["metrics"]["rayiou"]
     assert got["RayIoU"] == pytest.approx(float(expected.compute()["RayIoU"]), abs=1e-4)

@@ -8,7 +8,7 @@ from occplug.components.depth_supervision import (
     lidar_depth_targets,
 )
 from occplug.interfaces import Lifted, ModelOutputs
-from occplug.model import build_component
+from occplug.plugins import get_registry
 from occplug.testing import hand_batch as build_batch
 from occplug.testing.fixtures import make_tiny_batch
 
@@ -93,15 +93,15 @@ def test_targets_agree_with_the_synthetic_cameras_depth_maps():
 def test_training_on_lidar_depth_lowers_the_loss():
     torch.manual_seed(0)
     batch = make_tiny_batch()
-    encoder = build_component("encoder", {"type": "small_cnn", "out_channels": 16, "stride": 8})
+    encoder = get_registry().build("encoder", {"type": "small_cnn", "out_channels": 16, "stride": 8})
     grid = {"range": [-24.0, -24.0, -1.0, 24.0, 24.0, 5.4], "voxel_size": 0.8}
-    lss = build_component(
+    lss = get_registry().build(
         "view_transform",
         {"type": "lss", "grid": grid, "out_channels": 8, "depth_bins": [1.0, 40.0, 1.0]},
         in_channels=16,
         image_stride=8,
     )
-    source = build_component("supervision", {"type": "lidar_depth"})
+    source = get_registry().build("supervision", {"type": "lidar_depth"})
     params = [*encoder.parameters(), *lss.parameters()]
     opt = torch.optim.Adam(params, lr=3e-3)
     losses = []

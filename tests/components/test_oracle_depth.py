@@ -8,7 +8,9 @@ import torch
 from occplug.components import LSSViewTransform, OracleDepthNet
 from occplug.components.depth_nets import oracle_depth_logits
 from occplug.components.view_transforms import depth_bin_centers
+from occplug.geometry import GridSpec
 from occplug.testing import check_component, hand_batch, make_tiny_batch
+from occplug.testing.conformance import tiny_context
 
 UNIFORM = depth_bin_centers([1.0, 45.0, 1.0])  # 44 bins, centres 1.5 .. 44.5
 
@@ -43,10 +45,11 @@ def test_lss_with_the_oracle_lifts_onto_the_true_depth():
     vt = LSSViewTransform(
         in_channels=8,
         image_stride=4,
-        grid=batch_grid(),
+        grid=GridSpec.from_config(batch_grid()),
         out_channels=4,
         depth_bins=[1.0, 41.0, 2.0],
         depth_net={"type": "oracle_depth", "hidden": 0},
+        context=tiny_context(GridSpec.from_config(batch_grid())),  # the depth-net node is built through the run context
     )
     assert isinstance(vt.depth_net, OracleDepthNet)
     assert torch.equal(vt.depth_net.centers, vt.depth_centers)  # lss filled in its own bins

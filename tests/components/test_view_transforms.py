@@ -21,6 +21,7 @@ from occplug.components.view_transforms import (
 from occplug.data.frame import Batch
 from occplug.geometry import GridSpec, make_pose, project_to_image, unproject_from_image
 from occplug.testing import hand_batch
+from occplug.testing.conformance import tiny_context
 
 H, W, S, F = 32, 64, 8, 40.0
 CAM_TO_EGO_R = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -244,9 +245,7 @@ def test_backward_projection_averages_over_cameras_and_points() -> None:
 def test_both_view_transforms_take_the_same_arguments_and_output_the_same_shape() -> None:
     torch.manual_seed(0)
     batch = make_batch(b=2, n=2)
-    args = dict(
-        in_channels=4, image_stride=S, grid=GRID.to_dict(), out_channels=5, depth_bins=[1.0, 20.0, 1.0], hidden=8
-    )
+    args = dict(in_channels=4, image_stride=S, grid=GRID, out_channels=5, depth_bins=[1.0, 20.0, 1.0], hidden=8)
     feats = torch.randn(2, 2, 4, 4, 8, requires_grad=True)
     shapes = []
     for cls in (LSSViewTransform, BackwardProjection):
@@ -356,6 +355,7 @@ def test_lss_with_a_camera_aware_depth_net_trains_its_gates() -> None:
         depth_bins=[1.0, 25.0, 1.0],
         hidden=8,
         depth_net={"type": "camera_aware", "camera_hidden": 8},
+        context=tiny_context(GRID),  # the depth-net node is built through the run context
     )
     assert type(lss.depth_net).__name__ == "CameraAwareDepthNet" and lss.depth_net.num_bins == 24
     assert lss.depth_net.reduce[0].out_channels == 8  # LSS's hidden reached the depth net
@@ -389,7 +389,7 @@ def test_lss_on_a_contracted_grid_keeps_far_mass() -> None:
     """A contracted LSS grid keeps every frustum point inside its z range: the volume sums the whole (z-valid) frustum."""
     torch.manual_seed(0)
     batch = make_batch(b=1, n=1)
-    grid = {"range": [-8.0, -8.0, -1.03, 8.0, 8.0, 5.37], "voxel_size": 0.8, "contraction": {"near": 4.0, "kappa": 0.5}}
+    grid = GridSpec((-8.0, -8.0, -1.03, 8.0, 8.0, 5.37), 0.8, contraction={"near": 4.0, "kappa": 0.5})
     lss = LSSViewTransform(
         in_channels=4, image_stride=S, grid=grid, out_channels=2, depth_bins=[1.0, 45.0, 1.0], hidden=8
     )

@@ -60,6 +60,7 @@ def test_plugin_label_source_transform_and_field_reach_the_synthetic_batches(toy
         label_sources={"ids": {"type": "toy_ids", "offset": 10}, "off": None},
         transforms=[{"type": "toy_tag", "scale": 2.0, "splits": ["train"]}],
         fields={"toy_tag": "stack"},
+        registry=toy_extensions,
     )
     assert dm.field_rules == {"toy_ids": FieldRule("pad", -1), "toy_tag": FieldRule("stack")}
     # train scenes hold frames 0, 1, 2: the label source made [10], [10, 11], [10, 11, 12], padded with -1
@@ -101,7 +102,7 @@ def test_plugin_label_source_transform_and_field_reach_the_synthetic_batches(toy
 )
 def test_extension_config_errors_are_one_line_naming_the_key(toy_extensions, tmp_path, kwargs, message):
     with pytest.raises(ValueError, match=message) as info:
-        SyntheticDataModule(preset="tiny", cache_dir=str(tmp_path), **kwargs)
+        SyntheticDataModule(preset="tiny", cache_dir=str(tmp_path), registry=toy_extensions, **kwargs)
     assert "\n" not in str(info.value)
 
 

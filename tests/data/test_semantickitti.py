@@ -269,7 +269,8 @@ def test_baseline_trains_on_the_tree_and_reports_ssc_scores(tree, tmp_path, caps
 
 
 def test_plugin_label_sources_and_transforms_run_in_the_reader(tree, toy_extensions):
-    dm = module(tree, label_sources={"ids": {"type": "toy_ids", "offset": 3}}, transforms=[{"type": "toy_tag"}])
+    dm = module(tree, label_sources={"ids": {"type": "toy_ids", "offset": 3}}, transforms=[{"type": "toy_tag"}],
+                registry=toy_extensions)
     batch = dm.collate([dm.dataset("train")[i] for i in range(2)])
     assert torch.equal(batch.extras["toy_ids"], torch.tensor([[3, -1], [3, 4]]))
     assert batch.extras["toy_num_classes"] == [20, 20]

@@ -40,7 +40,19 @@ def _small_model(**kwargs):
         heads={"occupancy": {"type": "voxel_classifier", "hidden": 8}},
         supervision={},
         grid={"range": [-8.0, -8.0, -1.0, 8.0, 8.0, 2.2], "voxel_size": 0.8},
+        context=_context({"range": [-8.0, -8.0, -1.0, 8.0, 8.0, 2.2], "voxel_size": 0.8}),
         **kwargs,
+    )
+
+
+def _context(grid):
+    from occplug.context import RunContext
+    from occplug.data.classes import OCC3D_CLASSES
+    from occplug.plugins import get_registry
+
+    # the Occ3D taxonomy: 18 classes, as the model assumed before it took its classes from the run context
+    return RunContext(
+        GridSpec.from_config(grid), OCC3D_CLASSES, free_label=17, ignore_label=255, registry=get_registry()
     )
 
 
@@ -74,6 +86,7 @@ def test_the_model_gives_its_grid_to_metrics_that_leave_it_out():
         supervision={},
         grid=grid,
         metrics=["rayiou", {"type": "rayiou", "grid": own}],
+        context=_context(grid),
     )
     first, second = model.val_metrics.values()
     assert first.grid == GridSpec.from_config(grid) and second.grid == GridSpec.from_config(own)

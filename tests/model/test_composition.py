@@ -188,7 +188,7 @@ def test_voxel_point_statistics_known_values():
 def test_voxel_points_declares_points_and_runs_on_a_tiny_batch():
     batch = make_tiny_batch()
     grid = GridSpec.from_config({"range": [-16, -16, -1, 16, 16, 3], "voxel_size": 2.0})
-    enc = VoxelPoints(grid.to_dict(), out_channels=4)
+    enc = VoxelPoints(grid, out_channels=4)
     assert "points" in enc.requires
     assert enc(batch).shape == (len(batch), 4, *grid.shape)
 

@@ -39,6 +39,7 @@ import torch
 from torch.utils.data import Dataset
 
 from occplug.constraints import Fraction, Length, NonNegative, Positive
+from occplug.context import ComponentBuilder
 from occplug.geometry import GridSpec
 
 from ..classes import OCC3D_CLASSES, OCC3D_FREE, nuscenes_to_occ3d
@@ -269,6 +270,7 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
         sequential: read scenes in temporal order (:mod:`occplug.data.sequences`; or ``{run_length: N}``).
         augment: training augmentation (:mod:`occplug.data.augment`).
         pseudo_labels: file-based pseudo labels (:mod:`occplug.data.pseudo_labels`).
+        registry: the registry ``label_sources`` and ``transforms`` are built from (the builder hands it in).
         label_sources, transforms, fields: plugins' label sources, frame transforms and field collate rules
             (:mod:`occplug.data.extensions`).
         batch_size: samples per batch on each device.
@@ -307,6 +309,7 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
         cache_dir: str | None = None,
         check_files: bool = True,
         label_sources: dict | None = None,
+        registry: ComponentBuilder | None = None,
         transforms: list | None = None,
         fields: dict | None = None,
         label_fraction: Annotated[float, Fraction] = 1.0,
@@ -327,6 +330,7 @@ class Occ3DNuScenesDataModule(ReaderDataModule):
             pseudo_labels=pseudo_labels,
             cache_dir=cache_dir,
             label_sources=label_sources,
+            registry=registry,
             transforms=transforms,
             fields=fields,
             label_fraction=label_fraction,

@@ -34,6 +34,7 @@ import torch
 from torch.utils.data import Dataset
 
 from occplug.constraints import Fraction, Length, NonNegative, Positive
+from occplug.context import ComponentBuilder
 from occplug.geometry import GridSpec
 
 from ..classes import SEMANTIC_KITTI_CLASSES
@@ -308,6 +309,7 @@ class SemanticKITTIDataModule(ReaderDataModule):
         augment: training augmentation (:mod:`occplug.data.augment`; mirror with ``bev.flip_y``: the grid is
             not symmetric in x).
         pseudo_labels: file-based pseudo labels (:mod:`occplug.data.pseudo_labels`; camera name ``image_2``).
+        registry: the registry ``label_sources`` and ``transforms`` are built from (the builder hands it in).
         label_sources, transforms, fields: plugins' label sources, frame transforms and field collate rules
             (:mod:`occplug.data.extensions`).
         batch_size: samples per batch on each device.
@@ -342,6 +344,7 @@ class SemanticKITTIDataModule(ReaderDataModule):
         cache_dir: str | None = None,
         check_files: bool = True,
         label_sources: dict | None = None,
+        registry: ComponentBuilder | None = None,
         transforms: list | None = None,
         fields: dict | None = None,
         label_fraction: Annotated[float, Fraction] = 1.0,
@@ -362,6 +365,7 @@ class SemanticKITTIDataModule(ReaderDataModule):
             pseudo_labels=pseudo_labels,
             cache_dir=cache_dir,
             label_sources=label_sources,
+            registry=registry,
             transforms=transforms,
             fields=fields,
             label_fraction=label_fraction,

@@ -12,6 +12,7 @@ import json
 from dataclasses import dataclass, field
 from typing import Any
 
+from occplug.context import parse_grid
 from occplug.geometry import GridSpec
 
 __all__ = ["CODE_VERSION", "PRESETS", "SPLITS", "SyntheticWorldConfig", "preset"]
@@ -137,7 +138,7 @@ class SyntheticWorldConfig:
     def replace(self, **changes: Any) -> SyntheticWorldConfig:
         """A copy with some knobs changed (sequences are converted to tuples, grids to GridSpec)."""
         if "grid" in changes and not isinstance(changes["grid"], GridSpec):
-            changes["grid"] = GridSpec.from_config(changes["grid"])
+            changes["grid"] = parse_grid(changes["grid"])
         for name in ("image_size", "lidar_elevation_deg", "adjacent_offsets", "ego_lane_speed_offset"):
             if name in changes:
                 changes[name] = tuple(changes[name])

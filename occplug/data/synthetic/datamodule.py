@@ -8,6 +8,7 @@ from typing import Annotated, ClassVar
 from torch.utils.data import Dataset, Sampler
 
 from occplug.constraints import Fraction, Length, NonNegative, Positive, Range
+from occplug.context import ComponentBuilder
 from occplug.data.classes import OCC3D_CLASSES, OCC3D_FREE
 from occplug.data.frame import Frame
 from occplug.data.pipeline import PipelineDataset, ReaderDataModule
@@ -59,6 +60,7 @@ class SyntheticDataModule(ReaderDataModule):
             knob mapping; optional ``kinds: [depth, semantics, features]``; ``depth_max`` defaults to at
             least the world's LiDAR range), or file sources as for any
             reader (:mod:`occplug.data.pseudo_labels`).
+        registry: the registry ``label_sources`` and ``transforms`` are built from (the builder hands it in).
         label_sources, transforms, fields: plugins' label sources, frame transforms and field collate
             rules (:mod:`occplug.data.extensions`).
         label_fraction, subset: label-efficient training: the share of training frames that keep their
@@ -100,6 +102,7 @@ class SyntheticDataModule(ReaderDataModule):
         augment: str | dict | None = None,
         pseudo_labels: dict | None = None,
         label_sources: dict | None = None,
+        registry: ComponentBuilder | None = None,
         transforms: list | None = None,
         fields: dict | None = None,
         label_fraction: Annotated[float, Fraction] = 1.0,
@@ -152,6 +155,7 @@ class SyntheticDataModule(ReaderDataModule):
             pseudo_labels=pseudo_labels,
             pseudo=generated,
             label_sources=label_sources,
+            registry=registry,
             transforms=transforms,
             fields=fields,
             label_fraction=label_fraction,

@@ -45,6 +45,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from occplug.context import parse_grid
 from occplug.data.check import write_grid_record
 from occplug.data.classes import OCC3D_TO_SEMANTIC_KITTI as OCC3D_TO_SSC
 from occplug.data.classes import SEMANTIC_KITTI_LEARNING_MAP_INV as LEARNING_MAP_INV
@@ -85,7 +86,7 @@ def lidar_grid(config: SyntheticWorldConfig) -> GridSpec:
 def semantickitti_world(config: SyntheticWorldConfig, grid: GridSpec | dict | None = None) -> SyntheticWorldConfig:
     """``config`` with its label grid set to ``grid`` (LiDAR frame; default SemanticKITTI's SSC grid)."""
     _check_lidar_axes()
-    g = SSC_GRID if grid is None else GridSpec.from_config(grid)
+    g = SSC_GRID if grid is None else parse_grid(grid)
     t = LIDAR_TO_EGO[:3, 3].double().tolist()
     r = g.range
     ego = GridSpec(_tidy([r[0] + t[0], r[1] + t[1], r[2] + t[2], r[3] + t[0], r[4] + t[1], r[5] + t[2]]), g.voxel_size)

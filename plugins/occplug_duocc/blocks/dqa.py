@@ -35,7 +35,7 @@ Paper versus the public code (``projects/mmdet3d_plugin/models/heads/queryagg/dq
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Annotated, Literal
 
 import torch
@@ -306,7 +306,7 @@ class DynamicQueryAggregation(nn.Module):
     def __init__(
         self,
         channels: Annotated[int, Positive],
-        grid: GridSpec | Mapping,
+        grid: GridSpec,
         query_channels: int | None = None,
         heads: Annotated[int, Positive] = 8,
         coverage: Literal["center", "aabb"] = "center",
@@ -332,7 +332,7 @@ class DynamicQueryAggregation(nn.Module):
         )
         self.outside_boxes, self.empty_selection = outside_boxes, empty_selection
         self.box_rotation, self.positional_order = box_rotation, positional_order
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         if self.grid.is_contracted:
             raise ValueError("DynamicQueryAggregation needs a metric grid (boxes are found by voxel index)")
         self.channels, self.heads, self.coverage = int(channels), int(heads), coverage

@@ -29,7 +29,6 @@ Paper versus the public code (``models/heads/streamagg/streamagg.py``, ``refinen
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
@@ -219,7 +218,7 @@ class StreamAggregation(nn.Module):
         self,
         channels: Annotated[int, Positive],
         num_classes: Annotated[int, Positive],
-        grid: GridSpec | Mapping,
+        grid: GridSpec,
         fusion: Literal["add", "concat"] = "add",
         refine: bool = True,
         occupied_head: bool = True,
@@ -237,7 +236,7 @@ class StreamAggregation(nn.Module):
                 "StreamAggregation occupied_head reads RefineNet's spatial attention: it needs refine=True"
             )
         self.channels, self.num_classes = int(channels), int(num_classes)
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         if warp_sampling == "public_linspace":
             _check_public_linspace_grid(self.grid)
         self.warp_sampling = warp_sampling

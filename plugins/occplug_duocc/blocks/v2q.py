@@ -18,7 +18,6 @@ Assumptions (where the paper is silent; the public code's choices, from ``models
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from typing import Annotated, Literal
 
 import torch
@@ -61,7 +60,7 @@ class VoxelToQuery(nn.Module):
     def __init__(
         self,
         channels: Annotated[int, Positive],
-        grid: GridSpec | Mapping,
+        grid: GridSpec,
         volume_channels: int | None = None,
         heads: Annotated[int, Positive] = 8,
         points: Annotated[int, Positive] = 6,
@@ -80,7 +79,7 @@ class VoxelToQuery(nn.Module):
             raise ValueError(
                 f"VoxelToQuery: fixed_key_points needs more than {fixed} points in all, got heads {heads} x points {points}"
             )
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.channels, self.heads, self.points = int(channels), int(heads), int(points)
         self.offset_input, self.box_rotation, self.fixed = offset_input, box_rotation, fixed
         self.offsets = nn.Linear(channels, (heads * points - fixed) * 3)

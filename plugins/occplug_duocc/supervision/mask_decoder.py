@@ -327,13 +327,13 @@ class DuOccMask(_AuxLoss):
 
     def __init__(
         self,
-        grid: GridSpec | dict,
+        grid: GridSpec,
+        num_classes: Annotated[int, Positive],
         in_channels: Annotated[int, Positive] = 32,
         downsample: Annotated[int, Range(low=1, high=2)] = 2,
         num_queries: Annotated[int, Positive] = 100,
         num_groups: Annotated[int, Positive] | None = None,
         group_split: list[Annotated[list[list[Annotated[int, NonNegative]]], Length(min=1)]] | None = None,
-        num_classes: Annotated[int, Positive] = 18,
         channels: Annotated[int, Positive] = 256,
         num_layers: Annotated[int, Positive] = 1,
         heads: Annotated[int, Positive] = 8,
@@ -354,7 +354,7 @@ class DuOccMask(_AuxLoss):
         ignore_label: int | None = 255,
     ) -> None:
         super().__init__(weight, camera_mask, free_label, ignore_label)
-        self.label_grid = GridSpec.from_config(grid)
+        self.label_grid = grid
         self.grid = coarse_grid(self.label_grid, int(downsample))
         split = [list(map(list, g)) for g in (OCC3D_GROUP_SPLIT if group_split is None else group_split)]
         groups = 1 + len(split) if num_groups is None else int(num_groups)

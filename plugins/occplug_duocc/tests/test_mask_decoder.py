@@ -28,7 +28,7 @@ TINY = dict(in_channels=8, num_queries=4, num_groups=3, channels=16, heads=2, po
 
 def _source(**kwargs):
     torch.manual_seed(0)
-    return DuOccMask(grid=label_grid(make_tiny_batch()).to_dict(), **{**TINY, "dropout": 0.0, **kwargs})
+    return DuOccMask(grid=label_grid(make_tiny_batch()), **{"num_classes": 18, **TINY, "dropout": 0.0, **kwargs})
 
 
 def _outputs(source, batch, seed=1):
@@ -313,5 +313,5 @@ def test_full_mask_trains_and_predicts_exactly_as_full_with_the_same_weights():
     for with_mask, without in zip(*predictions, strict=True):
         assert torch.equal(with_mask, without)
     # a checkpoint rebuilds from its hyper-parameters alone (the decoder included)
-    rebuilt = type(model)(**model.hparams)
+    rebuilt = type(model)(**model.hparams, context=model.context)  # the run context is not a hyper-parameter
     rebuilt.load_state_dict(model.state_dict(), strict=True)

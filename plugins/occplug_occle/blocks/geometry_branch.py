@@ -197,7 +197,7 @@ class CrossPlaneFusion(nn.Module):
         self,
         lidar_channels: Annotated[int, Positive],
         image_channels: Annotated[int, Positive],
-        grid: GridSpec | dict,
+        grid: GridSpec,
         channels: Annotated[int, Positive] = 32,
         num_frames: Annotated[int, Positive] = 1,
         plane_kernel: Annotated[int, Positive] = 3,
@@ -208,7 +208,7 @@ class CrossPlaneFusion(nn.Module):
             raise ValueError(f"cross-plane fusion: plane_kernel must be odd, got {plane_kernel}")
         if channels % heads:
             raise ValueError(f"cross-plane fusion: channels {channels} not divisible by heads {heads}")
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.lidar_channels, self.image_channels = int(lidar_channels), int(image_channels)
         self.channels, self.num_frames = int(channels), int(num_frames)
         x, y, z = self.grid.shape
@@ -301,7 +301,7 @@ class CrossPlaneGeometryBranch(nn.Module):
         self,
         lidar_channels: Annotated[int, Positive],
         image_channels: Annotated[int, Positive],
-        grid: GridSpec | dict,
+        grid: GridSpec,
         channels: Annotated[int, Positive] = 32,
         num_frames: Annotated[int, Positive] = 1,
         num_classes: Annotated[int, Positive] = 2,
@@ -343,7 +343,7 @@ class Conv3dDeformableBaseline(nn.Module):
         self,
         lidar_channels: Annotated[int, Positive],
         image_channels: Annotated[int, Positive],
-        grid: GridSpec | dict,
+        grid: GridSpec,
         channels: Annotated[int, Positive] = 32,
         num_frames: Annotated[int, Positive] = 1,
         num_classes: Annotated[int, Positive] = 2,
@@ -352,7 +352,7 @@ class Conv3dDeformableBaseline(nn.Module):
         head_layers: Annotated[int, NonNegative] = 1,
     ) -> None:
         super().__init__()
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.lidar_channels, self.image_channels = int(lidar_channels), int(image_channels)
         self.num_frames = int(num_frames)
         self.lidar_frames = FrameFusion(self.lidar_channels, self.num_frames)
@@ -399,7 +399,7 @@ class VoxelizedPoints:
         return torch.arange(m, device=self.counts.device) < self.counts[:, None]
 
 
-def voxelize_points(points: Sequence[Tensor], grid: GridSpec | dict, max_points: int = 35) -> VoxelizedPoints:
+def voxelize_points(points: Sequence[Tensor], grid: GridSpec, max_points: int = 35) -> VoxelizedPoints:
     """Group each sample's points by the voxel of ``grid`` holding them (§3.2's ``V(P)``).
 
     A point lands in voxel :meth:`GridSpec.coord_to_index` of its position; points outside the grid (and
@@ -409,14 +409,13 @@ def voxelize_points(points: Sequence[Tensor], grid: GridSpec | dict, max_points:
     Args:
         points: ``B`` tensors ``(P_b, 3 + F)``: ego-frame ``x, y, z`` in metres, then ``F`` features
             (e.g. intensity), the same ``F`` for all.
-        grid: the voxel grid (a :class:`GridSpec` or ``{range, voxel_size}``).
+        grid: the voxel grid.
         max_points: ``M``, points kept per voxel.
 
     Returns:
         :class:`VoxelizedPoints` with ``features`` ``(V, M, 3 + F + 3)``, ``counts`` ``(V,)``,
         ``coords`` ``(V, 4)``.
     """
-    grid = GridSpec.from_config(grid)
     if max_points < 1:
         raise ValueError(f"voxelize_points: max_points must be >= 1, got {max_points}")
     if not points:
@@ -499,7 +498,7 @@ class LidarVoxelEncoder(nn.Module):
 
     def __init__(
         self,
-        grid: GridSpec | dict,
+        grid: GridSpec,
         point_features: Annotated[int, NonNegative] = 1,
         out_channels: Annotated[int, Positive] = 32,
         hidden: Annotated[int, Positive] = 32,
@@ -508,7 +507,7 @@ class LidarVoxelEncoder(nn.Module):
     ) -> None:
         super().__init__()
         check_choices(LidarVoxelEncoder.__init__, "lidar voxel encoder:", sampling=sampling)
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.point_features, self.out_channels, self.max_points = int(point_features), int(out_channels), max_points
         self.sampling = sampling
         self.point_net = nn.Sequential(nn.Linear(6 + self.point_features, hidden), nn.LayerNorm(hidden), nn.ReLU())

@@ -162,7 +162,7 @@ class ScatterProjection(nn.Module):
     def __init__(self, grid: GridSpec, mode: ProjectionMode = "sum") -> None:
         super().__init__()
         check_choices(ScatterProjection.__init__, "ScatterProjection:", mode=mode)
-        self.grid = GridSpec.from_config(grid)
+        self.grid = grid
         self.mode = mode
 
     def forward(

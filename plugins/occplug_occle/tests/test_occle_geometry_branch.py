@@ -196,7 +196,7 @@ def test_gradients_reach_both_modalities_and_every_parameter(model):
 def test_branch_and_baseline_share_the_input_output_contract():
     torch.manual_seed(0)
     lidar, image = _inputs()
-    kwargs = dict(lidar_channels=4, image_channels=5, grid=GRID.to_dict(), channels=8, num_frames=2, num_classes=3)
+    kwargs = dict(lidar_channels=4, image_channels=5, grid=GRID, channels=8, num_frames=2, num_classes=3)
     for cls in (CrossPlaneGeometryBranch, Conv3dDeformableBaseline):
         m = cls(**kwargs)
         assert m(lidar, image).shape == (2, 3, X, Y, Z)

@@ -377,7 +377,7 @@ class QuerySupervision(SupervisionSource):
         sky_rays: Annotated[int, NonNegative] = 0,
         sky_negatives: Annotated[int, Positive] = 4,
         sky_far: Annotated[float, Positive] = 80.0,
-        grid: dict | None = None,
+        grid: GridSpec | None = None,
         free_label: int | None = 17,
         ignore_label: int | None = 255,
     ) -> None:
@@ -398,7 +398,7 @@ class QuerySupervision(SupervisionSource):
         self.free_label = free_label
         self.surface_negatives = int(surface_negatives)
         self.sky_rays, self.sky_negatives, self.sky_far = int(sky_rays), int(sky_negatives), float(sky_far)
-        spec = GridSpec.from_config(grid) if grid is not None else None
+        spec = grid
         self.heights = (spec.lower[2], spec.upper[2]) if spec is not None else (-float("inf"), float("inf"))
         needs = {"pseudo_semantics"}  # LiDAR points take their class from it too
         if points in ("pseudo", "union"):
@@ -414,7 +414,7 @@ class QuerySupervision(SupervisionSource):
 
         from ..heads import QueryDecoder
 
-        head = QueryDecoder(channels, hidden=16)
+        head = QueryDecoder(channels, num_classes=18, hidden=16)  # the tiny world's Occ3D classes
         scene = BevScene(torch.randn(len(batch), channels, *grid.shape[:2], requires_grad=True), grid)
         return ModelOutputs(
             image_features=None,

@@ -148,7 +148,7 @@ def test_a_sample_without_points_adds_nothing_to_the_losses():
 def test_decoder_outputs_at_voxel_centres_equal_predict_occupancy():
     grid = GridSpec((-16, -16, -1, 16, 16, 5.4), 0.8)
     bev = GridSpec((-20, -20, -1, 20, 20, 5.4), (1.0, 1.0, 6.4), contraction={"near": 16.0, "kappa": 0.8})
-    head = QueryDecoder(8, hidden=16, occupancy_threshold=0.3).eval()
+    head = QueryDecoder(8, 18, hidden=16, occupancy_threshold=0.3).eval()
     scene = BevScene(torch.randn(1, 8, *bev.shape[:2]), bev)
     logits = head.occupancy_logits(scene, grid)
     pred = logits.argmax(1)
@@ -187,7 +187,7 @@ def test_query_supervision_loss_falls_on_one_batch():
     batch = make_tiny_batch(1, pseudo_labels="perfect")
     grid = GridSpec((-20, -20, -1, 20, 20, 5.4), (1.0, 1.0, 6.4), contraction={"near": 16.0, "kappa": 0.8})
     plane = torch.nn.Parameter(torch.zeros(1, 8, *grid.shape[:2]))
-    head = QueryDecoder(8, hidden=32)
+    head = QueryDecoder(8, 18, hidden=32)
     source = QuerySupervision(points_per_sample=256)
     opt = torch.optim.Adam([plane, *head.parameters()], lr=1e-2)
     from occplug.interfaces import ModelOutputs
@@ -248,8 +248,8 @@ def test_the_contraction_ablations_lay_a_metric_plane_of_the_same_cells(name, ha
 def test_checkpointed_query_chunks_give_the_values_and_gradients_of_one_pass():
     torch.manual_seed(0)
     bev = GridSpec((-20, -20, -1, 20, 20, 5.4), (1.0, 1.0, 6.4), contraction={"near": 16.0, "kappa": 0.8})
-    plain = QueryDecoder(8, hidden=16, offsets=3, num_blocks=2, feature_dim=5)
-    chunked = QueryDecoder(8, hidden=16, offsets=3, num_blocks=2, feature_dim=5, checkpoint_queries=7)
+    plain = QueryDecoder(8, 18, hidden=16, offsets=3, num_blocks=2, feature_dim=5)
+    chunked = QueryDecoder(8, 18, hidden=16, offsets=3, num_blocks=2, feature_dim=5, checkpoint_queries=7)
     chunked.load_state_dict(plain.state_dict())
     points = torch.rand(2, 30, 3) * torch.tensor([40.0, 40.0, 6.4]) - torch.tensor([20.0, 20.0, 1.0])
     times = torch.tensor([-0.5, 0.0, 0.5]).repeat(2, 10)

@@ -222,7 +222,7 @@ def test_the_loss_falls_when_a_small_decoder_trains_on_one_batch():
     batch = tiny_pseudo_batch()
     grid = GridSpec((-30.0, -30.0, -1.0, 30.0, 30.0, 5.4), (3.0, 3.0, 6.4), contraction={"near": 24.0, "kappa": 0.8})
     plane = nn.Parameter(0.1 * torch.randn(2, 8, *grid.shape[:2]))
-    decoder = QueryDecoder(in_channels=8, hidden=32, offsets=2, num_blocks=1)
+    decoder = QueryDecoder(in_channels=8, num_classes=18, hidden=32, offsets=2, num_blocks=1)
     scene = BevScene(plane, grid)
     outputs = _outputs(lambda head, points, times=None: decoder.query(scene, points, times))
     source = RenderSupervision(frame_offsets=[-1, 0, 1], rays_per_sample=32, samples_per_ray=16)

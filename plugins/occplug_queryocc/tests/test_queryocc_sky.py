@@ -85,7 +85,7 @@ def test_sky_negatives_lie_on_their_rays_below_the_grid_top_and_within_far():
 def test_query_supervision_adds_sky_negatives_after_its_own_queries_and_off_draws_as_before():
     batch = make_tiny_batch(2, pseudo_labels={"preset": "default", "sky_as_free": True})
     assert bool((batch.pseudo_semantics == FREE).any())  # the tiny world's cameras see sky
-    grid = {"range": [-16.0, -16.0, -1.0, 16.0, 16.0, 5.4], "voxel_size": 0.8}
+    grid = GridSpec((-16.0, -16.0, -1.0, 16.0, 16.0, 5.4), 0.8)
     off = QuerySupervision(points_per_sample=64, grid=grid)
     on = QuerySupervision(points_per_sample=64, sky_rays=32, sky_negatives=3, grid=grid)
     torch.manual_seed(3)

@@ -339,7 +339,7 @@ def _diagnose(cfg: dict, dm, model, args: argparse.Namespace) -> dict:
     if source is None or not hasattr(source, "queries"):
         raise UserError(f"model.supervision has no query source '{args.supervision}' (--supervision)")
     torch.manual_seed(0)
-    grid = GridSpec.from_config(cfg["grid"])
+    grid = model.grid  # the run's, parsed once by the runner
     free_label, names = model.free_label, dm.class_names
     dataset = dm.dataset("val")
     tally = Tally()

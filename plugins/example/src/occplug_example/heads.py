@@ -25,7 +25,7 @@ class TinyMLPHead(occplug.OccupancyHead):
     queryable = True  # any scene that can be sampled at points; current frame only (temporal = False)
 
     def __init__(
-        self, in_channels: int, num_classes: Annotated[int, Positive] = 18, hidden: Annotated[int, Positive] = 16
+        self, in_channels: int, num_classes: Annotated[int, Positive], hidden: Annotated[int, Positive] = 16
     ) -> None:
         super().__init__()
         self.num_classes = num_classes
