@@ -240,6 +240,7 @@ class StreamAggregation(nn.Module):
         v_hist: Tensor | None = None,
         prev_to_current: Tensor | None = None,
         reset: Tensor | None = None,
+        detach_history: bool = True,
     ) -> StreamAggOutput:
         """Aggregate the history into the current frame.
 
@@ -250,6 +251,8 @@ class StreamAggregation(nn.Module):
             prev_to_current: ``(B, 4, 4)`` previous ego -> current ego (``T_{g->e}^t T_{e->g}^{t-1}``,
                 Eq. 1; :func:`occplug.geometry.relative_pose`); None: identity. Ignored where ``reset``.
             reset: ``(B,)`` bool, samples whose history is ``V_curr`` itself (detached, unwarped); None: none.
+            detach_history: detach ``v_hist`` (a stored history: no gradient across frames); False keeps its
+                gradient (a history computed this frame, e.g. the scene's ground-truth oracle's embedding).
 
         Returns:
             :class:`StreamAggOutput`; the auxiliary logits only in training mode.
@@ -266,7 +269,7 @@ class StreamAggregation(nn.Module):
                 )
             if prev_to_current is None:
                 prev_to_current = torch.eye(4, dtype=torch.float64, device=v_curr.device).expand(b, 4, 4)
-            warped = warp_volume(v_hist.detach(), self.grid, prev_to_current)
+            warped = warp_volume(v_hist.detach() if detach_history else v_hist, self.grid, prev_to_current)
             if reset is not None:  # the public code restarts a stream from the current feature, unwarped
                 warped = torch.where(reset.view(b, 1, 1, 1, 1).to(warped.device), v_curr.detach(), warped)
         attention = None

@@ -49,6 +49,7 @@ ROWS = {
     "single_frame": ("single_frame", "A. Base (single frame)"),
     "stream_agg": ("stream_agg", "B. A + StreamAgg"),
     "stream_agg_concat": ("stream_agg_concat", "B, concat fusion (public code)"),
+    "stream_agg_oracle_history": ("stream_agg_oracle_history", "B concat, oracle history (ground truth stored)"),
     "det_only": ("det_only", "C. B + detection head"),
     "full": ("full", "D. B + QueryAgg"),
     "full_gt_boxes": ("full", "D with GT boxes (eval only)"),
