@@ -55,6 +55,8 @@ ROWS = {
     "full_gt_boxes": ("full", "D with GT boxes (eval only)"),
     "full_gt_trained": ("full_gt_trained", "D trained and evaluated with GT boxes"),
     "footprint_gt_boxes": ("footprint_gt_boxes", "B + GT-box class footprints (the oracle's control)"),
+    "constant_gt_boxes": ("constant_gt_boxes", "D, GT boxes writing one constant embedding (the oracle's control)"),
+    "noisy_gt_boxes": ("noisy_gt_boxes", "D trained and evaluated with GT boxes, centres moved by 2.4 m (x, y)"),
     "detector_pretrain": ("detector_pretrain", "D from a detection-only phase (its encoder and detector)"),
     "code_recipe": ("code_recipe", "D, the public code's recipe (concat, aabb, EMA, constant lr, its loss weights)"),
     "full_mask": ("full_mask", "D + mask decoder (training only)"),
@@ -80,6 +82,8 @@ DETECTOR_ROWS = (
     "full_mask",
     "full_gt_trained",
     "footprint_gt_boxes",
+    "constant_gt_boxes",
+    "noisy_gt_boxes",
     "detector_pretrain",
     "code_recipe",
 )
