@@ -247,7 +247,7 @@ class StreamAggregation(nn.Module):
         Args:
             v_curr: ``V_curr``, ``(B, C, X, Y, Z)`` in the current ego frame.
             v_hist: ``V_fin`` of the previous frame, ``(B, C, X, Y, Z)`` in the previous ego frame; it is
-                detached here. None: no history at all (every sample is reset).
+                detached here unless ``detach_history`` is False. None: no history at all (every sample is reset).
             prev_to_current: ``(B, 4, 4)`` previous ego -> current ego (``T_{g->e}^t T_{e->g}^{t-1}``,
                 Eq. 1; :func:`occplug.geometry.relative_pose`); None: identity. Ignored where ``reset``.
             reset: ``(B,)`` bool, samples whose history is ``V_curr`` itself (detached, unwarped); None: none.
