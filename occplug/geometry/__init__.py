@@ -6,12 +6,13 @@ from .grid import GridSpec
 from .raycast import first_hit, first_hits, observed_mask, traversed_mask
 from .rays import camera_rays, lidar_ray_directions
 from .transforms import invert_pose, make_pose, relative_pose, rotation_z, transform_points, wrap_angle, yaw_of
-from .volumes import sample_volume, warp_volume
+from .volumes import class_fractions, sample_volume, warp_volume
 
 __all__ = [
     "Contraction",
     "GridSpec",
     "camera_rays",
+    "class_fractions",
     "contract",
     "effective_intrinsics",
     "first_hit",

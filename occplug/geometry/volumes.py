@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from .grid import GridSpec
 from .transforms import invert_pose, transform_points
 
-__all__ = ["sample_volume", "warp_volume"]
+__all__ = ["class_fractions", "sample_volume", "warp_volume"]
 
 
 def sample_volume(volume: Tensor, grid: GridSpec, points: Tensor, mode: str = "bilinear") -> Tensor:
@@ -60,3 +61,36 @@ def warp_volume(volume: Tensor, grid: GridSpec, src_to_dst: Tensor, mode: str = 
     src_pts = transform_points(invert_pose(src_to_dst).to(volume.dtype), centers)
     out = sample_volume(volume, grid, src_pts, mode=mode)
     return out.transpose(1, 2).reshape(volume.shape)
+
+
+def class_fractions(labels: Tensor, num_classes: int, factor: int) -> Tensor:
+    """Per-class share of the labelled voxels in each ``factor``-cube of a label volume: labels on a coarser grid.
+
+    Each coarse voxel covers ``factor ** 3`` label voxels (the grid ``factor`` times coarser, same range and frame;
+    every axis must divide evenly). Its vector is the share of each class among the covered voxels whose label is in
+    ``[0, num_classes)``; other labels (e.g. 255, unknown) count for nothing, and a coarse voxel with no such label is
+    all zero. A per-class embedding applied to the result is the mean embedding of the covered labels, so no
+    information is lost to a majority vote.
+
+    Args:
+        labels: ``(B, X, Y, Z)`` integer class ids.
+        num_classes: ``K``.
+        factor: ``f >= 1``, the coarsening on every axis.
+
+    Returns:
+        ``(B, K, X/f, Y/f, Z/f)`` float32, each voxel's vector summing to 1 (or 0 where nothing is labelled).
+
+    Raises:
+        ValueError: ``labels`` not 4D, ``factor < 1`` or an axis not divisible by ``factor`` (one line).
+    """
+    if labels.dim() != 4:
+        raise ValueError(f"class_fractions: labels must be (B, X, Y, Z), got {tuple(labels.shape)}")
+    if factor < 1 or any(s % factor for s in labels.shape[1:]):
+        raise ValueError(f"class_fractions: label shape {tuple(labels.shape[1:])} is not divisible by factor {factor}")
+    valid = (labels >= 0) & (labels < num_classes)
+    onehot = F.one_hot(torch.where(valid, labels, 0).long(), num_classes).to(torch.float32)
+    onehot = (onehot * valid.unsqueeze(-1)).permute(0, 4, 1, 2, 3)  # (B, K, X, Y, Z)
+    if factor == 1:
+        return onehot
+    counts = F.avg_pool3d(onehot, factor) * factor**3  # labelled voxels of each class per coarse voxel
+    return counts / counts.sum(1, keepdim=True).clamp_min(1.0)

@@ -9,7 +9,7 @@ a config, through the same code the CLI runs). :data:`TINY_FIT`: the overrides o
 
 from __future__ import annotations
 
-from .conformance import check_component, label_grid
+from .conformance import check_component, label_grid, tiny_context
 from .fixtures import (
     hand_batch,
     isolated_registry,
@@ -32,5 +32,6 @@ __all__ = [
     "label_grid",
     "make_tiny_batch",
     "run_config",
+    "tiny_context",
     "tiny_batch",
 ]

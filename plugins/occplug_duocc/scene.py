@@ -18,7 +18,7 @@ from torch import Tensor, nn
 
 from occplug.constraints import Length, Positive, Range, check_choices
 from occplug.data import Batch
-from occplug.geometry import GridSpec, relative_pose, warp_volume
+from occplug.geometry import GridSpec, class_fractions, relative_pose, warp_volume
 from occplug.interfaces import DenseVoxelScene, Lifted, ModelOutputs, SceneRepresentation
 from occplug.streams import StreamState
 
@@ -181,6 +181,14 @@ class DuOccStream(_DuOccVoxels):
             up to 2 s keeps and warps the history). In both, a sequence start or another scene restarts (the code
             reads absolute nuScenes timestamps, where another scene is always a time jump; here scenes may share
             timestamps).
+        history_source: what the stream stores for the next frame. ``features`` (DuOcc): ``V_fin``.
+            ``ground_truth`` (an oracle of StreamAgg's own mechanism, not in the paper or the code): the frame's
+            ground-truth semantic occupancy (``batch.voxel_labels``, at training and evaluation alike) on the coarse
+            grid, each coarse voxel the mean of a learned per-class table ``(num_classes, C)`` over its
+            ``downsample ** 3`` labelled voxels (:func:`~occplug.geometry.class_fractions`; unknown labels count for
+            nothing), then warped, refined and fused exactly as a learned history is. The table learns through the
+            warp (the history is embedded in the frame that reads it; it is linear, so embedding then warping is
+            warping the class shares then embedding). A stream start reads ``V_curr`` as in ``features``.
 
     Forward:
         :class:`~occplug.interfaces.Lifted` ``V_init`` ``(B, C_init, X, Y, Z)``, the batch (``scene``,
@@ -217,10 +225,25 @@ class DuOccStream(_DuOccVoxels):
         class_names: Sequence[str] | None = None,
         warp_sampling: Literal["voxel_centres", "public_linspace"] = "voxel_centres",
         history_reset: Literal["paper", "public"] = "paper",
+        history_source: Literal["features", "ground_truth"] = "features",
     ) -> None:
         super().__init__(in_channels, grid, channels, downsample, fpn_channels, fpn_blocks)
-        check_choices(DuOccStream.__init__, "duocc_stream", warp_sampling=warp_sampling, history_reset=history_reset)
+        check_choices(
+            DuOccStream.__init__,
+            "duocc_stream",
+            warp_sampling=warp_sampling,
+            history_reset=history_reset,
+            history_source=history_source,
+        )
         self.stream = bool(stream)
+        self.history_source = history_source
+        if self.history_source == "ground_truth" and not self.stream:
+            raise ValueError("duocc_stream history_source: ground_truth needs stream: true (it is a history)")
+        self.num_classes = int(num_classes)
+        #: ``(K, C)`` the oracle history's per-class embedding (``history_source: ground_truth`` only)
+        self.history_embedding: nn.Embedding | None = None
+        if self.history_source == "ground_truth":
+            self.history_embedding = nn.Embedding(self.num_classes, self.out_channels)
         if query_agg is not None and not self.stream:
             raise ValueError("duocc_stream query_agg needs stream: true (the detector state and V_fin are streamed)")
         self.stateful = self.stream  # the single-frame model keeps nothing (export treats it as stateless)
@@ -263,14 +286,20 @@ class DuOccStream(_DuOccVoxels):
         if self.agg is None:
             return self.scene(v_curr)
         qa = self.query_agg
+        oracle = self.history_embedding is not None
+        # the oracle stores the class shares (B, K, x, y, z) of this frame; reset slots read them back unused
+        stored_now = self._label_shares(batch, v_curr) if oracle else v_curr
         if qa is None:
-            read = self.history.get(batch, v_curr)  # reset slots read V_curr itself
+            read = self.history.get(batch, stored_now)  # reset slots read V_curr itself
             history, det_state = read.value, None
         else:
             det_template = qa.state_template(batch, v_curr.device)
-            read = self.history.get(batch, {"voxels": v_curr, "detector": det_template})
+            read = self.history.get(batch, {"voxels": stored_now, "detector": det_template})
             history, det_state = read.value["voxels"], read.value["detector"]
-        out = self.agg(v_curr, history, read.prev_to_current, read.reset)
+        if oracle:
+            # embedded here, in the frame that reads it, so the table gets this frame's gradient
+            history = torch.einsum("bkxyz,kc->bcxyz", history.to(v_curr.dtype), self.history_embedding.weight)
+        out = self.agg(v_curr, history, read.prev_to_current, read.reset, detach_history=not oracle)
         v_fin = out.fused  # V_S.A
         if qa is not None:
             if outputs is None or not outputs.image_levels:
@@ -280,15 +309,26 @@ class DuOccStream(_DuOccVoxels):
             outputs.extras[DETECTION_KEY] = q.detection
             outputs.extras[DETECTION_CLASSES_KEY] = qa.classes
             outputs.extras[DQA_SELECTED_KEY] = q.selected
-            self.history.update(batch, {"voxels": v_fin, "detector": q.state})
+            self.history.update(batch, {"voxels": v_fin if not oracle else stored_now, "detector": q.state})
         else:
-            self.history.update(batch, v_fin)
+            self.history.update(batch, v_fin if not oracle else stored_now)
         if outputs is not None:
             if out.occupied_logits is not None:
                 outputs.extras[OCCUPIED_KEY] = out.occupied_logits
             if out.forecast_logits is not None:
                 outputs.extras[FORECAST_KEY] = out.forecast_logits
         return self.scene(v_fin)
+
+    def _label_shares(self, batch: Batch, v_curr: Tensor) -> Tensor:
+        """``(B, K, x, y, z)`` this frame's class shares on the coarse grid (the oracle history, before embedding)."""
+        labels = batch.voxel_labels
+        if labels is None or tuple(labels.shape[1:]) != self.grid.shape:
+            got = None if labels is None else tuple(labels.shape)
+            raise ValueError(
+                f"duocc_stream history_source: ground_truth reads batch.voxel_labels on the grid {self.grid.shape} "
+                f"(at training and evaluation), got {got}"
+            )
+        return class_fractions(labels.to(v_curr.device), self.num_classes, self.downsample)
 
 
 class DuOccStacking(_DuOccVoxels):

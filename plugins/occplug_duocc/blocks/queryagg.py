@@ -157,7 +157,10 @@ class QueryAggSettings:
         write: what DQA writes into a selected box's voxels: ``instance``, the query's features (after V2Q; the
             paper), or ``class``, a learned embedding of the box's class (the ground truth's with ``gt_boxes``, else
             the detector's top class) with V2Q off: a footprint input that carries no instance features, the
-            control of the ground-truth-box oracle (the difference between the two is what instance features add).
+            control of the ground-truth-box oracle (the difference between the two is what instance features add), or
+            ``constant``, one learned embedding for every selected box (no class, no instance feature; V2Q off): with
+            ``gt_boxes`` the footprints alone, the real control of the oracle (``class`` carries the ground-truth class
+            too, so it holds more ground truth than the oracle's instance queries).
         dqa_output_bias, dqa_instance_norm, outside_boxes, empty_selection, positional_order: DQA's switches to the
             public code's behaviour (:class:`~.dqa.DynamicQueryAggregation` ``output_bias``, ``instance_norm``,
             ``outside_boxes``, ``empty_selection``, ``positional_order``).
@@ -186,7 +189,7 @@ class QueryAggSettings:
     coverage: Literal["center", "aabb"] = "center"
     positional: bool = True
     ffn_hidden: Annotated[int, Positive] | None = None
-    write: Literal["instance", "class"] = "instance"
+    write: Literal["instance", "class", "constant"] = "instance"
     dqa_output_bias: bool = False
     dqa_instance_norm: bool = False
     outside_boxes: Literal["skip", "clamp"] = "skip"
@@ -348,11 +351,13 @@ class QueryAggregation(nn.Module):
             else None
         )
         self.write, self.box_rotation = cfg.write, cfg.box_rotation
-        if self.write == "class" and not self.dqa_on:
-            raise ValueError("duocc_stream query_agg.write: class is what DQA writes: it needs dqa: true")
-        if self.write == "class":  # a footprint of the box's class: no instance features, so no V2Q either
+        if self.write != "instance" and not self.dqa_on:
+            raise ValueError(f"duocc_stream query_agg.write: {self.write} is what DQA writes: it needs dqa: true")
+        if self.write != "instance":  # a footprint (of the box's class, or constant): no instance features, no V2Q
             self.v2q = None
         self.class_embed = nn.Embedding(len(self.classes), q) if self.write == "class" else None
+        #: ``(q,)`` what every selected box writes with ``write: constant``
+        self.constant_embed = nn.Parameter(torch.randn(q)) if self.write == "constant" else None
         self.dqa = None
         self.ffn = None
         if self.dqa_on:
@@ -517,7 +522,11 @@ class QueryAggregation(nn.Module):
             none = torch.zeros(det.features.shape[:2], dtype=torch.bool, device=volume.device)
             return QueryAggOutput(volume, None, det, none, det.boxes[-1], new_state)
         selected, boxes, classes = self._select(det, batch)
-        queries = det.features if self.class_embed is None else self.class_embed(classes)
+        queries = det.features
+        if self.class_embed is not None:
+            queries = self.class_embed(classes)
+        elif self.constant_embed is not None:
+            queries = self.constant_embed.expand(*classes.shape, -1)
         rot = boxes
         if self.box_rotation == "sin_cos":  # the detector's raw (sin, cos); the ground truth's from its yaw
             raw = det.encoded_boxes[-1][..., 6:8]

@@ -257,16 +257,19 @@ class StreamAggregation(nn.Module):
         v_hist: Tensor | None = None,
         prev_to_current: Tensor | None = None,
         reset: Tensor | None = None,
+        detach_history: bool = True,
     ) -> StreamAggOutput:
         """Aggregate the history into the current frame.
 
         Args:
             v_curr: ``V_curr``, ``(B, C, X, Y, Z)`` in the current ego frame.
             v_hist: ``V_fin`` of the previous frame, ``(B, C, X, Y, Z)`` in the previous ego frame; it is
-                detached here. None: no history at all (every sample is reset).
+                detached here unless ``detach_history`` is False. None: no history at all (every sample is reset).
             prev_to_current: ``(B, 4, 4)`` previous ego -> current ego (``T_{g->e}^t T_{e->g}^{t-1}``,
                 Eq. 1; :func:`occplug.geometry.relative_pose`); None: identity. Ignored where ``reset``.
             reset: ``(B,)`` bool, samples whose history is ``V_curr`` itself (detached, unwarped); None: none.
+            detach_history: detach ``v_hist`` (a stored history: no gradient across frames); False keeps its
+                gradient (a history computed this frame, e.g. the scene's ground-truth oracle's embedding).
 
         Returns:
             :class:`StreamAggOutput`; the auxiliary logits only in training mode.
@@ -284,9 +287,9 @@ class StreamAggregation(nn.Module):
             if prev_to_current is None:
                 prev_to_current = torch.eye(4, dtype=torch.float64, device=v_curr.device).expand(b, 4, 4)
             if self.warp_sampling == "public_linspace":
-                warped = public_linspace_warp(v_hist.detach(), self.grid, prev_to_current)
+                warped = public_linspace_warp(v_hist.detach() if detach_history else v_hist, self.grid, prev_to_current)
             else:
-                warped = warp_volume(v_hist.detach(), self.grid, prev_to_current)
+                warped = warp_volume(v_hist.detach() if detach_history else v_hist, self.grid, prev_to_current)
             if reset is not None:  # the public code restarts a stream from the current feature, unwarped
                 warped = torch.where(reset.view(b, 1, 1, 1, 1).to(warped.device), v_curr.detach(), warped)
         attention = None

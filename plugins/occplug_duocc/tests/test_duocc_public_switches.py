@@ -109,8 +109,8 @@ SEQUENCE = [
 
 @pytest.mark.parametrize("rule", ["paper", "public"])
 def test_history_reset_rules_on_a_hand_made_sequence(rule):
-    grid = {"range": [-4.0, -4.0, -1.0, 4.0, 4.0, 5.4], "voxel_size": 0.8}
-    scene = DuOccStream(4, grid, channels=8, history_reset=rule) if rule == "public" else DuOccStream(4, grid, 8)
+    grid = GridSpec.from_config({"range": [-4.0, -4.0, -1.0, 4.0, 4.0, 5.4], "voxel_size": 0.8})
+    scene = DuOccStream(4, grid, 18, channels=8, history_reset=rule)
     state = scene.history
     previous = None
     for (t, frame, name, start), paper, public in SEQUENCE:
@@ -136,7 +136,7 @@ def test_history_reset_rules_on_a_hand_made_sequence(rule):
         state.update(batch, current)
         previous = t
     with pytest.raises(ValueError, match="history_reset must be"):
-        DuOccStream(4, grid, 8, history_reset="code")
+        DuOccStream(4, grid, 18, channels=8, history_reset="code")
 
 
 def _occupied_case():

@@ -88,8 +88,10 @@ def decoder(fx: dict[str, Any]) -> dict[str, float]:
 
     spec = DQA_SPEC
     c = spec["channels"]
+    label_grid = GridSpec(spec["range"], spec["voxel"] / 2)  # the decoder upsamples the scene's grid by 2
     head = _load(
-        DuOccDecoder(c, spec["num_classes"], 2, hidden=c // 4, mlp_hidden=c), map_decoder(fx["public_state_dict"])
+        DuOccDecoder(c, label_grid, 2, spec["num_classes"], hidden=c // 4, mlp_hidden=c),
+        map_decoder(fx["public_state_dict"]),
     )
     with torch.no_grad():
         logits = head(DenseVoxelScene(from_yxzc(fx["inputs"]["volume"]), _grid(spec)), None)["logits"]

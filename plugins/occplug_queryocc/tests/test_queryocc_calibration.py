@@ -11,7 +11,8 @@ import torch
 
 from occplug.components import CameraAwareDepthNet, OracleDepthNet
 from occplug.data.synthetic import preset
-from occplug.testing import make_tiny_batch, run_config
+from occplug.geometry import GridSpec
+from occplug.testing import make_tiny_batch, run_config, tiny_context
 from occplug_queryocc import LiftContractSplat, log_linear_depths, supervision_points
 from occplug_queryocc.supervision import QuerySupervision, sky_rays
 from occplug_queryocc.supervision.render_points import sample_rays
@@ -62,8 +63,16 @@ def test_query_supervision_at_a_scene_start_gives_only_real_times():
 
 def test_oracle_depth_lifts_onto_the_true_depth_in_the_log_linear_bins():
     batch = make_tiny_batch(1)
-    grid = {"range": [-20.0, -20.0, -1.0, 20.0, 20.0, 5.4], "voxel_size": [1.0, 1.0, 6.4]}
-    vt = LiftContractSplat(8, 4, grid, out_channels=4, num_bins=16, depth_net={"type": "oracle_depth", "hidden": 0})
+    grid = GridSpec.from_config({"range": [-20.0, -20.0, -1.0, 20.0, 20.0, 5.4], "voxel_size": [1.0, 1.0, 6.4]})
+    vt = LiftContractSplat(
+        8,
+        4,
+        grid,
+        out_channels=4,
+        num_bins=16,
+        depth_net={"type": "oracle_depth", "hidden": 0},
+        context=tiny_context(grid),
+    )
     assert isinstance(vt.depth_net, OracleDepthNet)
     centers = log_linear_depths(16, 1.0, 60.0)
     assert torch.equal(vt.depth_net.centers, centers)  # the lift handed in its own bins, not 1 m bins
@@ -80,13 +89,15 @@ def test_oracle_depth_lifts_onto_the_true_depth_in_the_log_linear_bins():
 
 def test_camera_aware_reads_the_calibration_and_plain_does_not():
     batch = make_tiny_batch(1)
-    grid = preset("tiny").grid.to_dict()
+    grid = preset("tiny").grid
     features = torch.randn(1, batch.images.shape[1], 8, batch.images.shape[-2] // 4, batch.images.shape[-1] // 4)
     wide = dataclasses.replace(batch, intrinsics=batch.intrinsics.clone())
     wide.intrinsics[..., 0, 0] *= 0.5  # a wider field of view: half the focal length
     for kind, reads in (("camera_aware", True), ("plain", False)):
         torch.manual_seed(0)
-        vt = LiftContractSplat(8, 4, grid, out_channels=4, num_bins=8, depth_net={"type": kind}).eval()
+        vt = LiftContractSplat(
+            8, 4, grid, out_channels=4, num_bins=8, depth_net={"type": kind}, context=tiny_context(grid)
+        ).eval()
         assert isinstance(vt.depth_net, CameraAwareDepthNet) == reads
         a = vt.depth_net(features, batch)
         b = vt.depth_net(features, wide)
