@@ -174,16 +174,16 @@ def ring_cameras(n: int, height: int, width: int, batch: int) -> SimpleNamespace
 def splat_row(args: argparse.Namespace) -> dict[str, Any]:
     import torch
 
-    from occplug.geometry import GridSpec
+    from occplug.context import parse_grid
     from occplug.ops import FrustumSplatter
 
     cuda = args.device == "cuda"
     if args.dry_run:
         size, stride, bins, channels, n = (64, 176), 16, 8, 8, 2
-        grid = GridSpec.from_config({"range": [-16.0, -16.0, -1.0, 16.0, 16.0, 5.4], "voxel_size": [1.6, 1.6, 1.6]})
+        grid = parse_grid({"range": [-16.0, -16.0, -1.0, 16.0, 16.0, 5.4], "voxel_size": [1.6, 1.6, 1.6]})
     else:
         size, stride, bins, channels, n = (256, 704), 16, 64, 64, 6
-        grid = GridSpec.from_config({"range": [-40.0, -40.0, -1.0, 40.0, 40.0, 5.4], "voxel_size": 0.4})
+        grid = parse_grid({"range": [-40.0, -40.0, -1.0, 40.0, 40.0, 5.4], "voxel_size": 0.4})
     device = torch.device(args.device)
     cams = ring_cameras(n, *size, batch=1)
     cams = SimpleNamespace(**{k: v.to(device) for k, v in vars(cams).items()})

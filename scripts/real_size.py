@@ -236,10 +236,10 @@ def worker(job: dict[str, Any]) -> list[dict[str, Any]]:
 
     def voxels(model: Any) -> int:
         """Voxels of the label grid (the top-level ``grid:``)."""
-        from occplug.geometry import GridSpec
+        from occplug.context import parse_grid
 
         count = 1
-        for n in GridSpec.from_config(grid).shape:
+        for n in parse_grid(grid).shape:
             count *= int(n)
         return count
 
