@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .context import RunContext
+from .context import RunContext, parse_grid
 from .data.frame import Batch, Frame
 from .errors import UserError
 from .geometry import GridSpec
@@ -36,7 +36,7 @@ __version__ = "0.1.0"
 #: The plugin API: the modules a plugin or a script may import from, by the names in their ``__all__``
 #: (docs/plugins.md, "What a plugin may import", says what each holds).
 PUBLIC_MODULES: tuple[str, ...] = (
-    "occplug",  # this facade: hookimpl, Registry, KINDS, the kinds' interfaces, Batch / Frame, GridSpec, RunContext
+    "occplug",  # this facade: hookimpl, Registry, KINDS, interfaces, Batch / Frame, GridSpec, RunContext, parse_grid
     "occplug.interfaces",  # the kinds' interfaces and the scene / query types they exchange
     "occplug.constraints",  # Annotated[...] rules on component arguments (Positive, Range, ...)
     "occplug.config",  # Slot, ConfigError, compose / validate, phase_specs
@@ -88,6 +88,7 @@ __all__ = [
     "ViewTransform",
     "__version__",
     "hookimpl",
+    "parse_grid",
 ]
 
 _LAZY = {

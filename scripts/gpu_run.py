@@ -174,7 +174,7 @@ def ring_cameras(n: int, height: int, width: int, batch: int) -> SimpleNamespace
 def splat_row(args: argparse.Namespace) -> dict[str, Any]:
     import torch
 
-    from occplug.context import parse_grid
+    from occplug import parse_grid
     from occplug.ops import FrustumSplatter
 
     cuda = args.device == "cuda"

@@ -236,7 +236,7 @@ def worker(job: dict[str, Any]) -> list[dict[str, Any]]:
 
     def voxels(model: Any) -> int:
         """Voxels of the label grid (the top-level ``grid:``)."""
-        from occplug.context import parse_grid
+        from occplug import parse_grid
 
         count = 1
         for n in parse_grid(grid).shape:
