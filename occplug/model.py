@@ -114,7 +114,8 @@ class OccModel(OccupancyModel):
             (in its ``given``) receives the scene's ``downsample`` attribute (1 where the scene has none).
         point_encoders: named ``point_encoder`` nodes (a LiDAR branch); ``grid`` defaults to the
             evaluation grid; a ``null`` entry is switched off.
-        supervision: named ``supervision`` nodes; each returns losses scaled by its ``weight``.
+        supervision: named ``supervision`` nodes; each returns losses scaled by its ``weight``. A source that
+            declares ``scene_downsample`` receives it as a head does.
         grid: the evaluation grid (filled from the config's top-level ``grid``), kept as a hyper-parameter; the
             model evaluates on the run context's grid, the same one.
         class_names: names of the label ids (filled from the run context; none given: the context's).
@@ -240,6 +241,7 @@ class OccModel(OccupancyModel):
                     grid=run_grid,
                     num_classes=self.num_classes,
                     in_channels=self.scene.out_channels,
+                    scene_downsample=int(getattr(self.scene, "downsample", 1)),  # as the heads get it
                 )
                 for name, spec in supervision.items()
                 if spec is not None

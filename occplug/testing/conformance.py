@@ -62,7 +62,7 @@ def check_component(kind: str, name: str, spec: dict[str, Any] | None = None, *,
         "level_strides": [4],
         "num_bins": 6,
         "out_channels": CHECK_CHANNELS,
-        "scene_downsample": 2,  # a head that declares it reads a scene at half the grid's resolution
+        "scene_downsample": 2,  # a head or source that declares it reads a scene at half the grid's resolution
     }
     defaults = {k: values[k] for k in given_arguments(kind, entry.factory) if k in values}
     torch.manual_seed(0)

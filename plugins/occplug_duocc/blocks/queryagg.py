@@ -30,8 +30,8 @@ dynamic classes ``1..10`` (barrier ... truck, the nuScenes detection classes), s
 Assumptions where the paper is silent (code notes §3): V2Q runs once, after the detector's last layer (the code:
 inside layer 6, before its last refinement: the detector's ``v2q_placement``), so the boxes DQA uses are the last
 layer's; the paper's small-object
-rule needs a "small" set, here the classes ``small_classes`` (default barrier, bicycle, motorcycle, pedestrian,
-traffic cone).
+rule needs a "small" set, here the classes ``small_classes`` (default ``small_objects``: the run's classes named
+barrier, bicycle, motorcycle, pedestrian and traffic cone, by name).
 """
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ __all__ = [
     "DEFAULT_DETECTION_CLASSES",
     "DETECTION_GROUP",
     "DEFAULT_SMALL_CLASSES",
+    "SMALL_OBJECT_NAMES",
     "DetectorSettings",
     "QueryAggOutput",
     "QueryAggSettings",
@@ -75,9 +76,11 @@ DETECTION_GROUP = "dynamic"
 #: Occ3D label ids of the detection classes (Occ3D's ``dynamic`` group, by name: 1 to 10): what a QueryAgg built
 #: without the run's class names detects.
 DEFAULT_DETECTION_CLASSES: tuple[int, ...] = class_groups(OCC3D_CLASSES)[DETECTION_GROUP]
-#: Occ3D label ids the paper's selection treats as small objects (cost test): barrier, bicycle, motorcycle,
-#: pedestrian, traffic cone.
-DEFAULT_SMALL_CLASSES = (1, 2, 6, 7, 8)
+#: The class names the paper's selection treats as small objects (cost test) when ``small_classes`` is
+#: ``small_objects``: resolved against the run's class names (those a taxonomy lacks are left out).
+SMALL_OBJECT_NAMES: tuple[str, ...] = ("barrier", "bicycle", "motorcycle", "pedestrian", "traffic_cone")
+#: The label ids :data:`SMALL_OBJECT_NAMES` name in Occ3D's classes (and the synthetic world's): 1, 2, 6, 7, 8.
+DEFAULT_SMALL_CLASSES: tuple[int, ...] = tuple(OCC3D_CLASSES.index(n) for n in SMALL_OBJECT_NAMES)
 #: A score threshold: sigmoid scores lie in (0, 1), so at 1 or above no query is ever selected (negative: all are).
 _SCORE_THRESHOLD = Range(high=1.0, high_open=True)
 
@@ -144,7 +147,9 @@ class QueryAggSettings:
         select_with_gt: select by the ground truth in training (else by score only).
         selection: ``paper`` (suppl. A.2), ``code`` (the public code's rule) or a mapping
             (:class:`SelectionSettings`).
-        small_classes: label ids the paper's rule treats as small objects (only those among ``detection_classes``).
+        small_classes: label ids the paper's rule treats as small objects (only those among ``detection_classes``),
+            or ``small_objects``: the run's classes named in :data:`SMALL_OBJECT_NAMES`, by name
+            (:func:`resolve_detection_classes`; Occ3D and the synthetic world: 1, 2, 6, 7, 8).
         score_threshold: selection without ground truth (evaluation, prediction): ``score > score_threshold``.
         max_queries: keep at most this many selected queries per sample (None: all).
         detection_classes: label id of each detection class, in order (None: the run's ``dynamic`` class group,
@@ -178,7 +183,9 @@ class QueryAggSettings:
     gt_box_noise: Annotated[float, NonNegative] = 0.0
     select_with_gt: bool = True
     selection: Literal["paper", "code"] | SelectionSettings = "paper"
-    small_classes: Annotated[tuple[Annotated[int, NonNegative], ...], LabelIds()] | None = DEFAULT_SMALL_CLASSES
+    small_classes: Literal["small_objects"] | Annotated[tuple[Annotated[int, NonNegative], ...], LabelIds()] | None = (
+        "small_objects"
+    )
     score_threshold: Annotated[float, _SCORE_THRESHOLD] = 0.3
     max_queries: Annotated[int, Positive] | None = None
     detection_classes: Annotated[tuple[Annotated[int, NonNegative], ...], Length(min=1), LabelIds()] | None = None
@@ -202,15 +209,22 @@ class QueryAggSettings:
 
 
 def resolve_detection_classes(config: QueryAggSettings, class_names: Sequence[str] | None) -> QueryAggSettings:
-    """``config`` with its detection classes checked against, or taken from, the run's class names.
+    """``config`` with its detection (and small) classes checked against, or taken from, the run's class names.
 
-    Left out (None), they are the label ids of the run's :data:`DETECTION_GROUP` class group
+    Left out (None), the detection classes are the label ids of the run's :data:`DETECTION_GROUP` class group
     (:func:`occplug.data.class_groups`, by name); given, each must be a label id of the run's classes.
-    Without class names (a QueryAgg built outside a run) ``config`` is returned as it is.
+    ``small_classes: small_objects`` becomes the ids of the run's classes named in :data:`SMALL_OBJECT_NAMES`.
+    Without class names (a QueryAgg built outside a run) the detection classes are returned as they are and the
+    small objects are Occ3D's (:data:`DEFAULT_SMALL_CLASSES`).
 
     Raises:
         ValueError: an id the run's classes do not have, or no class group to take them from (one line).
     """
+    if config.small_classes == "small_objects":
+        names = OCC3D_CLASSES if class_names is None else tuple(class_names)
+        config = dataclasses.replace(
+            config, small_classes=tuple(i for i, n in enumerate(names) if n in SMALL_OBJECT_NAMES)
+        )
     if class_names is None:
         return config
     key = "duocc_stream query_agg.detection_classes"
@@ -324,7 +338,12 @@ class QueryAggregation(nn.Module):
                 "duocc_stream query_agg.gt_box_drop / gt_box_noise degrade the ground-truth boxes: they need gt_boxes: true"
             )
         self.classes = tuple(int(c) for c in (cfg.detection_classes or DEFAULT_DETECTION_CLASSES))
-        small_ids = [self.classes.index(int(c)) for c in (cfg.small_classes or []) if int(c) in self.classes]
+        small = (
+            resolve_detection_classes(cfg, None).small_classes
+            if cfg.small_classes == "small_objects"
+            else cfg.small_classes
+        )
+        small_ids = [self.classes.index(int(c)) for c in (small or []) if int(c) in self.classes]
         self.rule = _selection_rule(cfg.selection, small_ids)
         self.score_threshold = float(cfg.score_threshold)
         self.max_queries = None if cfg.max_queries is None else int(cfg.max_queries)

@@ -306,7 +306,8 @@ class DuOccMask(_AuxLoss):
     Args:
         grid: the label (evaluation) grid, ego frame (the run's, given by the model).
         in_channels: ``C`` of ``V_fin`` (the scene's ``out_channels``, given by the model).
-        downsample: the scene's ``downsample`` (``V_fin`` lies on ``grid`` at that factor of its voxel size).
+        scene_downsample: the scene's ``downsample``, given by the model (``V_fin`` lies on ``grid`` at that factor
+            of its voxel size), so it cannot disagree with the scene's own setting.
         num_queries: ``Q`` per group (code: 100).
         num_groups: ``G`` (code: 6); None: ``1 + len(group_split)``; a smaller ``G`` uses the first ``G - 1``
             coarse groups of ``group_split``.
@@ -325,12 +326,15 @@ class DuOccMask(_AuxLoss):
         free_label, ignore_label: the data set's (filled in by the model).
     """
 
+    #: besides a source's given arguments, the scene's declared downsampling of the run grid
+    given = (*_AuxLoss.given, "scene_downsample")
+
     def __init__(
         self,
         grid: GridSpec,
         num_classes: Annotated[int, Positive],
+        scene_downsample: Annotated[int, Range(low=1, high=2)],
         in_channels: Annotated[int, Positive] = 32,
-        downsample: Annotated[int, Range(low=1, high=2)] = 2,
         num_queries: Annotated[int, Positive] = 100,
         num_groups: Annotated[int, Positive] | None = None,
         group_split: list[Annotated[list[list[Annotated[int, NonNegative]]], Length(min=1)]] | None = None,
@@ -355,7 +359,7 @@ class DuOccMask(_AuxLoss):
     ) -> None:
         super().__init__(weight, camera_mask, free_label, ignore_label)
         self.label_grid = grid
-        self.grid = coarse_grid(self.label_grid, int(downsample))
+        self.grid = coarse_grid(self.label_grid, int(scene_downsample))
         split = [list(map(list, g)) for g in (OCC3D_GROUP_SPLIT if group_split is None else group_split)]
         groups = 1 + len(split) if num_groups is None else int(num_groups)
         if groups > 1 + len(split):
@@ -401,8 +405,8 @@ class DuOccMask(_AuxLoss):
         features = getattr(scene, "features", None)
         if features is None or getattr(scene, "grid", None) != self.grid:
             raise ValueError(
-                f"duocc_mask: needs V_fin on the coarse grid {self.grid.shape} (model.scene.type=duocc_stream with "
-                f"grid ${{grid}} and the same downsample); got {type(scene).__name__} on "
+                f"duocc_mask: needs V_fin on the coarse grid {self.grid.shape} (model.scene.type=duocc_stream on "
+                f"the run grid); got {type(scene).__name__} on "
                 f"{getattr(getattr(scene, 'grid', None), 'shape', None)}"
             )
         batch.require("voxel_labels", by="duocc_mask")

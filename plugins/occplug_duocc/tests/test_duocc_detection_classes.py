@@ -20,6 +20,7 @@ from occplug.data.synthetic import SyntheticDataModule
 from occplug.run import runner
 from occplug_duocc.blocks.queryagg import (
     DEFAULT_DETECTION_CLASSES,
+    DEFAULT_SMALL_CLASSES,
     QueryAggregation,
     QueryAggSettings,
     resolve_detection_classes,
@@ -28,6 +29,8 @@ from occplug_duocc.scene import DuOccStream
 
 #: the ids the detector classified before they came from the class names (barrier ... truck on Occ3D)
 FORMER_IDS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
+#: the ids the selection's small-object rule read before they came from the class names
+FORMER_SMALL_IDS = (1, 2, 6, 7, 8)
 
 
 def _cli(capsys, *argv: str) -> tuple[int, list[str]]:
@@ -49,7 +52,7 @@ def test_the_detection_classes_are_the_dynamic_group_by_name():
 
 
 def test_given_detection_classes_are_checked_against_the_run_and_kept():
-    given = QueryAggSettings(detection_classes=(4, 10))
+    given = QueryAggSettings(detection_classes=(4, 10), small_classes=(4,))
     assert resolve_detection_classes(given, OCC3D_CLASSES) is given
     with pytest.raises(ValueError, match=r"^duocc_stream query_agg.detection_classes: label id 18 is not one of the "):
         resolve_detection_classes(QueryAggSettings(detection_classes=(4, 18)), OCC3D_CLASSES)
@@ -58,12 +61,26 @@ def test_given_detection_classes_are_checked_against_the_run_and_kept():
     assert resolve_detection_classes(QueryAggSettings(), None).detection_classes is None  # outside a run: as given
 
 
+def test_the_small_objects_are_named_and_keep_their_ids_on_occ3d():
+    """``small_objects`` is barrier, bicycle, motorcycle, pedestrian and traffic cone by name: the former ids on
+    Occ3D and the default world, SemanticKITTI's own ids for the names it has, Occ3D's outside a run."""
+    assert DEFAULT_SMALL_CLASSES == FORMER_SMALL_IDS
+    for module in (SyntheticDataModule, Occ3DNuScenesDataModule):
+        assert resolve_detection_classes(QueryAggSettings(), module.class_names).small_classes == FORMER_SMALL_IDS
+    kitti = resolve_detection_classes(QueryAggSettings(), SemanticKITTIDataModule.class_names).small_classes
+    assert [SEMANTIC_KITTI_CLASSES[i] for i in kitti] == ["bicycle", "motorcycle"]
+    assert resolve_detection_classes(QueryAggSettings(), None).small_classes == FORMER_SMALL_IDS
+    assert resolve_detection_classes(QueryAggSettings(small_classes=None), OCC3D_CLASSES).small_classes is None
+
+
 def test_the_built_full_model_detects_the_dynamic_group(model_dm):
     cfg = runner.load_config(["duocc/full"])
     assert "detection_classes" not in cfg["model"]["scene"]["query_agg"]  # no hard-coded ids in the recipe
     model, _ = model_dm
     assert isinstance(model.scene, DuOccStream) and isinstance(model.scene.query_agg, QueryAggregation)
     assert model.scene.query_agg.classes == FORMER_IDS
+    small = [FORMER_IDS[i] for i in model.scene.query_agg.rule["small_classes"]]
+    assert small == list(FORMER_SMALL_IDS)  # detection class indices of the small objects, by name
 
 
 @pytest.mark.parametrize(

@@ -8,6 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from occplug.config import ConfigError
 from occplug.interfaces import ModelOutputs
 from occplug.run import runner
 from occplug.streams import set_stream_stage
@@ -28,7 +29,10 @@ TINY = dict(in_channels=8, num_queries=4, num_groups=3, channels=16, heads=2, po
 
 def _source(**kwargs):
     torch.manual_seed(0)
-    return DuOccMask(grid=label_grid(make_tiny_batch()), **{"num_classes": 18, **TINY, "dropout": 0.0, **kwargs})
+    return DuOccMask(
+        grid=label_grid(make_tiny_batch()),
+        **{"num_classes": 18, "scene_downsample": 2, **TINY, "dropout": 0.0, **kwargs},
+    )
 
 
 def _outputs(source, batch, seed=1):
@@ -315,3 +319,20 @@ def test_full_mask_trains_and_predicts_exactly_as_full_with_the_same_weights():
     # a checkpoint rebuilds from its hyper-parameters alone (the decoder included)
     rebuilt = type(model)(**model.hparams, context=model.context)  # the run context is not a hyper-parameter
     rebuilt.load_state_dict(model.state_dict(), strict=True)
+
+
+@pytest.mark.parametrize("downsample", [1, 2])
+def test_the_mask_decoder_reads_v_fin_at_the_scene_s_downsample_given_once(downsample):
+    """The model gives the scene's ``downsample`` (one value): the decoder's coarse grid is the scene's."""
+    cfg = runner.load_config(
+        ["duocc/full_mask", "occplug/trainer/debug"], [*SMALL, f"model.scene.downsample={downsample}"]
+    )
+    _, model = runner.build_run(cfg)
+    assert model.supervision["mask"].grid == model.scene.coarse == coarse_grid(model.grid, downsample)
+
+
+def test_a_config_that_still_sets_the_mask_decoder_s_downsample_is_one_error():
+    with pytest.raises(ConfigError, match=r"model\.supervision\.mask\.downsample"):
+        runner.load_config(
+            ["duocc/full_mask", "occplug/trainer/debug"], [*SMALL, "model.supervision.mask.downsample=2"]
+        )
