@@ -64,8 +64,10 @@ class SupervisionSource(nn.Module, ABC):
     """A loss term family. ``weight`` scales every loss it returns.
 
     Contract:
-        given: ``free_label`` and ``ignore_label`` (the data set's), and, to a source that takes it (one that
-        owns layers reading the scene's features), ``in_channels`` (the scene's ``out_channels``).
+        given: ``free_label`` and ``ignore_label`` (the data set's), the run's ``grid`` and ``num_classes``, and, to a
+        source that takes it (one that owns layers reading the scene's features), ``in_channels`` (the scene's
+        ``out_channels``); a source that declares ``scene_downsample`` in its ``given`` also gets the scene's
+        ``downsample`` (1 where it has none).
         declares: ``weight``, ``training_mask``, ``requires`` (Frame fields it reads).
         conformance: trained on a small LSS model's outputs for a tiny-world batch.
 

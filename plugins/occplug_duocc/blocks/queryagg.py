@@ -61,6 +61,7 @@ __all__ = [
     "DETECTION_GROUP",
     "DEFAULT_SMALL_CLASSES",
     "SMALL_OBJECT_NAMES",
+    "small_object_ids",
     "DetectorSettings",
     "QueryAggOutput",
     "QueryAggSettings",
@@ -78,9 +79,26 @@ DETECTION_GROUP = "dynamic"
 DEFAULT_DETECTION_CLASSES: tuple[int, ...] = class_groups(OCC3D_CLASSES)[DETECTION_GROUP]
 #: The class names the paper's selection treats as small objects (cost test) when ``small_classes`` is
 #: ``small_objects``: resolved against the run's class names (those a taxonomy lacks are left out).
-SMALL_OBJECT_NAMES: tuple[str, ...] = ("barrier", "bicycle", "motorcycle", "pedestrian", "traffic_cone")
+#: Occ3D's five (the paper's taxonomy) and SemanticKITTI's riders and persons.
+SMALL_OBJECT_NAMES: tuple[str, ...] = (
+    "barrier",
+    "bicycle",
+    "motorcycle",
+    "pedestrian",
+    "traffic_cone",
+    "person",
+    "bicyclist",
+    "motorcyclist",
+)
+
+
+def small_object_ids(class_names: Sequence[str]) -> tuple[int, ...]:
+    """The label ids of ``class_names`` named in :data:`SMALL_OBJECT_NAMES`, in id order."""
+    return tuple(i for i, name in enumerate(class_names) if name in SMALL_OBJECT_NAMES)
+
+
 #: The label ids :data:`SMALL_OBJECT_NAMES` name in Occ3D's classes (and the synthetic world's): 1, 2, 6, 7, 8.
-DEFAULT_SMALL_CLASSES: tuple[int, ...] = tuple(OCC3D_CLASSES.index(n) for n in SMALL_OBJECT_NAMES)
+DEFAULT_SMALL_CLASSES: tuple[int, ...] = small_object_ids(OCC3D_CLASSES)
 #: A score threshold: sigmoid scores lie in (0, 1), so at 1 or above no query is ever selected (negative: all are).
 _SCORE_THRESHOLD = Range(high=1.0, high_open=True)
 
@@ -218,14 +236,12 @@ def resolve_detection_classes(config: QueryAggSettings, class_names: Sequence[st
     small objects are Occ3D's (:data:`DEFAULT_SMALL_CLASSES`).
 
     Raises:
-        ValueError: an id the run's classes do not have, or no class group to take them from (one line).
+        ValueError: an id the run's classes do not have, no class group to take them from, or ``small_objects``
+            naming none of the run's classes (one line).
     """
-    if config.small_classes == "small_objects":
-        names = OCC3D_CLASSES if class_names is None else tuple(class_names)
-        config = dataclasses.replace(
-            config, small_classes=tuple(i for i, n in enumerate(names) if n in SMALL_OBJECT_NAMES)
-        )
     if class_names is None:
+        if config.small_classes == "small_objects":
+            config = dataclasses.replace(config, small_classes=DEFAULT_SMALL_CLASSES)
         return config
     key = "duocc_stream query_agg.detection_classes"
     if config.detection_classes is None:
@@ -235,12 +251,21 @@ def resolve_detection_classes(config: QueryAggSettings, class_names: Sequence[st
                 f"{key}: the run's {len(class_names)} classes are no taxonomy with a '{DETECTION_GROUP}' class group "
                 "(occplug.data.class_groups); list the detection classes' label ids"
             )
-        return dataclasses.replace(config, detection_classes=groups[DETECTION_GROUP])
+        config = dataclasses.replace(config, detection_classes=groups[DETECTION_GROUP])
     for label in config.detection_classes:
         if not 0 <= int(label) < len(class_names):
             raise ValueError(
                 f"{key}: label id {label} is not one of the run's {len(class_names)} classes (0 to {len(class_names) - 1})"
             )
+    if config.small_classes == "small_objects":
+        small = small_object_ids(class_names)
+        if not small:
+            raise ValueError(
+                f"duocc_stream query_agg.small_classes: small_objects names none of the run's {len(class_names)} "
+                f"classes ({', '.join(SMALL_OBJECT_NAMES)}); list the small classes' label ids, or null for no "
+                "small / large split"
+            )
+        config = dataclasses.replace(config, small_classes=small)
     return config
 
 
@@ -338,11 +363,7 @@ class QueryAggregation(nn.Module):
                 "duocc_stream query_agg.gt_box_drop / gt_box_noise degrade the ground-truth boxes: they need gt_boxes: true"
             )
         self.classes = tuple(int(c) for c in (cfg.detection_classes or DEFAULT_DETECTION_CLASSES))
-        small = (
-            resolve_detection_classes(cfg, None).small_classes
-            if cfg.small_classes == "small_objects"
-            else cfg.small_classes
-        )
+        small = DEFAULT_SMALL_CLASSES if cfg.small_classes == "small_objects" else cfg.small_classes  # outside a run
         small_ids = [self.classes.index(int(c)) for c in (small or []) if int(c) in self.classes]
         self.rule = _selection_rule(cfg.selection, small_ids)
         self.score_threshold = float(cfg.score_threshold)

@@ -359,7 +359,8 @@ class DuOccMask(_AuxLoss):
     ) -> None:
         super().__init__(weight, camera_mask, free_label, ignore_label)
         self.label_grid = grid
-        self.grid = coarse_grid(self.label_grid, int(scene_downsample))
+        self.downsample = int(scene_downsample)
+        self.grid = coarse_grid(self.label_grid, self.downsample)
         split = [list(map(list, g)) for g in (OCC3D_GROUP_SPLIT if group_split is None else group_split)]
         groups = 1 + len(split) if num_groups is None else int(num_groups)
         if groups > 1 + len(split):
@@ -403,11 +404,12 @@ class DuOccMask(_AuxLoss):
             return {}
         scene = outputs.scene
         features = getattr(scene, "features", None)
-        if features is None or getattr(scene, "grid", None) != self.grid:
+        if not isinstance(scene, StreamVoxelScene) or features is None:
+            raise ValueError(f"duocc_mask: needs V_fin of model.scene.type=duocc_stream; got {type(scene).__name__}")
+        if scene.grid != self.grid:
             raise ValueError(
-                f"duocc_mask: needs V_fin on the coarse grid {self.grid.shape} (model.scene.type=duocc_stream on "
-                f"the run grid); got {type(scene).__name__} on "
-                f"{getattr(getattr(scene, 'grid', None), 'shape', None)}"
+                f"duocc_mask: reads V_fin at scene_downsample {self.downsample} (grid {self.grid.shape}) but the "
+                f"scene's V_fin is on {scene.grid.shape}; leave scene_downsample to the model (the scene's downsample)"
             )
         batch.require("voxel_labels", by="duocc_mask")
         labels = batch.voxel_labels.to(features.device).long()

@@ -62,15 +62,24 @@ def test_given_detection_classes_are_checked_against_the_run_and_kept():
 
 
 def test_the_small_objects_are_named_and_keep_their_ids_on_occ3d():
-    """``small_objects`` is barrier, bicycle, motorcycle, pedestrian and traffic cone by name: the former ids on
-    Occ3D and the default world, SemanticKITTI's own ids for the names it has, Occ3D's outside a run."""
+    """``small_objects`` is barrier, bicycle, motorcycle, pedestrian and traffic cone by name (and SemanticKITTI's
+    person and riders): the former ids on Occ3D and the default world, SemanticKITTI's own, Occ3D's outside a run;
+    a taxonomy with none of the names is one line, not a silently empty set."""
     assert DEFAULT_SMALL_CLASSES == FORMER_SMALL_IDS
     for module in (SyntheticDataModule, Occ3DNuScenesDataModule):
         assert resolve_detection_classes(QueryAggSettings(), module.class_names).small_classes == FORMER_SMALL_IDS
     kitti = resolve_detection_classes(QueryAggSettings(), SemanticKITTIDataModule.class_names).small_classes
-    assert [SEMANTIC_KITTI_CLASSES[i] for i in kitti] == ["bicycle", "motorcycle"]
+    assert [SEMANTIC_KITTI_CLASSES[i] for i in kitti] == [
+        "bicycle",
+        "motorcycle",
+        "person",
+        "bicyclist",
+        "motorcyclist",
+    ]
     assert resolve_detection_classes(QueryAggSettings(), None).small_classes == FORMER_SMALL_IDS
     assert resolve_detection_classes(QueryAggSettings(small_classes=None), OCC3D_CLASSES).small_classes is None
+    with pytest.raises(ValueError, match=r"^duocc_stream query_agg.small_classes: small_objects names none of the run"):
+        resolve_detection_classes(QueryAggSettings(detection_classes=(1,)), ("free", "car", "tree"))
 
 
 def test_the_built_full_model_detects_the_dynamic_group(model_dm):

@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from occplug.config import ConfigError
-from occplug.interfaces import ModelOutputs
+from occplug.interfaces import DenseVoxelScene, ModelOutputs
 from occplug.run import runner
 from occplug.streams import set_stream_stage
 from occplug.testing import check_component, label_grid, make_tiny_batch
@@ -336,3 +336,17 @@ def test_a_config_that_still_sets_the_mask_decoder_s_downsample_is_one_error():
         runner.load_config(
             ["duocc/full_mask", "occplug/trainer/debug"], [*SMALL, "model.supervision.mask.downsample=2"]
         )
+
+
+def test_the_mask_decoder_refuses_a_scene_that_is_not_duocc_s_stream_or_not_at_its_downsample():
+    """A dense scene on the run grid (``scene_downsample`` 1, as the model gives for a scene without ``downsample``)
+    is one line naming ``duocc_stream``, not a silently trained decoder; a V_fin on another grid names the value."""
+    source = _source(scene_downsample=1).train()
+    batch = make_tiny_batch()
+    volume = torch.randn(len(batch), 8, *source.label_grid.shape)
+    dense = ModelOutputs(None, None, DenseVoxelScene(volume, source.label_grid), {}, lambda *a, **k: None)
+    with pytest.raises(ValueError, match=r"^duocc_mask: needs V_fin of model.scene.type=duocc_stream; got Dense"):
+        source(batch, dense)
+    halved = _source(scene_downsample=2).train()
+    with pytest.raises(ValueError, match=r"^duocc_mask: reads V_fin at scene_downsample 2 .* leave scene_downsample"):
+        halved(batch, _outputs(source, batch))
