@@ -73,6 +73,7 @@ def test_ddp_fit_on_two_processes_equals_single_process_validation(tmp_path: Pat
     assert sorted(p.name for p in run.iterdir()) == [
         "checkpoints",
         "config.yaml",
+        "environment.json",
         "logs",
         "metrics.json",
         "plugins.json",

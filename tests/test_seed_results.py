@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import math
 import subprocess
 from pathlib import Path
+
+import torch
 
 from occplug.run.bench import code_commit, write_seed_result, write_table_seeds
 
@@ -20,6 +23,9 @@ def test_one_seed_round_trips_with_nan_as_null(tmp_path):
     assert record["values"] == {"mIoU": 12.5, "IoU_car": None}
     assert record["settings"] == {"epochs": 4}
     assert isinstance(record["command"], list) and record["command"]
+    # where it was made: the same code and seed reproduce a number only on the same CPU kernel set
+    assert record["environment"]["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert record["environment"]["packages"]["torch"] == importlib.metadata.version("torch")
 
 
 def test_a_table_writes_one_file_per_row_and_seed_in_seed_order(tmp_path):

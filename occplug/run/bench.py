@@ -144,9 +144,13 @@ def write_seed_result(
 
     The file is small, made to be committed beside a plugin's RESULTS.md, so that a table's mean ± std can be
     checked against the seeds it came from. It records the values, the settings the row ran with (budget, world,
-    overrides), the command line and the code's commit: ``commit`` where given (a script passes the commit it
-    started at, so a commit made while it ran is not recorded), else :func:`code_commit` now.
+    overrides), the command line, the code's commit (``commit`` where given: a script passes the commit it
+    started at, so a commit made while it ran is not recorded; else :func:`code_commit` now) and the numeric
+    environment of the process that writes it (:func:`~occplug.run.runner.numeric_environment`: the same code and
+    seed reproduce a number bit for bit only on the same CPU kernel set).
     """
+    from occplug.run import runner
+
     path = Path(folder) / f"{row}-seed{seed}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     record = {
@@ -156,6 +160,7 @@ def write_seed_result(
         "settings": settings,
         "command": [_program(), *sys.argv[1:]],
         "commit": code_commit() if commit is None else commit,
+        "environment": runner.numeric_environment(),
     }
     path.write_text(json.dumps(record, indent=2) + "\n")
     return path
@@ -403,14 +408,7 @@ def environment(device: str) -> tuple[str, str, dict[str, str]]:
 
     from occplug.run import runner
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    cpu = runner.cpu_name()
     mem = ""
     try:
         pages = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")

@@ -283,6 +283,9 @@ def _fit_phases(
             "# resolved occplug config with phases; each phase's own config in <phase>/config.yaml\n" + dump_yaml(cfg),
         )
         runner.write_text_atomic(run_dir / "plugins.json", json.dumps(runner.plugin_versions(), indent=2) + "\n")
+        runner.write_text_atomic(
+            run_dir / "environment.json", json.dumps(runner.numeric_environment(), indent=2) + "\n"
+        )
     results: dict[str, dict[str, Any]] = {}
     final: dict[str, float] | None = None
     for spec in specs:

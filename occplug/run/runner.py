@@ -4,6 +4,8 @@ A run directory holds::
 
     config.yaml          the fully resolved config (re-usable with -c)
     plugins.json         installed plugins and their versions
+    environment.json     what the numbers depend on besides the code: torch and its CPU kernel set, the CPU,
+                         the numeric packages' versions (numeric_environment)
     checkpoints/         last.ckpt (+ per-epoch checkpoints as configured; every N steps with
                          trainer.checkpoint_every_n_steps)
     logs/version_0/      Lightning's CSV log (metrics.csv); each --resume adds a version
@@ -77,6 +79,9 @@ __all__ = [
     "is_rank_zero",
     "load_checkpoint",
     "load_config",
+    "NUMERIC_PACKAGES",
+    "cpu_name",
+    "numeric_environment",
     "plugin_versions",
     "predict",
     "read_run_config",
@@ -136,6 +141,52 @@ def resolve_eval_mask(cfg: dict[str, Any]) -> str:
 def plugin_versions() -> dict[str, str | None]:
     """``{plugin name: distribution version}`` of every loaded plugin."""
     return {r.name: r.version for r in plugin_reports() if r.error is None}
+
+
+def cpu_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), else what :mod:`platform` knows."""
+    import platform
+
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
+#: The distributions whose versions :func:`numeric_environment` records (those a run's numbers can depend on).
+NUMERIC_PACKAGES = ("torch", "lightning", "torchmetrics", "numpy", "kornia", "numba", "timm")
+
+
+def numeric_environment() -> dict[str, Any]:
+    """What a run's numbers depend on besides the code, seed and config, as plain data.
+
+    The same code and seed give bit-identical CPU runs only on the same kernel set: torch picks its vectorised CPU
+    kernels by the CPU's vector unit (``cpu_capability``: ``AVX2``, ``AVX512``, ...; ``ATEN_CPU_CAPABILITY`` lowers
+    it), and each set rounds differently, so runs on two machines drift apart step by step. Recorded in every run
+    directory (``environment.json``) and in every per-seed result file, so two numbers can be told apart by where
+    they were made.
+    """
+    import platform
+    from importlib.metadata import PackageNotFoundError, version
+
+    import torch
+
+    versions: dict[str, str | None] = {}
+    for name in NUMERIC_PACKAGES:
+        try:
+            versions[name] = version(name)
+        except PackageNotFoundError:
+            versions[name] = None
+    return {
+        "cpu": cpu_name(),
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "machine": platform.machine(),
+        "python": platform.python_version(),
+        "torch_threads": torch.get_num_threads(),
+        "cuda_device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+        "packages": versions,
+    }
 
 
 def build_datamodule(cfg: dict[str, Any]) -> OccDataModule:
@@ -546,6 +597,7 @@ def fit(
         if trainer.is_global_zero:
             write_text_atomic(run_dir / "config.yaml", run_config_text(cfg))  # every component argument, defaults too
             write_text_atomic(run_dir / "plugins.json", json.dumps(plugin_versions(), indent=2) + "\n")
+            write_text_atomic(run_dir / "environment.json", json.dumps(numeric_environment(), indent=2) + "\n")
         with interruptible(guard), data_errors(), warnings.catch_warnings():
             # the train loader does resume mid-epoch (OccDataModule.state_dict), through a path Lightning does not see
             warnings.filterwarnings("ignore", message=".*your dataloader is not resumable")

@@ -1,5 +1,6 @@
 """The CLI contract: exit codes, one-line errors, run directories, resume, evaluate, predict."""
 
+import importlib.metadata
 import json
 import os
 import subprocess
@@ -8,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 
 from occplug.cli import main
@@ -66,6 +68,9 @@ def test_fit_writes_run_dir_then_resume_validate_predict(tmp_path, capsys):
     metrics = json.loads((run / "metrics.json").read_text())
     assert "mIoU" in metrics and metrics["global_step"] == 5
     assert "occplug" in json.loads((run / "plugins.json").read_text())
+    environment = json.loads((run / "environment.json").read_text())
+    assert environment["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert environment["packages"]["torch"] == importlib.metadata.version("torch")
     assert (run / "logs" / "version_0" / "metrics.csv").is_file()
     saved = yaml.safe_load((run / "config.yaml").read_text())
     assert saved["trainer"]["max_steps"] == 5 and saved["data"]["preset"] == "tiny"

@@ -113,6 +113,7 @@ def test_two_local_processes_as_two_nodes_train_into_one_run_directory(tmp_path)
     assert sorted(p.name for p in run.iterdir()) == [
         "checkpoints",
         "config.yaml",
+        "environment.json",
         "logs",
         "metrics.json",
         "plugins.json",
