@@ -24,8 +24,17 @@ def fma(typingctx, a, b, c):  # noqa: ARG001 (numba's intrinsic signature)
 
 
 @numba.njit(cache=True, nogil=True)
-def walk(ray, index, t_entry, t_stop, offset, inv, step, bits, strides, grids, out_index, out_entry, out_exit):
+def _boundary(i, v, o, fused):
+    """``o + i * v`` as ``torch.addcmul`` rounds it here: in one rounding (``fused``) or two."""
+    return fma(i, v, o) if fused else o + i * v
+
+
+@numba.njit(cache=True, nogil=True)
+def walk(ray, index, t_entry, t_stop, offset, inv, step, bits, strides, grids, out_index, out_entry, out_exit, fused):
     all_grids = (1 << grids) - 1
+    # the grid's shape, from the row-major strides: a ray whose index leaves it stops (the exit distance, computed by
+    # torch, normally stops it first; the test keeps an exit that torch rounded differently from reading past the grid)
+    nx, ny, nz = bits.shape[0] // strides[0], strides[0] // strides[1], strides[1]
     for row in range(ray.shape[0]):
         r = ray[row]
         i0, i1, i2 = index[row, 0], index[row, 1], index[row, 2]
@@ -37,7 +46,7 @@ def walk(ray, index, t_entry, t_stop, offset, inv, step, bits, strides, grids, o
         stop = t_stop[row]
         pending = all_grids
         while True:
-            t0, t1, t2 = fma(i0, v0, o0), fma(i1, v1, o1), fma(i2, v2, o2)
+            t0, t1, t2 = _boundary(i0, v0, o0, fused), _boundary(i1, v1, o1, fused), _boundary(i2, v2, o2, fused)
             t_next = min(t0, t1, t2)
             found = bits[flat] & pending
             if found:
@@ -62,4 +71,6 @@ def walk(ray, index, t_entry, t_stop, offset, inv, step, bits, strides, grids, o
                 flat += int(s2) * strides[2]
             t = t_next
             if not t_next < stop:
+                break
+            if not (0 <= i0 < nx and 0 <= i1 < ny and 0 <= i2 < nz):
                 break

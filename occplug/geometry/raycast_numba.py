@@ -4,7 +4,9 @@ The pure-PyTorch walk of :mod:`occplug.geometry.raycast` is the reference. This 
 very same per-ray state (the reference's own set-up code: entry distance, start voxel, boundary
 offsets and inverse directions, all float64) and then steps each ray voxel by voxel in compiled code,
 evaluating every boundary distance with the expression the reference uses, ``offset + index * inv``
-fused into one rounding (``torch.addcmul`` on a CPU with FMA), and the same tie rule (axes whose
+rounded as ``torch.addcmul`` rounds it on this machine (once, fused, where torch's CPU kernels use FMA; twice
+where they do not, e.g. under ``ATEN_CPU_CAPABILITY=default``: :func:`torch_fuses_addcmul` asks torch), and
+the same tie rule (axes whose
 boundary distances are equal step together). So it reports the same voxels and the same distances,
 bit for bit, as the reference walk on this machine; ``tests/geometry/test_raycast.py`` holds the two
 equal. The kernel needs ``numba`` (``pip install occplug[fast]``); without it, or for tensors on a GPU,
@@ -25,6 +27,16 @@ __all__ = ["MAX_GRIDS", "available", "first_hits_numba"]
 
 #: The most grids one compiled walk casts through at once (one bit each of an int64 code).
 MAX_GRIDS = 62
+
+
+@functools.cache
+def torch_fuses_addcmul() -> bool:
+    """Whether ``torch.addcmul`` on CPU float64 rounds ``c + a * b`` once (FMA) here: ``a * b`` of
+    ``(1 + 2**-30)**2`` is exactly ``1 + 2**-29 + 2**-60``, whose last term only a fused product keeps."""
+    a = torch.full((64,), 1.0 + 2.0**-30, dtype=torch.float64)  # 64: torch's vectorised loop, as the walk's set-up
+    c = torch.full((64,), -(1.0 + 2.0**-29), dtype=torch.float64)
+    exact = torch.addcmul(c, a, a)
+    return bool((exact != 0).all())
 
 
 @functools.cache
@@ -69,4 +81,5 @@ def first_hits_numba(occupied: Tensor, walk_state, out_index: Tensor, out_entry:
         out_index.numpy(),
         out_entry.numpy(),
         out_exit.numpy(),
+        torch_fuses_addcmul(),
     )

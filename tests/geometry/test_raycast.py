@@ -1,12 +1,18 @@
 """Exact voxel traversal: the vectorised walk equals a slow per-ray reference, plus hand cases."""
 
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 
 from occplug.geometry import GridSpec, first_hit, observed_mask, traversed_mask
 from occplug.geometry.raycast import clearance, first_hits
+
+ROOT = Path(__file__).resolve().parents[2]
 
 # ----------------------------------------------------------------------------------------------
 # The reference: per ray, in Python floats. Independent of the DDA: it collects every t at which
@@ -407,3 +413,27 @@ def test_gpu_equals_cpu():
     endpoints = origins + directions * 3
     on_gpu = traversed_mask(grid, origins.cuda(), endpoints.cuda()).cpu()
     assert torch.equal(traversed_mask(grid, origins, endpoints), on_gpu)
+
+
+def test_the_compiled_walk_follows_torch_s_rounding_where_torch_does_not_fuse():
+    """Under ``ATEN_CPU_CAPABILITY=default`` torch's ``addcmul`` rounds twice: the compiled walk asks torch and
+    rounds as it does, so it still equals the torch walk bit for bit and no ray reads past the grid (it did: the
+    set-up's exit distance, rounded twice, let a fused step cross the last boundary, an index past the grid)."""
+    pytest.importorskip("numba")
+    code = """
+import torch
+from occplug.geometry.raycast import first_hits
+from occplug.geometry.raycast_numba import torch_fuses_addcmul
+from tests.geometry.test_raycast import random_case, sparse_case, tie_case
+assert not torch_fuses_addcmul()
+for grid, occ, origins, directions, t_max in (tie_case(), sparse_case(1), random_case(5, rays=3000)):
+    occ = occ if occ.dim() == 4 else occ[None]
+    fast = first_hits(occ, grid, origins, directions, t_max, kernel="numba")
+    reference = first_hits(occ, grid, origins, directions, t_max, kernel="torch")
+    assert all(torch.equal(a, b) for a, b in zip(fast, reference, strict=True))
+    assert bool((fast.index < torch.tensor(grid.shape)).all())
+print("ok")
+"""
+    env = {**os.environ, "ATEN_CPU_CAPABILITY": "default", "OMP_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]
