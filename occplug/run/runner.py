@@ -88,6 +88,7 @@ __all__ = [
     "resolve_run_config",
     "restore_run",
     "run_context",
+    "saved_run_config",
     "write_text_atomic",
 ]
 
@@ -136,6 +137,14 @@ def resolve_eval_mask(cfg: dict[str, Any]) -> str:
                     "once, with the top-level eval_mask"
                 )
     return str(chosen if chosen is not None else DEFAULT_EVAL_MASK)
+
+
+def saved_run_config(cfg: dict[str, Any]) -> dict[str, Any]:
+    """``cfg`` as a run directory's ``config.yaml`` holds it (every component argument with its default, what
+    :func:`fit` writes), so a script can tell whether a finished run is of the config a recipe composes today."""
+    from occplug.config.yamlio import parse_yaml
+
+    return parse_yaml(run_config_text(cfg), "config.yaml")
 
 
 def plugin_versions() -> dict[str, str | None]:

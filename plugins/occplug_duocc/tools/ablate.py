@@ -101,11 +101,10 @@ def fit(config: str, seed: int, args: argparse.Namespace) -> Path:
         *args.set,
     ]
     if (out / "config.yaml").is_file():  # reuse (or resume) only a run of the config the recipe composes today
-        import yaml
-
         from occplug.run import runner
 
-        if yaml.safe_load((out / "config.yaml").read_text()) != runner.load_config([f"duocc/{config}"], overrides):
+        today = runner.saved_run_config(runner.load_config([f"duocc/{config}"], overrides))
+        if runner.read_run_config(out / "config.yaml") != today:
             print(
                 f"error: {out} was trained with another config than duocc/{config} {' '.join(overrides)} composes "
                 "now (a recipe or --set changed); choose a fresh --out",
